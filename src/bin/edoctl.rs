@@ -1,0 +1,2 @@
+//! edoctl: the operator's command-line client.
+fn main() {}

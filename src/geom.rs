@@ -1,0 +1,491 @@
+//! Planar geometry shared by every planning stage: closed loops, layer regions
+//! (an outer loop plus holes, the paper's Ce and Ci), and the checks that a region
+//! supplied by a user or a slicer is sound before the EDO method touches it.
+//!
+//! Conventions: millimetres, `f64`; a loop is closed implicitly (last vertex joins the
+//! first, never repeated); a [`Region`]'s outer loop is counter-clockwise and its holes
+//! clockwise once normalised with [`Region::normalised`].
+
+use glam::DVec2;
+use serde::{Deserialize, Serialize};
+
+/// Geometric tolerances, in one place (ARCHITECTURE.md "Units and numbers").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tolerances {
+    /// Two points closer than this are the same point, mm.
+    pub point_eq_mm: f64,
+    /// Loops with less area than this are degenerate, mm².
+    pub min_loop_area_mm2: f64,
+    /// Chord tolerance when sampling curves (splines, arcs) to polylines, mm.
+    pub chord_mm: f64,
+    /// Compositions must sum to 1 within this.
+    pub composition_sum: f64,
+}
+
+impl Default for Tolerances {
+    fn default() -> Self {
+        Tolerances {
+            point_eq_mm: 1e-9,
+            min_loop_area_mm2: 1e-9,
+            chord_mm: 0.01,
+            composition_sum: 1e-9,
+        }
+    }
+}
+
+/// Twice the signed area of a closed loop (positive when counter-clockwise).
+pub fn signed_area2(pts: &[DVec2]) -> f64 {
+    let n = pts.len();
+    if n < 3 {
+        return 0.0;
+    }
+    let mut s = 0.0;
+    for i in 0..n {
+        let a = pts[i];
+        let b = pts[(i + 1) % n];
+        s += a.x * b.y - b.x * a.y;
+    }
+    s
+}
+
+/// Signed area of a closed loop, mm² (positive when counter-clockwise).
+pub fn signed_area(pts: &[DVec2]) -> f64 {
+    0.5 * signed_area2(pts)
+}
+
+/// Perimeter of a closed loop, mm.
+pub fn loop_length(pts: &[DVec2]) -> f64 {
+    let n = pts.len();
+    if n < 2 {
+        return 0.0;
+    }
+    (0..n).map(|i| pts[i].distance(pts[(i + 1) % n])).sum()
+}
+
+/// Length of an open polyline, mm.
+pub fn polyline_length(pts: &[DVec2]) -> f64 {
+    pts.windows(2).map(|w| w[0].distance(w[1])).sum()
+}
+
+/// Area centroid of a closed loop (falls back to the vertex mean for zero area).
+pub fn centroid(pts: &[DVec2]) -> DVec2 {
+    let n = pts.len();
+    if n == 0 {
+        return DVec2::ZERO;
+    }
+    let a2 = signed_area2(pts);
+    if a2.abs() < 1e-300 {
+        return pts.iter().copied().sum::<DVec2>() / n as f64;
+    }
+    let mut c = DVec2::ZERO;
+    for i in 0..n {
+        let p = pts[i];
+        let q = pts[(i + 1) % n];
+        let cross = p.x * q.y - q.x * p.y;
+        c += (p + q) * cross;
+    }
+    c / (3.0 * a2)
+}
+
+/// Even-odd point-in-loop test (points on the boundary may go either way).
+pub fn point_in_loop(p: DVec2, pts: &[DVec2]) -> bool {
+    let n = pts.len();
+    let mut inside = false;
+    let mut j = n.wrapping_sub(1);
+    for i in 0..n {
+        let a = pts[i];
+        let b = pts[j];
+        if (a.y > p.y) != (b.y > p.y) {
+            let x = a.x + (p.y - a.y) / (b.y - a.y) * (b.x - a.x);
+            if p.x < x {
+                inside = !inside;
+            }
+        }
+        j = i;
+    }
+    inside
+}
+
+/// Distance from `p` to the segment `a`–`b`.
+pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
+    let ab = b - a;
+    let len2 = ab.length_squared();
+    if len2 <= 0.0 {
+        return p.distance(a);
+    }
+    let t = ((p - a).dot(ab) / len2).clamp(0.0, 1.0);
+    p.distance(a + ab * t)
+}
+
+/// Distance from `p` to the closest point of a closed loop's boundary.
+pub fn point_loop_distance(p: DVec2, pts: &[DVec2]) -> f64 {
+    let n = pts.len();
+    (0..n)
+        .map(|i| point_segment_distance(p, pts[i], pts[(i + 1) % n]))
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn orient(a: DVec2, b: DVec2, c: DVec2) -> f64 {
+    (b - a).perp_dot(c - a)
+}
+
+/// Do closed segments `p1p2` and `q1q2` share a point?
+pub fn segments_intersect(p1: DVec2, p2: DVec2, q1: DVec2, q2: DVec2) -> bool {
+    let d1 = orient(q1, q2, p1);
+    let d2 = orient(q1, q2, p2);
+    let d3 = orient(p1, p2, q1);
+    let d4 = orient(p1, p2, q2);
+    if ((d1 > 0.0 && d2 < 0.0) || (d1 < 0.0 && d2 > 0.0))
+        && ((d3 > 0.0 && d4 < 0.0) || (d3 < 0.0 && d4 > 0.0))
+    {
+        return true;
+    }
+    let on = |a: DVec2, b: DVec2, p: DVec2, d: f64| {
+        d == 0.0
+            && p.x >= a.x.min(b.x)
+            && p.x <= a.x.max(b.x)
+            && p.y >= a.y.min(b.y)
+            && p.y <= a.y.max(b.y)
+    };
+    on(q1, q2, p1, d1) || on(q1, q2, p2, d2) || on(p1, p2, q1, d3) || on(p1, p2, q2, d4)
+}
+
+/// Two edges that touch or cross: `(loop index, edge index)` of each, and where.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Crossing {
+    pub first: (usize, usize),
+    pub second: (usize, usize),
+    pub at: DVec2,
+}
+
+/// A segment of a set of loops, tagged with where it came from.
+#[derive(Clone, Copy, Debug)]
+struct TaggedSegment {
+    a: DVec2,
+    b: DVec2,
+    loop_index: usize,
+    edge_index: usize,
+    edge_count: usize,
+}
+
+/// First pair of non-adjacent edges that touch or cross, over all `loops` together,
+/// found with a sweep over x (near-linear for ordinary outlines).
+pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
+    let mut segs: Vec<TaggedSegment> = Vec::new();
+    for (li, l) in loops.iter().enumerate() {
+        let n = l.len();
+        for i in 0..n {
+            segs.push(TaggedSegment {
+                a: l[i],
+                b: l[(i + 1) % n],
+                loop_index: li,
+                edge_index: i,
+                edge_count: n,
+            });
+        }
+    }
+    segs.sort_by(|s, t| s.a.x.min(s.b.x).total_cmp(&t.a.x.min(t.b.x)));
+    let mut active: Vec<usize> = Vec::new();
+    for (k, s) in segs.iter().enumerate() {
+        let min_x = s.a.x.min(s.b.x);
+        active.retain(|&j| segs[j].a.x.max(segs[j].b.x) >= min_x);
+        for &j in &active {
+            let t = &segs[j];
+            if s.loop_index == t.loop_index {
+                let n = s.edge_count;
+                let (i, jj) = (s.edge_index, t.edge_index);
+                if (i + 1) % n == jj || (jj + 1) % n == i || i == jj {
+                    continue;
+                }
+            }
+            let (sy0, sy1) = (s.a.y.min(s.b.y), s.a.y.max(s.b.y));
+            let (ty0, ty1) = (t.a.y.min(t.b.y), t.a.y.max(t.b.y));
+            if sy1 < ty0 || ty1 < sy0 {
+                continue;
+            }
+            if segments_intersect(s.a, s.b, t.a, t.b) {
+                let p = segment_intersection_point(s.a, s.b, t.a, t.b).unwrap_or(s.a);
+                return Some(Crossing {
+                    first: (t.loop_index, t.edge_index),
+                    second: (s.loop_index, s.edge_index),
+                    at: p,
+                });
+            }
+        }
+        active.push(k);
+    }
+    None
+}
+
+/// Intersection point of two segments' supporting lines, if they are not parallel.
+pub fn segment_intersection_point(p1: DVec2, p2: DVec2, q1: DVec2, q2: DVec2) -> Option<DVec2> {
+    let r = p2 - p1;
+    let s = q2 - q1;
+    let den = r.perp_dot(s);
+    if den.abs() < 1e-300 {
+        return None;
+    }
+    let t = (q1 - p1).perp_dot(s) / den;
+    Some(p1 + r * t)
+}
+
+/// Remove consecutive duplicate points (and a closing duplicate) closer than `eps`.
+pub fn dedup_loop(pts: &[DVec2], eps: f64) -> Vec<DVec2> {
+    let mut out: Vec<DVec2> = Vec::with_capacity(pts.len());
+    for &p in pts {
+        if out.last().is_none_or(|q: &DVec2| q.distance(p) > eps) {
+            out.push(p);
+        }
+    }
+    while out.len() > 1 && out[0].distance(out[out.len() - 1]) <= eps {
+        out.pop();
+    }
+    out
+}
+
+/// One connected area of a layer: an outer loop (the paper's external boundary Ce)
+/// and zero or more holes (internal boundaries Ci).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
+pub struct Region {
+    pub outer: Vec<DVec2>,
+    #[serde(default)]
+    pub holes: Vec<Vec<DVec2>>,
+}
+
+/// What is wrong with a region, naming the loop and where.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RegionError {
+    #[error("{loop_name} has {count} distinct vertices; a loop needs at least 3")]
+    TooFewVertices { loop_name: String, count: usize },
+    #[error("{loop_name} vertex {index} is not a finite number")]
+    NotFinite { loop_name: String, index: usize },
+    #[error("{loop_name} encloses no area (|area| = {area_mm2:.3e} mm²)")]
+    Degenerate { loop_name: String, area_mm2: f64 },
+    #[error("{first} edge {first_edge} crosses {second} edge {second_edge} near ({x:.4}, {y:.4})")]
+    SelfIntersecting {
+        first: String,
+        first_edge: usize,
+        second: String,
+        second_edge: usize,
+        x: f64,
+        y: f64,
+    },
+    #[error("{loop_name} is not inside the outer loop (vertex {index} at ({x:.4}, {y:.4}) lies outside)")]
+    HoleOutside {
+        loop_name: String,
+        index: usize,
+        x: f64,
+        y: f64,
+    },
+    #[error("{inner} lies inside {outer}; nested holes are separate islands, give them as their own region")]
+    NestedHoles { inner: String, outer: String },
+}
+
+impl Region {
+    pub fn new(outer: Vec<DVec2>, holes: Vec<Vec<DVec2>>) -> Self {
+        Region { outer, holes }
+    }
+
+    fn loop_name(i: usize) -> String {
+        if i == 0 {
+            "outer loop".to_string()
+        } else {
+            format!("hole {}", i - 1)
+        }
+    }
+
+    /// All loops, outer first.
+    pub fn loops(&self) -> impl Iterator<Item = &Vec<DVec2>> {
+        std::iter::once(&self.outer).chain(self.holes.iter())
+    }
+
+    /// Net area, mm² (outer minus holes).
+    pub fn area(&self) -> f64 {
+        signed_area(&self.outer).abs()
+            - self.holes.iter().map(|h| signed_area(h).abs()).sum::<f64>()
+    }
+
+    /// Axis-aligned bounding box (min, max).
+    pub fn bounds(&self) -> (DVec2, DVec2) {
+        let mut lo = DVec2::splat(f64::INFINITY);
+        let mut hi = DVec2::splat(f64::NEG_INFINITY);
+        for p in &self.outer {
+            lo = lo.min(*p);
+            hi = hi.max(*p);
+        }
+        (lo, hi)
+    }
+
+    /// Is `p` inside the material (inside outer, outside every hole)?
+    pub fn contains(&self, p: DVec2) -> bool {
+        point_in_loop(p, &self.outer) && !self.holes.iter().any(|h| point_in_loop(p, h))
+    }
+
+    /// A copy with duplicate points removed, the outer loop counter-clockwise and holes clockwise.
+    pub fn normalised(&self, tol: &Tolerances) -> Region {
+        let fix = |l: &[DVec2], ccw: bool| {
+            let mut l = dedup_loop(l, tol.point_eq_mm);
+            if (signed_area2(&l) > 0.0) != ccw {
+                l.reverse();
+            }
+            l
+        };
+        Region {
+            outer: fix(&self.outer, true),
+            holes: self.holes.iter().map(|h| fix(h, false)).collect(),
+        }
+    }
+
+    /// Check the region is a sound polygon with holes: enough vertices, finite,
+    /// non-degenerate, no edge crossing any other, holes inside the outer loop and
+    /// not inside each other. Call on a normalised region.
+    pub fn validate(&self, tol: &Tolerances) -> Result<(), RegionError> {
+        for (li, l) in self.loops().enumerate() {
+            if let Some(index) = l.iter().position(|p| !p.is_finite()) {
+                return Err(RegionError::NotFinite {
+                    loop_name: Self::loop_name(li),
+                    index,
+                });
+            }
+            let distinct = dedup_loop(l, tol.point_eq_mm).len();
+            if distinct < 3 {
+                return Err(RegionError::TooFewVertices {
+                    loop_name: Self::loop_name(li),
+                    count: distinct,
+                });
+            }
+        }
+        let loops: Vec<&[DVec2]> = self.loops().map(|l| l.as_slice()).collect();
+        if let Some(c) = first_crossing(&loops) {
+            return Err(RegionError::SelfIntersecting {
+                first: Self::loop_name(c.first.0),
+                first_edge: c.first.1,
+                second: Self::loop_name(c.second.0),
+                second_edge: c.second.1,
+                x: c.at.x,
+                y: c.at.y,
+            });
+        }
+        for (li, l) in self.loops().enumerate() {
+            let a = signed_area(l).abs();
+            if a < tol.min_loop_area_mm2 {
+                return Err(RegionError::Degenerate {
+                    loop_name: Self::loop_name(li),
+                    area_mm2: a,
+                });
+            }
+        }
+        // No crossings: each hole is entirely inside or entirely outside the outer loop
+        // (and each other), so one vertex decides.
+        for (hi, h) in self.holes.iter().enumerate() {
+            if !point_in_loop(h[0], &self.outer) {
+                return Err(RegionError::HoleOutside {
+                    loop_name: Self::loop_name(hi + 1),
+                    index: 0,
+                    x: h[0].x,
+                    y: h[0].y,
+                });
+            }
+            for (hj, g) in self.holes.iter().enumerate() {
+                if hi != hj && point_in_loop(h[0], g) {
+                    return Err(RegionError::NestedHoles {
+                        inner: Self::loop_name(hi + 1),
+                        outer: Self::loop_name(hj + 1),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn square(c: DVec2, h: f64) -> Vec<DVec2> {
+        vec![
+            c + DVec2::new(-h, -h),
+            c + DVec2::new(h, -h),
+            c + DVec2::new(h, h),
+            c + DVec2::new(-h, h),
+        ]
+    }
+
+    #[test]
+    fn area_and_orientation() {
+        let r = Region::new(square(DVec2::ZERO, 2.0), vec![square(DVec2::ZERO, 1.0)]);
+        let n = r.normalised(&Tolerances::default());
+        assert!(signed_area(&n.outer) > 0.0);
+        assert!(signed_area(&n.holes[0]) < 0.0);
+        assert!((n.area() - 12.0).abs() < 1e-12);
+        assert!(n.validate(&Tolerances::default()).is_ok());
+        assert!(n.contains(DVec2::new(1.5, 0.0)));
+        assert!(!n.contains(DVec2::new(0.5, 0.0)));
+    }
+
+    #[test]
+    fn bowtie_is_self_intersecting() {
+        let r = Region::new(
+            vec![
+                DVec2::new(0.0, 0.0),
+                DVec2::new(1.0, 1.0),
+                DVec2::new(1.0, 0.0),
+                DVec2::new(0.0, 1.0),
+            ],
+            vec![],
+        );
+        let e = r.validate(&Tolerances::default()).unwrap_err();
+        assert!(matches!(e, RegionError::SelfIntersecting { .. }), "{e}");
+    }
+
+    #[test]
+    fn hole_outside_and_crossing_are_refused() {
+        let tol = Tolerances::default();
+        let outside = Region::new(
+            square(DVec2::ZERO, 1.0),
+            vec![square(DVec2::new(5.0, 0.0), 0.5)],
+        );
+        assert!(matches!(
+            outside.normalised(&tol).validate(&tol),
+            Err(RegionError::HoleOutside { .. })
+        ));
+        let crossing = Region::new(
+            square(DVec2::ZERO, 1.0),
+            vec![square(DVec2::new(1.0, 0.0), 0.5)],
+        );
+        assert!(matches!(
+            crossing.normalised(&tol).validate(&tol),
+            Err(RegionError::SelfIntersecting { .. })
+        ));
+    }
+
+    #[test]
+    fn degenerate_and_nan() {
+        let tol = Tolerances::default();
+        let line = Region::new(
+            vec![
+                DVec2::new(0.0, 0.0),
+                DVec2::new(1.0, 0.0),
+                DVec2::new(2.0, 0.0),
+            ],
+            vec![],
+        );
+        assert!(matches!(
+            line.validate(&tol),
+            Err(RegionError::Degenerate { .. })
+        ));
+        let nan = Region::new(
+            vec![
+                DVec2::new(0.0, 0.0),
+                DVec2::new(f64::NAN, 0.0),
+                DVec2::new(2.0, 1.0),
+            ],
+            vec![],
+        );
+        assert!(matches!(
+            nan.validate(&tol),
+            Err(RegionError::NotFinite { index: 1, .. })
+        ));
+    }
+}

@@ -1,0 +1,15 @@
+//! # edo — equal distance offset planning and printer host for graded-material extrusion
+//!
+//! edo turns a part and a material-gradient design into equal distance offset (EDO)
+//! toolpaths (Xu & Shaw, "SFF-oriented modeling and process planning of functionally
+//! graded materials using a novel equal distance offset approach") and drives a
+//! multi-syringe slurry extruder over a serial link to build it.
+//!
+//! The crate is a pure synchronous core, one module per stage, data flowing one way:
+//!
+//! - [`geom`]: loops and regions (outer boundary Ce, holes Ci), their validation.
+//! - [`material`]: compositions, gradient functions f(d), equations (2)–(4), (6), (7).
+//!
+//! Only the binaries touch files, sockets and clocks.
+
+pub mod geom;
