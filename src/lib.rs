@@ -12,4 +12,6 @@
 //!
 //! Only the binaries touch files, sockets and clocks.
 
+pub mod edo;
 pub mod geom;
+pub mod material;
