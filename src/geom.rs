@@ -20,6 +20,9 @@ pub struct Tolerances {
     pub chord_mm: f64,
     /// Compositions must sum to 1 within this.
     pub composition_sum: f64,
+    /// Roads lying on the boundary of the area they are clipped to are kept whole by
+    /// clipping against that area grown by this much, mm.
+    pub clip_margin_mm: f64,
 }
 
 impl Default for Tolerances {
@@ -29,6 +32,7 @@ impl Default for Tolerances {
             min_loop_area_mm2: 1e-9,
             chord_mm: 0.01,
             composition_sum: 1e-9,
+            clip_margin_mm: 1e-3,
         }
     }
 }

@@ -12,6 +12,10 @@
 //!
 //! Only the binaries touch files, sockets and clocks.
 
+pub mod cli;
 pub mod edo;
 pub mod geom;
+pub mod job;
 pub mod material;
+pub mod report;
+pub mod svg;

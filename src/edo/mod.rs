@@ -376,6 +376,9 @@ pub fn plan_region(
     let last = levels.len() - 1;
     levels[last] = levels[last].offset(-b, chord);
     let level_shapes: Vec<Shapes> = levels.iter().map(Level::to_shapes).collect();
+    // Roads on the interior's own boundary (C1 and Cm+1) must survive clipping whole:
+    // clip against the interior grown by a hair.
+    let clip_to = shapes::offset(&interior, opts.tolerances.clip_margin_mm, chord);
 
     // Step 3: contours and their compositions, eq (2) and (4).
     let compositions: Vec<Composition> = (1..=m + 1)
@@ -393,7 +396,7 @@ pub fn plan_region(
             j,
             d: contour_distance(j, m),
             composition: compositions[(j - 1) as usize].clone(),
-            roads: levels[(j - 1) as usize].roads(&interior, true, eps),
+            roads: levels[(j - 1) as usize].roads(&clip_to, true, eps),
         })
         .collect();
 
@@ -489,6 +492,56 @@ pub fn plan_layer(
         area_mm2: regions.iter().map(|r| r.area_mm2).sum(),
         regions,
     })
+}
+
+/// A layer planning failure, naming the layer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("layer {index} (z = {z_mm:.3} mm): {source}")]
+pub struct LayerError {
+    pub index: usize,
+    pub z_mm: f64,
+    pub source: PlanError,
+}
+
+/// Plan layers in parallel (rayon). A layer whose islands equal the previous layer's is
+/// planned once and reused with its own index and z.
+pub fn plan_layers(
+    slices: &[crate::job::LayerSlice],
+    design: &GradientDesign,
+    opts: &PlanOptions,
+) -> Result<Vec<LayerPlan>, LayerError> {
+    use rayon::prelude::*;
+    let firsts: Vec<usize> = (0..slices.len())
+        .filter(|&k| k == 0 || slices[k].islands != slices[k - 1].islands)
+        .collect();
+    let planned: Vec<LayerPlan> = firsts
+        .par_iter()
+        .map(|&k| {
+            let s = &slices[k];
+            plan_layer(s.index, s.z_mm, s.thickness_mm, &s.islands, design, opts).map_err(
+                |source| LayerError {
+                    index: s.index,
+                    z_mm: s.z_mm,
+                    source,
+                },
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut out = Vec::with_capacity(slices.len());
+    let mut next = 0;
+    for (k, s) in slices.iter().enumerate() {
+        if next < firsts.len() && firsts[next] == k {
+            out.push(planned[next].clone());
+            next += 1;
+        } else if let Some(prev) = out.last() {
+            let mut p: LayerPlan = LayerPlan::clone(prev);
+            p.index = s.index;
+            p.z_mm = s.z_mm;
+            p.thickness_mm = s.thickness_mm;
+            out.push(p);
+        }
+    }
+    Ok(out)
 }
 
 /// D_max: the largest distance from the upper contour's roads to the lower contour
@@ -901,6 +954,43 @@ mod tests {
             .points
             .iter()
             .all(|p| (p.length() - 29.75).abs() < 0.02));
+    }
+
+    /// No road may double back on itself (a needle of material): the outline builder's
+    /// occasional spikes must be cleaned away. Uses the job file's circle tolerance.
+    #[test]
+    fn no_road_doubles_back() {
+        let mut opts = PlanOptions::new(2.0, 0.5);
+        for subdivision in [Subdivision::Radial, Subdivision::Distance] {
+            opts.subdivision = subdivision;
+            let outer = shapes::circle(DVec2::ZERO, 30.0, 0.01);
+            let mut hole = shapes::circle(DVec2::ZERO, 10.0, 0.01);
+            hole.reverse();
+            let plan = plan_region(
+                &Region::new(outer, vec![hole]),
+                0,
+                &design(Pattern::GrowthRings),
+                &opts,
+            )
+            .unwrap();
+            let roads = plan.contours.iter().flat_map(|c| c.roads.iter()).chain(
+                plan.sub_regions
+                    .iter()
+                    .flat_map(|s| s.offsets.iter().flatten()),
+            );
+            for p in roads {
+                let n = p.points.len();
+                let turns = if p.closed { n } else { n.saturating_sub(2) };
+                for k in 0..turns {
+                    let (a, b, c) = (p.points[k], p.points[(k + 1) % n], p.points[(k + 2) % n]);
+                    let (u, v) = (b - a, c - b);
+                    assert!(
+                        u.dot(v) > -0.5 * u.length() * v.length(),
+                        "{subdivision:?}: road turns back at {b} ({a} -> {b} -> {c})"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

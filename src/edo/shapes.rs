@@ -77,7 +77,63 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
     }
     let style =
         OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
-    shapes.outline(&style)
+    let mut out = shapes.outline(&style);
+    for shape in &mut out {
+        for l in shape.iter_mut() {
+            remove_spikes(l);
+        }
+        shape.retain(|l| l.len() >= 3);
+    }
+    out.retain(|s| !s.is_empty());
+    out
+}
+
+/// Remove zero-area antennae (the path runs out and straight back) and repeated
+/// vertices from a closed loop. The outline builder occasionally leaves such spikes
+/// where a join meets an almost straight corner; a road along one would be a needle
+/// of material.
+pub fn remove_spikes(l: &mut Vec<DVec2>) {
+    let mut out: Vec<DVec2> = Vec::with_capacity(l.len());
+    for &p in l.iter() {
+        push_unspiked(&mut out, p);
+    }
+    // The loop closes from the last vertex to the first: check across that seam too.
+    loop {
+        let m = out.len();
+        if m < 3 {
+            break;
+        }
+        if is_spike(out[m - 2], out[m - 1], out[0]) {
+            out.pop();
+        } else if is_spike(out[m - 1], out[0], out[1]) {
+            out.remove(0);
+        } else {
+            break;
+        }
+    }
+    *l = out;
+}
+
+fn is_spike(a: DVec2, b: DVec2, c: DVec2) -> bool {
+    let (u, v) = (b - a, c - b);
+    let (lu, lv) = (u.length(), v.length());
+    if lu <= 1e-12 || lv <= 1e-12 {
+        return true;
+    }
+    // Turning back by more than about 179.4 degrees.
+    u.dot(v) < 0.0 && u.perp_dot(v).abs() <= 1e-2 * lu * lv
+}
+
+fn push_unspiked(out: &mut Vec<DVec2>, p: DVec2) {
+    out.push(p);
+    while out.len() >= 3 {
+        let m = out.len();
+        if is_spike(out[m - 3], out[m - 2], out[m - 1]) {
+            out.remove(m - 2);
+        } else {
+            break;
+        }
+    }
 }
 
 fn boolean(a: &Shapes, b: &Shapes, rule: OverlayRule) -> Shapes {
@@ -251,6 +307,29 @@ mod tests {
             (cut[0].length_mm() - 10.0).abs() < 1e-6,
             "{}",
             cut[0].length_mm()
+        );
+    }
+
+    #[test]
+    fn spikes_are_removed() {
+        let mut l = vec![
+            DVec2::new(0.0, 0.0),
+            DVec2::new(2.0, 0.0),
+            DVec2::new(3.0, 0.0),
+            DVec2::new(2.0, 0.0),
+            DVec2::new(2.0, 2.0),
+            DVec2::new(2.0, 2.0),
+            DVec2::new(0.0, 2.0),
+        ];
+        remove_spikes(&mut l);
+        assert_eq!(
+            l,
+            vec![
+                DVec2::new(0.0, 0.0),
+                DVec2::new(2.0, 0.0),
+                DVec2::new(2.0, 2.0),
+                DVec2::new(0.0, 2.0)
+            ]
         );
     }
 
