@@ -247,6 +247,50 @@ pub fn dedup_loop(pts: &[DVec2], eps: f64) -> Vec<DVec2> {
     out
 }
 
+/// Douglas–Peucker simplification of a closed loop: drop vertices whose removal moves
+/// the loop by at most `tolerance_mm`.
+pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
+    let n = pts.len();
+    if n <= 4 || tolerance_mm <= 0.0 {
+        return pts.to_vec();
+    }
+    // Split the loop at vertex 0 and the vertex farthest from it.
+    let far = (1..n)
+        .max_by(|&a, &b| {
+            pts[a]
+                .distance_squared(pts[0])
+                .total_cmp(&pts[b].distance_squared(pts[0]))
+        })
+        .unwrap_or(n / 2);
+    let mut keep = vec![false; n];
+    keep[0] = true;
+    keep[far] = true;
+    let mut stack = vec![(0usize, far), (far, n)];
+    while let Some((a, b)) = stack.pop() {
+        if b <= a + 1 {
+            continue;
+        }
+        let (pa, pb) = (pts[a], pts[b % n]);
+        let mut worst = (0.0, a);
+        for (k, p) in pts.iter().enumerate().take(b).skip(a + 1) {
+            let d = point_segment_distance(*p, pa, pb);
+            if d > worst.0 {
+                worst = (d, k);
+            }
+        }
+        if worst.0 > tolerance_mm {
+            keep[worst.1] = true;
+            stack.push((a, worst.1));
+            stack.push((worst.1, b));
+        }
+    }
+    pts.iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(p, _)| *p)
+        .collect()
+}
+
 /// One connected area of a layer: an outer loop (the paper's external boundary Ce)
 /// and zero or more holes (internal boundaries Ci).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
@@ -603,6 +647,22 @@ mod tests {
             let brute = point_loop_distance(p, &outer).min(point_loop_distance(p, &hole));
             assert!((idx.distance(p) - brute).abs() < 1e-12, "{p}");
         }
+    }
+
+    #[test]
+    fn simplify_keeps_corners_drops_collinear() {
+        let mut l = Vec::new();
+        for k in 0..10 {
+            l.push(DVec2::new(k as f64, 0.0));
+        }
+        for k in 0..10 {
+            l.push(DVec2::new(10.0, k as f64));
+        }
+        l.push(DVec2::new(10.0, 10.0));
+        l.push(DVec2::new(0.0, 10.0));
+        let s = simplify_loop(&l, 1e-6);
+        assert_eq!(s.len(), 4, "{s:?}");
+        assert!((signed_area(&s) - signed_area(&l)).abs() < 1e-9);
     }
 
     #[test]

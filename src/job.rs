@@ -350,12 +350,14 @@ impl Job {
                 }
                 Pattern::Fibers { angle_deg: angle }
             }
-            other => return Err(bad(
-                "gradient.pattern",
-                format!(
+            other => {
+                return Err(bad(
+                    "gradient.pattern",
+                    format!(
                     "unknown pattern \"{other}\"; use \"growth-rings\", \"crown\" or \"fibers\""
                 ),
-            )),
+                ))
+            }
         };
         if let Some(s) = g.subdivision {
             if !matches!(pattern, Pattern::GrowthRings) && s != Subdivision::Auto {

@@ -105,14 +105,21 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
     let size = f.hi - f.lo;
     let legend_w = size.x.max(size.y) * 0.75;
     let total_w = size.x + legend_w;
-    let px_per_mm = 900.0 / total_w;
+    // Legend rows: title, materials, contour header, up to 14 contours, footer.
+    let contour_rows = layer
+        .regions
+        .first()
+        .map_or(0, |r| r.contours.len().min(14));
+    let rows = 4 + input.materials.len() + contour_rows;
+    let line = size.x.max(size.y) / 28.0;
+    let height = size.y.max(line * (rows as f64 + 1.0));
+    let px_per_mm = 1000.0 / total_w;
     let mut out = String::new();
     let _ = writeln!(
         out,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {total_w:.3} {:.3}" width="{:.0}" height="{:.0}">"#,
-        size.y,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {total_w:.3} {height:.3}" width="{:.0}" height="{:.0}">"#,
         total_w * px_per_mm,
-        size.y * px_per_mm
+        height * px_per_mm
     );
     let _ = writeln!(
         out,
@@ -164,7 +171,6 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
     let _ = writeln!(out, "</g>");
     // Legend.
     let x0 = size.x + legend_w * 0.08;
-    let line = size.y / 22.0;
     let font = line * 0.6;
     let mut y = line;
     let _ = writeln!(
@@ -206,7 +212,7 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
         let rows = (r.contours.len()).min(14);
         let step = (r.contours.len() as f64 / rows as f64).max(1.0);
         let mut k = 0.0;
-        while (k as usize) < r.contours.len() && y < size.y - line {
+        while (k as usize) < r.contours.len() {
             let c = &r.contours[k as usize];
             let label: Vec<String> = c
                 .composition
@@ -231,7 +237,7 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
         let _ = writeln!(
             out,
             r#"<text x="{x0:.3}" y="{:.3}">bold: contours; thin: equal distance offsets</text>"#,
-            (y + line * 0.5).min(size.y - line * 0.3)
+            y + line * 0.5
         );
     }
     let _ = writeln!(out, "</g>\n</svg>");

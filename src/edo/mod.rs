@@ -435,16 +435,26 @@ pub fn plan_region(
         } else {
             step_width(opts.direction, 2, m_n, m_n)
         };
+        // Equal distance offsets, each one step from the previous: eroding (or
+        // dilating) by r1 then r2 is eroding by r1 + r2, and small steps keep the
+        // outline cheap where a contour has many vertices.
+        let step = d_max_mm / n_max.max(1) as f64;
         let mut offsets = Vec::new();
+        let mut level = match opts.direction {
+            OffsetDirection::Inward => upper.clone(),
+            OffsetDirection::Outward => lower.clone(),
+        };
         for i in 1..n_max {
-            let delta = i as f64 * d_max_mm / n_max as f64;
-            let level = match opts.direction {
-                OffsetDirection::Inward => upper.offset(-delta, chord),
-                OffsetDirection::Outward => match (lower.is_empty(), pre.centre) {
-                    (true, Some(c)) => Level::Shapes(vec![vec![shapes::circle(c, delta, chord)]]),
-                    _ => lower.offset(delta, chord),
-                },
+            level = match (opts.direction, lower.is_empty(), pre.centre) {
+                (OffsetDirection::Inward, _, _) => level.offset(-step, chord),
+                (OffsetDirection::Outward, true, Some(c)) => {
+                    Level::Shapes(vec![vec![shapes::circle(c, i as f64 * step, chord)]])
+                }
+                (OffsetDirection::Outward, _, _) => level.offset(step, chord),
             };
+            if level.is_empty() {
+                break;
+            }
             offsets.push(level.roads(&s, false, eps));
         }
         sub_regions.push(SubRegion {
@@ -718,11 +728,14 @@ fn growth_rings(
     }
     let f = field::DistanceField::new(region, centre, opts.cell_mm(), opts.max_field_nodes);
     let mut levels = vec![Level::Shapes(holes_shape)];
-    levels.extend(
-        f.level_sets(m)
-            .into_iter()
-            .map(|loops| Level::Shapes(shapes::from_loops(&loops))),
-    );
+    let chord = opts.tolerances.chord_mm;
+    levels.extend(f.level_sets(m).into_iter().map(|loops| {
+        let loops: Vec<Vec<DVec2>> = loops
+            .iter()
+            .map(|l| crate::geom::simplify_loop(l, chord))
+            .collect();
+        Level::Shapes(shapes::from_loops(&loops))
+    }));
     levels.push(Level::Shapes(outer_shape));
     Ok(PreSubdivision {
         method: SubdivisionMethod::Distance,
@@ -785,8 +798,10 @@ fn crown(
     })
 }
 
-/// The crown core inside C1: concentric equal distance offsets at the inner
-/// composition (W = 0), one nozzle apart.
+/// The crown core inside C1, at the inner composition (W = 0): first the walls of any
+/// hole inside the core (they are part surface, offset by the boundary offset like
+/// every surface), then equal distance offsets of the core one nozzle apart, each one
+/// step from the previous (concentric fill).
 fn crown_core(
     a1: &Shapes,
     interior: &Shapes,
@@ -794,26 +809,35 @@ fn crown_core(
     opts: &PlanOptions,
     eps: f64,
 ) -> Option<SubRegion> {
+    let chord = opts.tolerances.chord_mm;
     let core = shapes::intersection(a1, interior);
     let area = shapes::area(&core);
     if area <= opts.tolerances.min_loop_area_mm2 {
         return None;
     }
     let mut offsets = Vec::new();
-    let mut k = 1;
-    loop {
-        let level = shapes::offset(a1, -(k as f64) * opts.nozzle_mm, opts.tolerances.chord_mm);
-        if level.is_empty() || k > 100_000 {
+    let a1_grown = shapes::offset(a1, opts.tolerances.clip_margin_mm, chord);
+    let walls: Vec<Path> = interior
+        .iter()
+        .flat_map(|shape| shape.iter().skip(1))
+        .flat_map(|hole| shapes::clip_loop(hole, &a1_grown, true, eps))
+        .collect();
+    if !walls.is_empty() {
+        offsets.push(walls);
+    }
+    let mut level = core.clone();
+    for _ in 0..100_000 {
+        level = shapes::offset(&level, -opts.nozzle_mm, chord);
+        if level.is_empty() {
             break;
         }
         let roads: Vec<Path> = shapes::loops(&level)
-            .flat_map(|l| shapes::clip_loop(l, &core, false, eps))
+            .map(|l| Path {
+                points: l.clone(),
+                closed: true,
+            })
             .collect();
-        if roads.is_empty() {
-            break;
-        }
         offsets.push(roads);
-        k += 1;
     }
     let n_max = offsets.len() as u32 + 1;
     Some(SubRegion {

@@ -80,6 +80,9 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
     let mut out = shapes.outline(&style);
     for shape in &mut out {
         for l in shape.iter_mut() {
+            // Round joins leave runs of micro-edges; later booleans and offsets slow
+            // down badly on them, and they carry no shape beyond the chord tolerance.
+            *l = crate::geom::simplify_loop(l, chord_mm);
             remove_spikes(l);
         }
         shape.retain(|l| l.len() >= 3);
