@@ -32,6 +32,8 @@ pub struct DistanceField {
     d: Vec<f64>,
     /// Distance to Ce at each node (for locating the pole of inaccessibility).
     pub(crate) de: Vec<f64>,
+    /// Distance to Ci at each node (empty for [`DistanceField::outer_only`]).
+    di: Vec<f64>,
     /// Node inside the material (inside Ce, outside every hole).
     inside: Vec<bool>,
 }
@@ -161,7 +163,7 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
                 near[k] = q;
             }
         };
-    for _ in 0..2 {
+    {
         for r in 0..ny {
             for c in 0..nx {
                 for (dc, dr) in [(-1, 0), (-1, -1), (0, -1), (1, -1)] {
@@ -206,6 +208,7 @@ impl DistanceField {
             ny: grid.ny,
             d: Vec::new(),
             de,
+            di: Vec::new(),
             inside,
         }
     }
@@ -254,8 +257,21 @@ impl DistanceField {
             ny: grid.ny,
             d,
             de,
+            di,
             inside,
         }
+    }
+
+    /// The thinnest wall between Ci and Ce: the smallest `dist(p, Ci) + dist(p, Ce)`
+    /// over material nodes, which is attained on the segment joining the two closest
+    /// points of the boundaries (L_short of eq (1) for the distance method).
+    pub fn thinnest_wall(&self) -> Option<f64> {
+        self.inside
+            .iter()
+            .zip(self.di.iter().zip(&self.de))
+            .filter(|(inside, _)| **inside)
+            .map(|(_, (a, b))| a + b)
+            .min_by(f64::total_cmp)
     }
 
     /// The inside node farthest from Ce (pole of inaccessibility, to grid precision),

@@ -409,10 +409,13 @@ pub fn plan_region(
     }
     for n in 1..=m {
         let (lower, upper) = (&levels[(n - 1) as usize], &levels[n as usize]);
-        let s = shapes::intersection(
-            &shapes::difference(&level_shapes[n as usize], &level_shapes[(n - 1) as usize]),
-            &interior,
-        );
+        // Growth-ring levels nest between the offset boundaries, so their difference
+        // already lies in the interior; crown and fiber levels are cut to it.
+        let between = shapes::difference(&level_shapes[n as usize], &level_shapes[(n - 1) as usize]);
+        let s = match pre.method {
+            SubdivisionMethod::Radial | SubdivisionMethod::Distance => between,
+            SubdivisionMethod::Offset | SubdivisionMethod::Parallel => shapes::intersection(&between, &interior),
+        };
         let area = shapes::area(&s);
         if area <= tol.min_loop_area_mm2 {
             continue;
@@ -705,18 +708,20 @@ fn growth_rings(
             return Err(radial_err);
         }
     }
-    // The general method: iso-contours of the normalised distance.
-    let (centre, l_short_mm) = if region.holes.is_empty() {
-        let f = field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes);
-        match f.pole() {
-            Some((p, r)) => (
-                Some(p),
-                crate::geom::point_loop_distance(p, &region.outer).max(r),
-            ),
-            None => (None, 0.0),
-        }
+    // The general method: iso-contours of the normalised distance. Without a hole the
+    // rings grow from the pole of inaccessibility; with holes L_short is the thinnest
+    // wall, read off the same distance field.
+    let centre = if region.holes.is_empty() {
+        field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes)
+            .pole()
+            .map(|(p, _)| p)
     } else {
-        (None, shortest_wall(region))
+        None
+    };
+    let f = field::DistanceField::new(region, centre, opts.cell_mm(), opts.max_field_nodes);
+    let l_short_mm = match centre {
+        Some(c) => crate::geom::point_loop_distance(c, &region.outer),
+        None => f.thinnest_wall().unwrap_or(0.0),
     };
     let m = segment_count(l_short_mm, opts.r_mach_mm);
     if m == 0 {
@@ -726,7 +731,6 @@ fn growth_rings(
             r_mach_mm: opts.r_mach_mm,
         });
     }
-    let f = field::DistanceField::new(region, centre, opts.cell_mm(), opts.max_field_nodes);
     let mut levels = vec![Level::Shapes(holes_shape)];
     let chord = opts.tolerances.chord_mm;
     levels.extend(f.level_sets(m).into_iter().map(|loops| {
@@ -745,25 +749,6 @@ fn growth_rings(
         levels,
         inner_is_boundary: !region.holes.is_empty(),
     })
-}
-
-/// L_short for a region with holes: the thinnest wall between any hole and Ce.
-fn shortest_wall(region: &Region) -> f64 {
-    let holes: Vec<&[DVec2]> = region.holes.iter().map(|h| h.as_slice()).collect();
-    let to_holes = SegmentIndex::new(&holes, &[]);
-    let to_outer = SegmentIndex::new(&[&region.outer], &[]);
-    let a = region
-        .outer
-        .iter()
-        .map(|p| to_holes.distance(*p))
-        .fold(f64::INFINITY, f64::min);
-    let b = region
-        .holes
-        .iter()
-        .flat_map(|h| h.iter())
-        .map(|p| to_outer.distance(*p))
-        .fold(f64::INFINITY, f64::min);
-    a.min(b)
 }
 
 fn crown(

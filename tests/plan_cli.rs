@@ -1,0 +1,143 @@
+//! `edoctl plan` end to end: the bundled example jobs plan, their reports follow
+//! docs/plan-report.md, previews are written, and bad jobs fail with a message that
+//! names the key and a non-zero status (never a panic).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn edoctl() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_edoctl"))
+}
+
+fn example(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples").join(name)
+}
+
+fn plan_json(job: &Path, svg: Option<&Path>) -> serde_json::Value {
+    let mut cmd = edoctl();
+    cmd.arg("plan").arg(job).args(["--report", "-"]);
+    if let Some(dir) = svg {
+        cmd.arg("--svg").arg(dir);
+    }
+    let out = cmd.output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn paper_annulus_report_matches_the_paper() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = plan_json(&example("paper-annulus.toml"), Some(dir.path()));
+    assert_eq!(r["schema"], "edo.plan-report/1");
+    assert_eq!(r["job"], "paper-annulus");
+    let layers = r["layers"].as_array().unwrap();
+    assert_eq!(layers.len(), 2);
+    let region = &layers[0]["regions"][0];
+    assert_eq!(region["method"], "radial");
+    assert_eq!(region["m"], 10);
+    assert_eq!(region["contours"].as_array().unwrap().len(), 11);
+    let c4 = &region["contours"][3];
+    assert_eq!(c4["j"], 4);
+    assert!((c4["composition"][0].as_f64().unwrap() - 0.7).abs() < 1e-12);
+    let s45 = region["sub_regions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["n"] == 4)
+        .unwrap();
+    assert_eq!(s45["n_max"], 4);
+    let want = [0.625, 0.65, 0.675];
+    let offsets = s45["offsets"].as_array().unwrap();
+    assert_eq!(offsets.len(), 3);
+    for (o, w) in offsets.iter().zip(want) {
+        assert!((o["composition"][0].as_f64().unwrap() - w).abs() < 1e-12);
+        assert!(o["length_mm"].as_f64().unwrap() > 100.0);
+    }
+    assert!((s45["w"][0].as_f64().unwrap() - 0.025).abs() < 1e-12);
+    let t = &r["totals"];
+    assert!(t["planning_time_ms"].is_null()); // planning time is top level, not in totals
+    assert!(r["planning_time_ms"].as_f64().unwrap() >= 0.0);
+    // Compact material data is far smaller than a voxel grid at R_mach / 4.
+    let compact = t["compact_material_bytes"].as_u64().unwrap();
+    let voxels = t["voxel_grid_bytes"].as_u64().unwrap();
+    eprintln!("paper annulus: compact material {compact} B, plan {} B, voxel grid {voxels} B", t["plan_bytes"]);
+    assert!(compact * 100 < voxels, "{compact} vs {voxels}");
+    // One SVG per layer, with a legend naming the materials.
+    for k in 0..2 {
+        let svg = std::fs::read_to_string(dir.path().join(format!("layer-{k:04}.svg"))).unwrap();
+        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+        assert!(svg.contains(">A</text>") && svg.contains(">B</text>"));
+        assert!(svg.contains("id=\"contours\"") && svg.contains("id=\"offsets\""));
+    }
+}
+
+#[test]
+fn every_example_plans() {
+    for (name, method) in [
+        ("tooth-crown.toml", "offset"),
+        ("fibers.toml", "parallel"),
+        ("non-star.toml", "distance"),
+    ] {
+        let r = plan_json(&example(name), None);
+        let region = &r["layers"][0]["regions"][0];
+        assert_eq!(region["method"], method, "{name}");
+        assert!(r["totals"]["offsets"].as_u64().unwrap() > 0, "{name}");
+    }
+}
+
+fn plan_error(job_text: &str) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("job.toml");
+    std::fs::write(&path, job_text).unwrap();
+    let out = edoctl().arg("plan").arg(&path).output().unwrap();
+    assert!(!out.status.success(), "bad job accepted:\n{job_text}");
+    assert_eq!(out.status.code(), Some(1), "exit status (a panic exits 101)");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn bad_jobs_fail_with_named_errors() {
+    let good = std::fs::read_to_string(example("paper-annulus.toml")).unwrap();
+    let cases = [
+        ("inner = [1.0, 0.0]", "inner = [0.6, 0.6]", "gradient.inner"),
+        ("inner = [1.0, 0.0]", "inner = [1.0, 0.0, 0.0]", "gradient.inner"),
+        ("outer = [0.0, 1.0]", "outer = [nan, 1.0]", "gradient.outer"),
+        ("r_mach = 2.0", "r_mach = 0.0", "process.r_mach"),
+        ("nozzle = 0.5", "nozzle = -0.5", "process.nozzle"),
+        ("radius = 10.0", "radius = 35.0", "geometry.polygon"),
+        ("pattern = \"growth-rings\"", "pattern = \"spiral\"", "gradient.pattern"),
+        ("function = \"linear\"", "function = { table = [[0.0, 0.0], [0.5, 0.9], [0.4, 1.0], [1.0, 1.0]] }", "gradient.function"),
+        ("[process]", "[process]\nspeed = 3", "speed"),
+        ("r_mach = 2.0", "r_mach = 50.0", "too thin"),
+    ];
+    for (from, to, want) in cases {
+        assert!(good.contains(from), "{from}");
+        let e = plan_error(&good.replace(from, to));
+        assert!(e.contains(want), "{to}: {e}");
+    }
+    // A self-intersecting outline and a degenerate one.
+    let bow = good.replace(
+        "polygon = { outer = { circle = { center = [0.0, 0.0], radius = 30.0 } }, holes = [{ circle = { center = [0.0, 0.0], radius = 10.0 } }] }",
+        "polygon = { outer = [[0.0, 0.0], [20.0, 20.0], [20.0, 0.0], [0.0, 20.0]] }",
+    );
+    assert!(plan_error(&bow).contains("crosses"));
+    let flat = good.replace(
+        "polygon = { outer = { circle = { center = [0.0, 0.0], radius = 30.0 } }, holes = [{ circle = { center = [0.0, 0.0], radius = 10.0 } }] }",
+        "polygon = { outer = [[0.0, 0.0], [20.0, 0.0], [40.0, 0.0]] }",
+    );
+    assert!(plan_error(&flat).contains("no area"));
+    // Not TOML at all, and a missing file.
+    assert!(plan_error("\u{0}\u{1}garbage = [").contains("line"));
+    let out = edoctl().args(["plan", "/nonexistent/job.toml"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/job.toml"));
+}
+
+#[test]
+fn radial_on_a_non_star_region_is_refused_with_advice() {
+    let text = std::fs::read_to_string(example("non-star.toml"))
+        .unwrap()
+        .replace("subdivision = \"auto\"", "subdivision = \"radial\"");
+    let e = plan_error(&text);
+    assert!(e.contains("radial") && e.contains("distance"), "{e}");
+}
