@@ -9,7 +9,14 @@
 //!
 //! - [`geom`]: loops and regions (outer boundary Ce, holes Ci), their validation.
 //! - [`material`]: compositions, gradient functions f(d), equations (2)–(4), (6), (7).
+//! - [`machine`]: the move stream in fixed point (µm, nl, ratios of 65535), the one move
+//!   type host, link and simulator share.
+//! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
+//! - [`linktest`]: `edoctl link-test`, qualifies a cable/machine by streaming dry-run moves.
 //!
 //! Only the binaries touch files, sockets and clocks.
 
 pub mod geom;
+pub mod link;
+pub mod linktest;
+pub mod machine;
