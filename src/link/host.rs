@@ -133,6 +133,8 @@ pub struct Host {
     ack_needed: bool,
     nak_needed: bool,
     nak_trigger: Option<u16>,
+    /// Sequence of the data frame that triggered the pending ack (Ack frame `seq`).
+    ack_trigger: u16,
     prio: VecDeque<PriorityOut>,
     prio_next: u64,
     /// Reports we are willing to buffer (our credits to the machine).
@@ -162,6 +164,7 @@ impl Host {
             ack_needed: false,
             nak_needed: false,
             nak_trigger: None,
+            ack_trigger: 0,
             prio: VecDeque::new(),
             prio_next: 1,
             report_credits: 1024,
@@ -386,7 +389,7 @@ impl Host {
                             self.machine_reset(boot_id.unwrap_or(0));
                         } else {
                             self.send
-                                .on_ack(f.ack, f.credits, false, now, &mut self.stats);
+                                .on_ack(f.ack, f.credits, None, now, &mut self.stats);
                         }
                     }
                     _ => {}
@@ -406,17 +409,18 @@ impl Host {
             }
             FrameKind::Ack if self.state == HostState::Connected => {
                 self.send
-                    .on_ack(f.ack, f.credits, true, now, &mut self.stats);
+                    .on_ack(f.ack, f.credits, Some(f.seq), now, &mut self.stats);
             }
             FrameKind::Nak if self.state == HostState::Connected => {
                 self.send.on_nak(f.ack, f.credits, now, &mut self.stats);
             }
             FrameKind::Data if self.state == HostState::Connected => {
                 self.send
-                    .on_ack(f.ack, f.credits, false, now, &mut self.stats);
+                    .on_ack(f.ack, f.credits, None, now, &mut self.stats);
                 match self.recv.on_data(f.seq) {
                     Arrival::InOrder => {
                         self.ack_needed = true;
+                        self.ack_trigger = f.seq;
                         match decode_body::<MachineMsg>(&f.body) {
                             Ok(msgs) => {
                                 for m in msgs {
@@ -428,13 +432,17 @@ impl Host {
                     }
                     Arrival::Duplicate => {
                         self.stats.frames_duplicate += 1;
+                        self.ack_trigger = f.seq;
                         self.ack_needed = true;
                     }
                     Arrival::Gap { send_nak } => {
                         self.stats.frames_out_of_order += 1;
+                        self.ack_trigger = f.seq;
                         if send_nak {
                             self.nak_trigger = Some(f.seq);
                             self.nak_needed = true;
+                        } else {
+                            self.ack_needed = true; // a duplicate ack
                         }
                     }
                 }
@@ -474,7 +482,7 @@ impl Host {
             usize::from(reply.max_frame).min(super::MAX_FRAME),
         );
         self.send
-            .on_ack(f.ack, f.credits, false, now, &mut self.stats);
+            .on_ack(f.ack, f.credits, None, now, &mut self.stats);
         self.last_executed = reply.status.last_executed;
         let info = MachineInfo {
             protocol_version: reply.protocol_version,
@@ -561,7 +569,8 @@ impl Host {
                     return Some(self.frame(FrameKind::Data, out.seq, out.body, now));
                 }
                 if self.ack_needed {
-                    return Some(self.frame(FrameKind::Ack, 0, Vec::new(), now));
+                    let seq = self.ack_trigger;
+                    return Some(self.frame(FrameKind::Ack, seq, Vec::new(), now));
                 }
                 if now.since(self.last_tx) >= self.cfg.heartbeat_interval_us {
                     let body = self.session_id.to_le_bytes().to_vec();

@@ -85,6 +85,8 @@ pub struct MachineLink {
     ack_needed: bool,
     nak_needed: bool,
     nak_trigger: Option<u16>,
+    /// Sequence of the data frame that triggered the pending ack (Ack frame `seq`).
+    ack_trigger: u16,
     hello_reply_needed: bool,
     unsynced_needed: bool,
     prio_last: u64,
@@ -121,6 +123,7 @@ impl MachineLink {
             ack_needed: false,
             nak_needed: false,
             nak_trigger: None,
+            ack_trigger: 0,
             hello_reply_needed: false,
             unsynced_needed: true,
             prio_last: 0,
@@ -360,7 +363,7 @@ impl MachineLink {
                     });
                 }
                 self.send
-                    .on_ack(f.ack, f.credits, false, now, &mut self.stats);
+                    .on_ack(f.ack, f.credits, None, now, &mut self.stats);
                 // Always answer, whatever the version: the host decides on a mismatch.
                 self.hello_reply_needed = true;
             }
@@ -369,21 +372,22 @@ impl MachineLink {
             }
             FrameKind::Ack => {
                 self.send
-                    .on_ack(f.ack, f.credits, true, now, &mut self.stats);
+                    .on_ack(f.ack, f.credits, Some(f.seq), now, &mut self.stats);
             }
             FrameKind::Nak => {
                 self.send.on_nak(f.ack, f.credits, now, &mut self.stats);
             }
             FrameKind::Heartbeat => {
                 self.send
-                    .on_ack(f.ack, f.credits, false, now, &mut self.stats);
+                    .on_ack(f.ack, f.credits, None, now, &mut self.stats);
             }
             FrameKind::Data => {
                 self.send
-                    .on_ack(f.ack, f.credits, false, now, &mut self.stats);
+                    .on_ack(f.ack, f.credits, None, now, &mut self.stats);
                 match self.recv.on_data(f.seq) {
                     Arrival::InOrder => {
                         self.ack_needed = true;
+                        self.ack_trigger = f.seq;
                         match decode_body::<HostMsg>(&f.body) {
                             Ok(msgs) => {
                                 for m in msgs {
@@ -395,13 +399,17 @@ impl MachineLink {
                     }
                     Arrival::Duplicate => {
                         self.stats.frames_duplicate += 1;
+                        self.ack_trigger = f.seq;
                         self.ack_needed = true;
                     }
                     Arrival::Gap { send_nak } => {
                         self.stats.frames_out_of_order += 1;
+                        self.ack_trigger = f.seq;
                         if send_nak {
                             self.nak_trigger = Some(f.seq);
                             self.nak_needed = true;
+                        } else {
+                            self.ack_needed = true; // a duplicate ack
                         }
                     }
                 }
@@ -552,7 +560,8 @@ impl MachineLink {
             return Some(self.frame(FrameKind::Data, out.seq, out.body, now));
         }
         if self.ack_needed {
-            return Some(self.frame(FrameKind::Ack, 0, Vec::new(), now));
+            let seq = self.ack_trigger;
+            return Some(self.frame(FrameKind::Ack, seq, Vec::new(), now));
         }
         if now.since(self.last_tx) >= self.cfg.link.heartbeat_interval_us {
             let body = self.cfg.boot_id.to_le_bytes().to_vec();

@@ -359,12 +359,14 @@ impl SendStream {
     }
 
     /// Process a cumulative ack (the next sequence the peer expects) and its credits.
-    /// `is_pure_ack` marks standalone Ack frames, which count towards fast retransmit.
+    /// `pure_ack_trigger` is set for standalone Ack frames: the sequence number of the
+    /// data frame that triggered the ack. It counts towards fast retransmit only when that
+    /// frame lies beyond the ack (it arrived after a hole); acks of duplicates do not.
     pub(crate) fn on_ack(
         &mut self,
         wire_ack: u16,
         credits: u16,
-        is_pure_ack: bool,
+        pure_ack_trigger: Option<u16>,
         now: Micros,
         stats: &mut LinkStats,
     ) -> AckOutcome {
@@ -405,8 +407,12 @@ impl SendStream {
             } else {
                 Some(now.plus_us(self.rtt.rto_us()))
             };
-        } else if is_pure_ack && !self.unacked.is_empty() && credits == self.last_credits {
-            // A duplicate ack: same ack, same window, no data (a window update is not one).
+        } else if pure_ack_trigger.is_some_and(|t| extend_seq(t, ack) > ack)
+            && !self.unacked.is_empty()
+            && credits == self.last_credits
+        {
+            // A duplicate ack: same ack, same window, no data (a window update is not
+            // one), triggered by a frame after a hole (an ack of a duplicate is not one).
             self.dup_acks += 1;
             if self.dup_acks >= self.dup_ack_threshold {
                 self.dup_acks = 0;
@@ -432,7 +438,7 @@ impl SendStream {
         stats: &mut LinkStats,
     ) {
         stats.naks_received += 1;
-        self.on_ack(wire_ack, credits, false, now, stats);
+        self.on_ack(wire_ack, credits, None, now, stats);
         if !self.unacked.is_empty() && self.resend_next > self.una {
             self.go_back_now();
         }
