@@ -267,7 +267,6 @@ pub fn run(cfg: &LinkTestConfig) -> Result<LinkTestReport, LinkTestError> {
             }
         }
     }
-    // Let final acks flow for a moment so statistics are complete.
     let stats = host.stats();
     let (base, fin) = (baseline.unwrap_or_default(), last.unwrap_or_default());
     report.executed = fin.0.saturating_sub(base.0);

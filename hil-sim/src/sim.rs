@@ -505,7 +505,7 @@ pub fn run(
                     break;
                 }
                 let remaining = model.remaining_nl();
-                link.move_done(mv, ex.to, &remaining, now);
+                link.move_done(mv, ex.to, &remaining);
                 sum.executed += 1;
                 if let Some(w) = recorder.as_mut() {
                     let line = RecordLine {

@@ -210,7 +210,6 @@ impl MachineLink {
         mv: &Move,
         position: PositionUm,
         remaining_nl: &[u32],
-        _now: Micros,
     ) {
         let s = &mut self.status;
         if let Some(last) = s.last_executed {

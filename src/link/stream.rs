@@ -416,7 +416,7 @@ impl SendStream {
             self.dup_acks += 1;
             if self.dup_acks >= self.dup_ack_threshold {
                 self.dup_acks = 0;
-                if self.go_back(stats) {
+                if self.go_back() {
                     stats.fast_retransmits += 1;
                 }
             }
@@ -446,7 +446,7 @@ impl SendStream {
 
     /// Start resending from the oldest unacked frame, unless a go-back covering it is
     /// already in progress. Returns whether it went back.
-    fn go_back(&mut self, _stats: &mut LinkStats) -> bool {
+    fn go_back(&mut self) -> bool {
         if self.una < self.recover {
             return false;
         }

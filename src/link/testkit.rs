@@ -377,7 +377,7 @@ impl Harness {
             self.check_executed(job_id, &mv);
             let remaining = self.machine.status().remaining_nl.clone();
             self.machine
-                .move_done(&mv, PositionUm::default(), &remaining, now);
+                .move_done(&mv, PositionUm::default(), &remaining);
             self.next_exec = self.next_exec.max(now).plus_us(self.cfg.exec_us_per_move);
             if self.cfg.exec_us_per_move > 0 {
                 break;
