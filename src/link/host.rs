@@ -412,22 +412,30 @@ impl Host {
                     .on_ack(f.ack, f.credits, Some(f.seq), now, &mut self.stats);
             }
             FrameKind::Nak if self.state == HostState::Connected => {
-                self.send.on_nak(f.ack, f.credits, now, &mut self.stats);
+                let trigger = (f.seq != f.ack).then_some(f.seq);
+                self.send
+                    .on_nak(f.ack, trigger, f.credits, now, &mut self.stats);
             }
             FrameKind::Data if self.state == HostState::Connected => {
                 self.send
                     .on_ack(f.ack, f.credits, None, now, &mut self.stats);
-                match self.recv.on_data(f.seq) {
-                    Arrival::InOrder => {
+                match self.recv.on_data(f.seq, f.body) {
+                    Arrival::Deliver(bodies) => {
                         self.ack_needed = true;
                         self.ack_trigger = f.seq;
-                        match decode_body::<MachineMsg>(&f.body) {
-                            Ok(msgs) => {
-                                for m in msgs {
-                                    self.on_machine_msg(m);
+                        if let Some(t) = self.recv.hole_trigger() {
+                            self.nak_trigger = Some(t);
+                            self.nak_needed = true;
+                        }
+                        for body in bodies {
+                            match decode_body::<MachineMsg>(&body) {
+                                Ok(msgs) => {
+                                    for m in msgs {
+                                        self.on_machine_msg(m);
+                                    }
                                 }
+                                Err(_) => self.stats.frames_invalid += 1,
                             }
-                            Err(_) => self.stats.frames_invalid += 1,
                         }
                     }
                     Arrival::Duplicate => {

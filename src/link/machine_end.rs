@@ -205,12 +205,7 @@ impl MachineLink {
 
     /// The executor finished `mv`: update the report (position, remaining volumes) and
     /// check the order (a duplicate or a skipped index is counted in the status).
-    pub fn move_done(
-        &mut self,
-        mv: &Move,
-        position: PositionUm,
-        remaining_nl: &[u32],
-    ) {
+    pub fn move_done(&mut self, mv: &Move, position: PositionUm, remaining_nl: &[u32]) {
         let s = &mut self.status;
         if let Some(last) = s.last_executed {
             if last.job_id == mv.job_id {
@@ -374,7 +369,9 @@ impl MachineLink {
                     .on_ack(f.ack, f.credits, Some(f.seq), now, &mut self.stats);
             }
             FrameKind::Nak => {
-                self.send.on_nak(f.ack, f.credits, now, &mut self.stats);
+                let trigger = (f.seq != f.ack).then_some(f.seq);
+                self.send
+                    .on_nak(f.ack, trigger, f.credits, now, &mut self.stats);
             }
             FrameKind::Heartbeat => {
                 self.send
@@ -383,17 +380,23 @@ impl MachineLink {
             FrameKind::Data => {
                 self.send
                     .on_ack(f.ack, f.credits, None, now, &mut self.stats);
-                match self.recv.on_data(f.seq) {
-                    Arrival::InOrder => {
+                match self.recv.on_data(f.seq, f.body) {
+                    Arrival::Deliver(bodies) => {
                         self.ack_needed = true;
                         self.ack_trigger = f.seq;
-                        match decode_body::<HostMsg>(&f.body) {
-                            Ok(msgs) => {
-                                for m in msgs {
-                                    self.on_host_msg(m);
+                        if let Some(t) = self.recv.hole_trigger() {
+                            self.nak_trigger = Some(t);
+                            self.nak_needed = true;
+                        }
+                        for body in bodies {
+                            match decode_body::<HostMsg>(&body) {
+                                Ok(msgs) => {
+                                    for m in msgs {
+                                        self.on_host_msg(m);
+                                    }
                                 }
+                                Err(_) => self.fault(FaultKind::BadMessage),
                             }
-                            Err(_) => self.fault(FaultKind::BadMessage),
                         }
                     }
                     Arrival::Duplicate => {

@@ -130,7 +130,7 @@ pub struct LinkStats {
     pub frames_invalid: u64,
     /// Data frames received again (discarded: exactly-once).
     pub frames_duplicate: u64,
-    /// Data frames received after a gap (discarded, go-back-N).
+    /// Data frames received after a hole (kept in the reorder buffer).
     pub frames_out_of_order: u64,
     /// Message bytes (postcard) in first transmissions of Data frames.
     pub payload_bytes_sent: u64,
@@ -142,7 +142,7 @@ pub struct LinkStats {
     pub naks_received: u64,
     /// Naks sent.
     pub naks_sent: u64,
-    /// Go-backs triggered by duplicate acks.
+    /// Retransmissions triggered by duplicate acks.
     pub fast_retransmits: u64,
     /// Retransmission timeouts.
     pub timeouts: u64,

@@ -1,4 +1,4 @@
-//! The reliable, in-order half of the link, used in both directions: a go-back-N sender
+//! The reliable, in-order half of the link, used in both directions: a selective-repeat sender
 //! with an RFC 6298 retransmission timer, fast retransmit, a window in frames, bytes and
 //! credits; and a receiver that delivers each sequence number exactly once.
 
@@ -91,6 +91,8 @@ struct InFlight {
     /// Order of the latest transmission of this frame among all transmissions.
     tx_order: u64,
     retransmitted: bool,
+    /// Queued for retransmission and not yet resent.
+    queued: bool,
 }
 
 /// One encoded message waiting to be framed.
@@ -116,22 +118,21 @@ pub(crate) struct AckOutcome {
     pub newly_acked: u64,
 }
 
-/// Go-back-N sender.
+/// Selective-repeat sender.
 #[derive(Debug)]
 pub(crate) struct SendStream {
     next_seq: u64,
     una: u64,
     unacked: VecDeque<InFlight>,
     unacked_wire_bytes: usize,
-    resend_next: u64,
+    /// Frames to retransmit (selective repeat), oldest first.
+    resend: VecDeque<u64>,
     pending: VecDeque<Pending>,
     pending_bytes: usize,
     rtt: Rtt,
     rto_deadline: Option<Micros>,
     dup_acks: u32,
-    /// While `una < recover`, a go-back is already under way: ignore further naks.
-    recover: u64,
-    /// Counter of transmissions (first and repeated), to order naks against go-backs.
+    /// Counter of transmissions (first and repeated), to tell whether a nak was caused by a frame sent after a retransmission.
     tx_counter: u64,
     /// Current frame size limit: shrinks on loss, grows back on clean runs (adaptive
     /// framing, `docs/protocol.md` "Frame size").
@@ -155,13 +156,12 @@ impl SendStream {
             una: 0,
             unacked: VecDeque::new(),
             unacked_wire_bytes: 0,
-            resend_next: 0,
+            resend: VecDeque::new(),
             pending: VecDeque::new(),
             pending_bytes: 0,
             rtt: Rtt::new(cfg),
             rto_deadline: None,
             dup_acks: 0,
-            recover: 0,
             tx_counter: 0,
             frame_budget: cfg.max_frame,
             min_frame: cfg.min_frame.min(cfg.max_frame),
@@ -239,7 +239,7 @@ impl SendStream {
         self.pending.clear();
         self.pending_bytes = 0;
         self.una = self.next_seq;
-        self.resend_next = self.next_seq;
+        self.resend.clear();
         self.unacked.clear();
         self.unacked_wire_bytes = 0;
         self.slots_acked = self.slots_sent;
@@ -271,14 +271,18 @@ impl SendStream {
 
     /// Next frame body to transmit (retransmissions first), or `None`.
     pub(crate) fn poll(&mut self, now: Micros, stats: &mut LinkStats) -> Option<Outgoing> {
-        if self.resend_next < self.next_seq {
-            let idx = (self.resend_next - self.una) as usize;
-            let f = self.unacked.get_mut(idx)?;
+        while let Some(seq) = self.resend.pop_front() {
+            if seq < self.una {
+                continue; // acknowledged meanwhile
+            }
+            let Some(f) = self.unacked.get_mut((seq - self.una) as usize) else {
+                continue;
+            };
+            f.queued = false;
             f.retransmitted = true;
             f.sent_at = now;
             self.tx_counter += 1;
             f.tx_order = self.tx_counter;
-            self.resend_next += 1;
             stats.frames_retransmitted += 1;
             stats.bytes_retransmitted += f.wire_bytes as u64;
             if self.rto_deadline.is_none() {
@@ -331,7 +335,6 @@ impl SendStream {
         let wire_bytes = wire_len(HEADER_LEN + body.len() + CRC_LEN);
         let seq = self.next_seq;
         self.next_seq += 1;
-        self.resend_next = self.next_seq;
         self.slots_sent += slots;
         self.unacked_wire_bytes += wire_bytes;
         stats.payload_bytes_sent += size as u64;
@@ -348,6 +351,7 @@ impl SendStream {
                 self.tx_counter
             },
             retransmitted: false,
+            queued: false,
         });
         if self.rto_deadline.is_none() {
             self.rto_deadline = Some(now.plus_us(self.rtt.rto_us()));
@@ -400,7 +404,6 @@ impl SendStream {
             if let Some(r) = newest_clean_sample {
                 self.rtt.sample(r);
             }
-            self.resend_next = self.resend_next.max(self.una);
             self.dup_acks = 0;
             self.rto_deadline = if self.unacked.is_empty() {
                 None
@@ -416,7 +419,7 @@ impl SendStream {
             self.dup_acks += 1;
             if self.dup_acks >= self.dup_ack_threshold {
                 self.dup_acks = 0;
-                if self.go_back() {
+                if self.resend_if_lost(pure_ack_trigger, now) {
                     stats.fast_retransmits += 1;
                 }
             }
@@ -426,44 +429,62 @@ impl SendStream {
         out
     }
 
-    /// A nak: the peer expects `wire_ack` and saw a bad frame or a frame after a gap.
-    /// The receiver sends at most one nak per round of transmissions (it sees a new round
-    /// when sequence numbers go backwards), so every nak means "resend from `ack`" —
-    /// unless a go-back is already pending and has not resent anything yet.
+    /// A nak: the peer expects `wire_ack`; `trigger` is the frame after the hole that
+    /// made it send the nak (None for a nak caused by a corrupt frame).
     pub(crate) fn on_nak(
         &mut self,
         wire_ack: u16,
+        trigger: Option<u16>,
         credits: u16,
         now: Micros,
         stats: &mut LinkStats,
     ) {
         stats.naks_received += 1;
         self.on_ack(wire_ack, credits, None, now, stats);
-        if !self.unacked.is_empty() && self.resend_next > self.una {
-            self.go_back_now();
-        }
+        self.resend_if_lost(trigger, now);
     }
 
-    /// Start resending from the oldest unacked frame, unless a go-back covering it is
-    /// already in progress. Returns whether it went back.
-    fn go_back(&mut self) -> bool {
-        if self.una < self.recover {
+    /// Selective repeat: resend the oldest unacked frame if it is lost. It is lost when
+    /// the peer received a frame (`trigger`) that we transmitted after the latest
+    /// transmission of the oldest one — the line keeps order, so that copy is gone. For a
+    /// nak without trigger (corrupt frame) resend when the last copy is older than SRTT.
+    /// Returns whether a resend was queued.
+    fn resend_if_lost(&mut self, trigger: Option<u16>, now: Micros) -> bool {
+        let una = self.una;
+        let srtt = self.rtt.srtt_us().unwrap_or(0);
+        let trigger_order = trigger.and_then(|t| {
+            let t = extend_seq(t, una);
+            (t > una && t < self.next_seq)
+                .then(|| self.unacked.get((t - una) as usize).map(|f| f.tx_order))
+                .flatten()
+        });
+        let Some(first) = self.unacked.front_mut() else {
+            return false;
+        };
+        if first.queued {
             return false;
         }
-        self.go_back_now();
+        let lost = match trigger_order {
+            Some(order) => order > first.tx_order,
+            None => trigger.is_none() && now.since(first.sent_at) >= srtt,
+        };
+        if !lost {
+            return false;
+        }
+        first.queued = true;
+        self.resend.push_back(una);
+        self.loss_seen();
         true
     }
 
-    fn go_back_now(&mut self) {
-        self.recover = self.next_seq;
-        self.resend_next = self.una;
+    fn loss_seen(&mut self) {
         self.clean_frames = 0;
         // Multiplicative decrease of the frame size: on a noisy line shorter frames
         // are hit less often and cost less to resend.
         self.frame_budget = (self.frame_budget * 3 / 4).max(self.min_frame);
     }
 
-    /// The retransmission timer expired: back off and go back N.
+    /// The retransmission timer expired: back off and resend the oldest frame.
     pub(crate) fn on_timeout(&mut self, now: Micros, stats: &mut LinkStats) {
         let Some(deadline) = self.rto_deadline else {
             return;
@@ -477,7 +498,14 @@ impl SendStream {
         }
         stats.timeouts += 1;
         self.rtt.backoff();
-        self.go_back_now();
+        // Resend the oldest frame; naks for later holes follow once it arrives.
+        if let Some(first) = self.unacked.front_mut() {
+            if !first.queued {
+                first.queued = true;
+                self.resend.push_front(self.una);
+            }
+        }
+        self.loss_seen();
         self.rto_deadline = Some(now.plus_us(self.rtt.rto_us()));
     }
 }
@@ -485,23 +513,27 @@ impl SendStream {
 /// Outcome of a received Data frame.
 #[derive(Debug, PartialEq, Eq)]
 pub(crate) enum Arrival {
-    /// The next frame in order: deliver its body.
-    InOrder,
+    /// Bodies to deliver, in order: the frame and any buffered frames it completes.
+    Deliver(Vec<Vec<u8>>),
     /// Already delivered: discard, re-ack.
     Duplicate,
-    /// A frame after a gap: discard; nak if this is the first of its round.
+    /// A frame after a hole: buffered (if room); nak if this is the first for this hole,
+    /// otherwise a duplicate ack.
     Gap {
         /// Send a nak.
         send_nak: bool,
     },
 }
 
-/// In-order receiver.
+/// Frames after a hole the receiver keeps (≥ `LinkConfig::max_frames_in_flight`).
+pub(crate) const REORDER_FRAMES: u64 = 64;
+
+/// In-order receiver with a reorder buffer (selective repeat).
 #[derive(Debug, Default)]
 pub(crate) struct RecvStream {
     expected: u64,
     nak_sent_for: Option<u64>,
-    last_gap_seq: Option<u64>,
+    buffer: std::collections::BTreeMap<u64, Vec<u8>>,
 }
 
 impl RecvStream {
@@ -509,23 +541,35 @@ impl RecvStream {
         self.expected as u16
     }
 
-    pub(crate) fn on_data(&mut self, wire_seq: u16) -> Arrival {
+    pub(crate) fn on_data(&mut self, wire_seq: u16, body: Vec<u8>) -> Arrival {
         let seq = extend_seq(wire_seq, self.expected);
         if seq == self.expected {
+            let mut out = vec![body];
             self.expected += 1;
+            while let Some(b) = self.buffer.remove(&self.expected) {
+                out.push(b);
+                self.expected += 1;
+            }
             self.nak_sent_for = None;
-            self.last_gap_seq = None;
-            Arrival::InOrder
+            Arrival::Deliver(out)
         } else if seq < self.expected {
             Arrival::Duplicate
         } else {
-            // A new round of transmissions shows as sequence numbers going backwards.
-            let rewind = self.last_gap_seq.is_some_and(|g| seq <= g);
-            self.last_gap_seq = Some(seq);
-            let send_nak = rewind || self.nak_sent_for != Some(self.expected);
+            if seq - self.expected < REORDER_FRAMES {
+                self.buffer.entry(seq).or_insert(body);
+            }
+            let send_nak = self.nak_sent_for != Some(self.expected);
             self.nak_sent_for = Some(self.expected);
             Arrival::Gap { send_nak }
         }
+    }
+
+    /// After a delivery: if frames wait behind a new hole, the nak trigger (the highest
+    /// buffered sequence) to ask for the hole at once.
+    pub(crate) fn hole_trigger(&mut self) -> Option<u16> {
+        let last = *self.buffer.keys().next_back()?;
+        self.nak_sent_for = Some(self.expected);
+        Some(last as u16)
     }
 
     /// A frame failed its CRC: nak once per expected sequence.
@@ -602,5 +646,46 @@ mod tests {
         let out = s.poll(Micros(0), &mut stats).unwrap();
         let v: Vec<u32> = decode_body(&out.body).unwrap();
         assert_eq!(v, [0, 1, 2]);
+    }
+
+    #[test]
+    fn one_loss_costs_one_resend() {
+        let cfg = LinkConfig::default();
+        let mut s = SendStream::new(&cfg);
+        s.set_peer_limits(1 << 20, 128);
+        s.set_credits(0, 1000);
+        let mut stats = LinkStats::default();
+        for i in 0..40u32 {
+            s.push(postcard::to_allocvec(&[i; 20]).unwrap(), 1, false);
+        }
+        let sent: Vec<u16> = (0..5)
+            .map(|k| s.poll(Micros(k), &mut stats).unwrap().seq)
+            .collect();
+        assert_eq!(sent, [0, 1, 2, 3, 4]);
+        // Frame 1 lost: the peer acks 1 and naks with trigger 2, then dup-acks 3 and 4.
+        s.on_ack(1, 1000, None, Micros(10), &mut stats);
+        s.on_nak(1, Some(2), 1000, Micros(11), &mut stats);
+        assert_eq!(s.poll(Micros(12), &mut stats).unwrap().seq, 1);
+        // Naks caused by frames sent before the resend do not resend again.
+        s.on_nak(1, Some(3), 1000, Micros(13), &mut stats);
+        s.on_ack(1, 1000, Some(4), Micros(13), &mut stats);
+        assert_eq!(s.poll(Micros(14), &mut stats).unwrap().seq, 5);
+        assert_eq!(stats.frames_retransmitted, 1);
+    }
+
+    #[test]
+    fn receiver_reorders_and_delivers_once() {
+        let mut r = RecvStream::default();
+        assert_eq!(r.on_data(0, vec![0]), Arrival::Deliver(vec![vec![0]]));
+        assert_eq!(r.on_data(2, vec![2]), Arrival::Gap { send_nak: true });
+        assert_eq!(r.on_data(3, vec![3]), Arrival::Gap { send_nak: false });
+        assert_eq!(r.on_data(2, vec![2]), Arrival::Gap { send_nak: false });
+        assert_eq!(
+            r.on_data(1, vec![1]),
+            Arrival::Deliver(vec![vec![1], vec![2], vec![3]])
+        );
+        assert_eq!(r.hole_trigger(), None);
+        assert_eq!(r.on_data(3, vec![3]), Arrival::Duplicate);
+        assert_eq!(r.expected_wire(), 4);
     }
 }
