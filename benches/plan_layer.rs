@@ -27,7 +27,10 @@ pub fn bench_region() -> Region {
             })
             .collect()
     };
-    Region::new(outer, vec![hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0))])
+    Region::new(
+        outer,
+        vec![hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0))],
+    )
 }
 
 fn bench(c: &mut Criterion) {
@@ -48,7 +51,10 @@ fn bench(c: &mut Criterion) {
         plan.method,
         plan.m,
         plan.sub_regions.len(),
-        plan.sub_regions.iter().map(|s| s.offsets.len()).sum::<usize>()
+        plan.sub_regions
+            .iter()
+            .map(|s| s.offsets.len())
+            .sum::<usize>()
     );
     c.bench_function("plan_layer_2000v_2holes_m20", |b| {
         b.iter(|| plan_region(black_box(&region), 0, &design, &opts).unwrap())

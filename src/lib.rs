@@ -9,6 +9,10 @@
 //!
 //! - [`geom`]: loops and regions (outer boundary Ce, holes Ci), their validation.
 //! - [`material`]: compositions, gradient functions f(d), equations (2)–(4), (6), (7).
+//! - [`machine`]: the move stream in fixed point (µm, nl, ratios of 65535), the one move
+//!   type host, link and simulator share.
+//! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
+//! - [`linktest`]: `edoctl link-test`, qualifies a cable/machine by streaming dry-run moves.
 //!
 //! Only the binaries touch files, sockets and clocks.
 
@@ -16,6 +20,9 @@ pub mod cli;
 pub mod edo;
 pub mod geom;
 pub mod job;
+pub mod link;
+pub mod linktest;
+pub mod machine;
 pub mod material;
 pub mod report;
 pub mod svg;

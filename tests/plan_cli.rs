@@ -10,7 +10,9 @@ fn edoctl() -> Command {
 }
 
 fn example(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("config/examples")
+        .join(name)
 }
 
 fn plan_json(job: &Path, svg: Option<&Path>) -> serde_json::Value {
@@ -20,7 +22,11 @@ fn plan_json(job: &Path, svg: Option<&Path>) -> serde_json::Value {
         cmd.arg("--svg").arg(dir);
     }
     let out = cmd.output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     serde_json::from_slice(&out.stdout).unwrap()
 }
 
@@ -60,7 +66,10 @@ fn paper_annulus_report_matches_the_paper() {
     // Compact material data is far smaller than a voxel grid at R_mach / 4.
     let compact = t["compact_material_bytes"].as_u64().unwrap();
     let voxels = t["voxel_grid_bytes"].as_u64().unwrap();
-    eprintln!("paper annulus: compact material {compact} B, plan {} B, voxel grid {voxels} B", t["plan_bytes"]);
+    eprintln!(
+        "paper annulus: compact material {compact} B, plan {} B, voxel grid {voxels} B",
+        t["plan_bytes"]
+    );
     assert!(compact * 100 < voxels, "{compact} vs {voxels}");
     // One SVG per layer, with a legend naming the materials.
     for k in 0..2 {
@@ -91,7 +100,11 @@ fn plan_error(job_text: &str) -> String {
     std::fs::write(&path, job_text).unwrap();
     let out = edoctl().arg("plan").arg(&path).output().unwrap();
     assert!(!out.status.success(), "bad job accepted:\n{job_text}");
-    assert_eq!(out.status.code(), Some(1), "exit status (a panic exits 101)");
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "exit status (a panic exits 101)"
+    );
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
@@ -100,13 +113,25 @@ fn bad_jobs_fail_with_named_errors() {
     let good = std::fs::read_to_string(example("paper-annulus.toml")).unwrap();
     let cases = [
         ("inner = [1.0, 0.0]", "inner = [0.6, 0.6]", "gradient.inner"),
-        ("inner = [1.0, 0.0]", "inner = [1.0, 0.0, 0.0]", "gradient.inner"),
+        (
+            "inner = [1.0, 0.0]",
+            "inner = [1.0, 0.0, 0.0]",
+            "gradient.inner",
+        ),
         ("outer = [0.0, 1.0]", "outer = [nan, 1.0]", "gradient.outer"),
         ("r_mach = 2.0", "r_mach = 0.0", "process.r_mach"),
         ("nozzle = 0.5", "nozzle = -0.5", "process.nozzle"),
         ("radius = 10.0", "radius = 35.0", "geometry.polygon"),
-        ("pattern = \"growth-rings\"", "pattern = \"spiral\"", "gradient.pattern"),
-        ("function = \"linear\"", "function = { table = [[0.0, 0.0], [0.5, 0.9], [0.4, 1.0], [1.0, 1.0]] }", "gradient.function"),
+        (
+            "pattern = \"growth-rings\"",
+            "pattern = \"spiral\"",
+            "gradient.pattern",
+        ),
+        (
+            "function = \"linear\"",
+            "function = { table = [[0.0, 0.0], [0.5, 0.9], [0.4, 1.0], [1.0, 1.0]] }",
+            "gradient.function",
+        ),
         ("[process]", "[process]\nspeed = 3", "speed"),
         ("r_mach = 2.0", "r_mach = 50.0", "too thin"),
     ];
@@ -128,7 +153,10 @@ fn bad_jobs_fail_with_named_errors() {
     assert!(plan_error(&flat).contains("no area"));
     // Not TOML at all, and a missing file.
     assert!(plan_error("\u{0}\u{1}garbage = [").contains("line"));
-    let out = edoctl().args(["plan", "/nonexistent/job.toml"]).output().unwrap();
+    let out = edoctl()
+        .args(["plan", "/nonexistent/job.toml"])
+        .output()
+        .unwrap();
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/job.toml"));
 }

@@ -10,7 +10,8 @@
 
 use edo::edo::shapes::Path;
 use edo::edo::{
-    offset_composition_eq6, plan_region, GradientDesign, Pattern, PlanOptions, RegionPlan, Subdivision,
+    offset_composition_eq6, plan_region, GradientDesign, Pattern, PlanOptions, RegionPlan,
+    Subdivision,
 };
 use edo::geom::{point_segment_distance, segments_intersect, signed_area, Region};
 use edo::material::{Composition, GradientFunction};
@@ -47,7 +48,15 @@ fn region_strategy() -> impl Strategy<Value = Region> {
                 let mid = 0.5 * (a + b);
                 let inward = mid * 0.55;
                 let side = (b - a) * 0.15;
-                outer.splice(k + 1..k + 1, [mid * 0.9 - side, inward - side, inward + side, mid * 0.9 + side]);
+                outer.splice(
+                    k + 1..k + 1,
+                    [
+                        mid * 0.9 - side,
+                        inward - side,
+                        inward + side,
+                        mid * 0.9 + side,
+                    ],
+                );
             }
             let centres: &[DVec2] = match holes {
                 0 => &[],
@@ -81,7 +90,11 @@ fn function_strategy() -> impl Strategy<Value = GradientFunction> {
         Just(GradientFunction::LINEAR),
         (0.3f64..3.0).prop_map(GradientFunction::Power),
         Just(GradientFunction::Smoothstep),
-        Just(GradientFunction::Table(vec![[0.0, 0.0], [0.4, 0.7], [1.0, 1.0]])),
+        Just(GradientFunction::Table(vec![
+            [0.0, 0.0],
+            [0.4, 0.7],
+            [1.0, 1.0]
+        ])),
     ]
 }
 
@@ -128,13 +141,23 @@ fn roads_cross(a: &[Path], b: &[Path]) -> Option<(DVec2, DVec2)> {
     None
 }
 
-fn check_plan(plan: &RegionPlan, region: &Region, f: &GradientFunction, inner: &Composition, outer: &Composition) {
+fn check_plan(
+    plan: &RegionPlan,
+    region: &Region,
+    f: &GradientFunction,
+    inner: &Composition,
+    outer: &Composition,
+) {
     // Every contour road lies in the part's material.
     let material: Vec<&Vec<DVec2>> = region.loops().collect();
     for c in &plan.contours {
         for p in &c.roads {
             for v in &p.points {
-                assert!(inside_or_on(*v, &material, 2e-3), "C{} road vertex {v} lies outside the part", c.j);
+                assert!(
+                    inside_or_on(*v, &material, 2e-3),
+                    "C{} road vertex {v} lies outside the part",
+                    c.j
+                );
             }
         }
     }
@@ -150,7 +173,12 @@ fn check_plan(plan: &RegionPlan, region: &Region, f: &GradientFunction, inner: &
             let sign = (outer.fractions()[k] - inner.fractions()[k]).signum();
             for w in plan.contours.windows(2) {
                 let step = w[1].composition.fractions()[k] - w[0].composition.fractions()[k];
-                assert!(step * sign >= -1e-12, "material {k} not monotone between C{} and C{}", w[0].j, w[1].j);
+                assert!(
+                    step * sign >= -1e-12,
+                    "material {k} not monotone between C{} and C{}",
+                    w[0].j,
+                    w[1].j
+                );
             }
         }
     }
@@ -159,7 +187,12 @@ fn check_plan(plan: &RegionPlan, region: &Region, f: &GradientFunction, inner: &
         for (k, paths) in s.offsets.iter().enumerate() {
             let m = offset_composition_eq6(plan, s, k as u32 + 1);
             let sum: f64 = m.fractions().iter().sum();
-            assert!((sum - 1.0).abs() < 1e-9, "S{} offset {} sums to {sum}", s.n, k + 1);
+            assert!(
+                (sum - 1.0).abs() < 1e-9,
+                "S{} offset {} sums to {sum}",
+                s.n,
+                k + 1
+            );
             if s.n > 0 {
                 // Between its bounding contours' compositions.
                 let (a, b) = (
@@ -167,7 +200,10 @@ fn check_plan(plan: &RegionPlan, region: &Region, f: &GradientFunction, inner: &
                     &plan.contours[s.n as usize].composition,
                 );
                 for q in 0..m.len() {
-                    let (lo, hi) = (a.fractions()[q].min(b.fractions()[q]), a.fractions()[q].max(b.fractions()[q]));
+                    let (lo, hi) = (
+                        a.fractions()[q].min(b.fractions()[q]),
+                        a.fractions()[q].max(b.fractions()[q]),
+                    );
                     assert!(m.fractions()[q] >= lo - 1e-12 && m.fractions()[q] <= hi + 1e-12);
                 }
             }

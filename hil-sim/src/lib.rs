@@ -1,1 +1,18 @@
-//! hil-sim: the simulated multi-syringe slurry extrusion machine (see issue "Machine link and hil-sim").
+//! hil-sim: the simulated multi-syringe slurry extrusion machine.
+//!
+//! It speaks the edo link protocol (`docs/protocol.md`) on a pseudo-terminal, with the
+//! machine end of [`edo::link`] so the two ends share one codec.
+//!
+//! - [`model`]: axes, syringes, mixing chamber (V_dead, plug flow), move durations.
+//! - [`faults`]: the fault list of `--faults` and the run-time commands.
+//! - [`sim`]: the pty runtime (baud throttle, fault injector, recorder) and [`sim::spawn`]
+//!   to run it in a thread of a test.
+//! - [`record`]: the JSON-lines recorder format and `hil-sim render` (SVG per layer).
+
+pub mod faults;
+pub mod model;
+pub mod record;
+pub mod sim;
+
+pub use faults::{Faults, FAULTS_HELP};
+pub use sim::{run, spawn, Command, SimConfig, SimHandle, Summary};

@@ -411,10 +411,13 @@ pub fn plan_region(
         let (lower, upper) = (&levels[(n - 1) as usize], &levels[n as usize]);
         // Growth-ring levels nest between the offset boundaries, so their difference
         // already lies in the interior; crown and fiber levels are cut to it.
-        let between = shapes::difference(&level_shapes[n as usize], &level_shapes[(n - 1) as usize]);
+        let between =
+            shapes::difference(&level_shapes[n as usize], &level_shapes[(n - 1) as usize]);
         let s = match pre.method {
             SubdivisionMethod::Radial | SubdivisionMethod::Distance => between,
-            SubdivisionMethod::Offset | SubdivisionMethod::Parallel => shapes::intersection(&between, &interior),
+            SubdivisionMethod::Offset | SubdivisionMethod::Parallel => {
+                shapes::intersection(&between, &interior)
+            }
         };
         let area = shapes::area(&s);
         if area <= tol.min_loop_area_mm2 {

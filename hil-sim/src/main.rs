@@ -1,0 +1,132 @@
+//! `hil-sim`: run the simulated machine on a pseudo-terminal, or render a recording.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use hil_sim::{Command, Faults, SimConfig, FAULTS_HELP};
+
+/// A simulated multi-syringe slurry extruder speaking the edo link protocol on a pty.
+///
+/// Creates --link PATH as a symlink to its pseudo-terminal, prints
+/// `hil-sim ready: PATH` on stdout, and runs until SIGTERM or SIGINT (then removes the
+/// symlink). Both directions are throttled to --baud (10 bits per byte).
+#[derive(Debug, Parser)]
+#[command(version, after_help = FAULTS_HELP, args_conflicts_with_subcommands = true)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Cmd>,
+    /// Symlink to create to the pty (the path the host opens).
+    #[arg(long, value_name = "PATH")]
+    link: Option<PathBuf>,
+    /// Line speed, both directions.
+    #[arg(long, default_value_t = 250_000, value_name = "B")]
+    baud: u32,
+    /// Machine time runs X times faster than wall time.
+    #[arg(long, default_value_t = 1.0, value_name = "X")]
+    speed: f64,
+    /// Number of syringes (1..=8).
+    #[arg(long, default_value_t = 2, value_name = "N")]
+    syringes: usize,
+    /// Move queue depth.
+    #[arg(long, default_value_t = 128, value_name = "N")]
+    queue: u16,
+    /// Seed of fault injection and boot ids.
+    #[arg(long, default_value_t = 1, value_name = "S")]
+    seed: u64,
+    /// Record every executed move as JSON lines (format: hil-sim/README.md).
+    #[arg(long, value_name = "FILE")]
+    record: Option<PathBuf>,
+    /// Faults, comma separated key=value (list below).
+    #[arg(long, default_value = "", value_name = "LIST")]
+    faults: String,
+    /// Mixing chamber dead volume V_dead in nl.
+    #[arg(long, default_value_t = 20_000, value_name = "NL")]
+    dead_volume_nl: u64,
+    /// Do not read run-time commands from stdin.
+    #[arg(long)]
+    no_stdin: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum Cmd {
+    /// Draw a recording as one SVG per layer, coloured by the composition at the nozzle.
+    Render {
+        /// Recording (JSON lines) written by --record.
+        record: PathBuf,
+        /// Output directory (layer-NNNN.svg).
+        #[arg(long, value_name = "DIR")]
+        svg: PathBuf,
+    },
+}
+
+static STOP: AtomicBool = AtomicBool::new(false);
+
+extern "C" fn on_signal(_: nix::libc::c_int) {
+    STOP.store(true, Ordering::Relaxed);
+}
+
+fn install_signal_handlers() -> anyhow::Result<()> {
+    use nix::sys::signal::{sigaction, SaFlags, SigAction, SigHandler, SigSet, Signal};
+    let action = SigAction::new(
+        SigHandler::Handler(on_signal),
+        SaFlags::empty(),
+        SigSet::empty(),
+    );
+    for sig in [Signal::SIGTERM, Signal::SIGINT] {
+        // SAFETY: the handler only stores to an atomic, which is async-signal-safe.
+        unsafe { sigaction(sig, &action) }.context("install signal handler")?;
+    }
+    Ok(())
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    if let Some(Cmd::Render { record, svg }) = &cli.command {
+        let files = hil_sim::record::render(record, svg)?;
+        println!("wrote {} layer(s) to {}", files.len(), svg.display());
+        return Ok(());
+    }
+    let faults = Faults::parse(&cli.faults).context("--faults")?;
+    let cfg = SimConfig {
+        link: cli.link.clone(),
+        baud: cli.baud,
+        speed: cli.speed,
+        syringes: cli.syringes,
+        queue: cli.queue,
+        seed: cli.seed,
+        record: cli.record.clone(),
+        faults,
+        dead_volume_nl: cli.dead_volume_nl,
+        ..SimConfig::default()
+    };
+    install_signal_handlers()?;
+    let commands = if cli.no_stdin {
+        None
+    } else {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::stdin().lines() {
+                let Ok(line) = line else { break };
+                if line.trim().is_empty() {
+                    continue;
+                }
+                match Command::parse(&line) {
+                    Ok(c) => {
+                        if tx.send(c).is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => eprintln!("hil-sim: {e}"),
+                }
+            }
+        });
+        Some(rx)
+    };
+    let summary = hil_sim::run(&cfg, &STOP, commands, &mut |path| {
+        println!("hil-sim ready: {}", path.display());
+    })?;
+    eprintln!("hil-sim: {}", serde_json::to_string(&summary)?);
+    Ok(())
+}
