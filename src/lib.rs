@@ -13,3 +13,5 @@
 //! Only the binaries touch files, sockets and clocks.
 
 pub mod geom;
+pub mod mesh;
+pub mod slice;
