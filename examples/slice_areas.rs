@@ -26,7 +26,10 @@ fn main() -> Result<()> {
     .with_context(|| format!("loading {path}"))?;
     let slicer = Slicer::new(&mesh)?;
     let heights: Vec<f64> = if args.get(1).map(String::as_str) == Some("--uniform") {
-        let t: f64 = args.get(2).context("--uniform needs a thickness")?.parse()?;
+        let t: f64 = args
+            .get(2)
+            .context("--uniform needs a thickness")?
+            .parse()?;
         slicer
             .layer_spans(&SliceOptions::uniform(t))?
             .iter()

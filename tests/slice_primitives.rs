@@ -27,7 +27,12 @@ fn cylinder_layers_match_polygon_area() {
     for l in &layers {
         assert_eq!(l.islands.len(), 1, "z {}", l.z_mm);
         assert!(l.islands[0].holes.is_empty());
-        assert!(rel(l.area_mm2(), exact) < 1e-9, "z {} area {}", l.z_mm, l.area_mm2());
+        assert!(
+            rel(l.area_mm2(), exact) < 1e-9,
+            "z {} area {}",
+            l.z_mm,
+            l.area_mm2()
+        );
         assert!(rel(l.area_mm2(), PI * 100.0) < 0.005);
     }
 }
@@ -37,8 +42,13 @@ fn planes_through_vertex_rings_are_robust() {
     // The cylinder has rings of vertices every 20/7 mm and flat caps; cut exactly there.
     let m = repaired(&primitives::cylinder(5.0, 20.0, 64, 4));
     let slicer = Slicer::new(&m).unwrap();
+    // Symbolic perturbation only (no plane clearance).
+    let symbolic = SliceTolerances {
+        plane_clearance_mm: 0.0,
+        ..Default::default()
+    };
     let sections = slicer
-        .sections_at(&[5.0, 10.0, 15.0, 0.0, 20.0], &SliceTolerances::default())
+        .sections_at(&[5.0, 10.0, 15.0, 0.0, 20.0], &symbolic)
         .unwrap();
     let exact = primitives::ngon_area(5.0, 64);
     for s in &sections[..3] {
@@ -50,6 +60,15 @@ fn planes_through_vertex_rings_are_robust() {
     assert!(sections[3].is_empty());
     assert_eq!(sections[4].len(), 1);
     assert!(rel(sections[4][0].area(), exact) < 1e-9);
+    // With the default clearance, planes move 0.1 µm up off the vertex heights (and
+    // corners cut within collinear_mm change the area by < 1e-6).
+    let moved = slicer
+        .sections_at(&[5.0, 10.0, 0.0, 20.0], &SliceTolerances::default())
+        .unwrap();
+    assert!(rel(moved[0][0].area(), exact) < 1e-6);
+    assert!(rel(moved[1][0].area(), exact) < 1e-6);
+    assert_eq!(moved[2].len(), 1);
+    assert!(moved[3].is_empty());
 }
 
 #[test]
@@ -100,7 +119,13 @@ fn sphere_sections_match_circles() {
         // Away from the poles (|dz| < 0.9 r) the tessellation error is below 0.5 %.
         if dz.abs() < 0.9 * r {
             let e = rel(l.area_mm2(), PI * rho2);
-            assert!(e < 0.005, "z {} area {} exact {} ({e})", l.mid_z_mm(), l.area_mm2(), PI * rho2);
+            assert!(
+                e < 0.005,
+                "z {} area {} exact {} ({e})",
+                l.mid_z_mm(),
+                l.area_mm2(),
+                PI * rho2
+            );
             checked += 1;
         }
     }
@@ -153,7 +178,10 @@ fn adaptive_is_thinner_where_the_sphere_is_flatter() {
         };
         // Flatter towards the poles: strictly thinner, monotonically in steps.
         let (pole, mid, equator) = (near(0.5), near(4.0), near(r));
-        assert!(pole < mid && mid < equator, "{criterion:?}: {pole} {mid} {equator}");
+        assert!(
+            pole < mid && mid < equator,
+            "{criterion:?}: {pole} {mid} {equator}"
+        );
         assert!(near(2.0 * r - 0.5) < near(r + 6.0));
     }
 }
@@ -170,7 +198,12 @@ fn adaptive_is_thinner_on_the_flatter_cone() {
     assert!(t(&flat) < t(&steep), "{} {}", t(&flat), t(&steep));
     // Cusp criterion: h = c / cos(normal, z).
     let cos_flat = 20.0 / (20.0f64 * 20.0 + 5.0 * 5.0).sqrt();
-    assert!((t(&flat) - (0.05 / cos_flat).max(0.05)).abs() < 1e-4, "{} {}", t(&flat), 0.05 / cos_flat);
+    assert!(
+        (t(&flat) - (0.05 / cos_flat).max(0.05)).abs() < 1e-4,
+        "{} {}",
+        t(&flat),
+        0.05 / cos_flat
+    );
 }
 
 #[test]

@@ -118,7 +118,9 @@ pub enum MeshError {
     Empty,
     #[error("the file is {size} bytes, over the limit of {limit} bytes (MeshLimits::max_bytes)")]
     TooLarge { size: u64, limit: u64 },
-    #[error("the mesh has {count} triangles, over the limit of {limit} (MeshLimits::max_triangles)")]
+    #[error(
+        "the mesh has {count} triangles, over the limit of {limit} (MeshLimits::max_triangles)"
+    )]
     TooManyTriangles { count: u64, limit: u64 },
     #[error("not a mesh file this program reads: it is neither a binary STL (84-byte header + 50 bytes per triangle), an ASCII STL (starting with \"solid\") nor a 3MF (a zip archive)")]
     UnknownFormat,
@@ -156,7 +158,9 @@ pub enum MeshError {
     ThreeMf { part: String, message: String },
     #[error("the mesh has no triangles")]
     NoTriangles,
-    #[error("triangle {triangle} refers to vertex {index}, but there are only {vertex_count} vertices")]
+    #[error(
+        "triangle {triangle} refers to vertex {index}, but there are only {vertex_count} vertices"
+    )]
     BadIndex {
         triangle: u64,
         index: u32,

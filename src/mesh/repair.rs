@@ -154,7 +154,10 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
     // Vertices no triangle uses are not "merged"; count merges among used corners.
     let used = {
         let mut u = vec![false; nv];
-        mesh.triangles.iter().flatten().for_each(|&i| u[i as usize] = true);
+        mesh.triangles
+            .iter()
+            .flatten()
+            .for_each(|&i| u[i as usize] = true);
         u.iter().filter(|&&b| b).count()
     };
     let mut triangles: Vec<[u32; 3]> = Vec::with_capacity(mesh.triangles.len());
@@ -234,7 +237,10 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
             1 => {
                 report.open_edges += 1;
                 if report.open_edge_samples_mm.len() < options.max_open_edge_samples {
-                    let (a, b) = ((uses[i].0 >> 32) as usize, (uses[i].0 & 0xffff_ffff) as usize);
+                    let (a, b) = (
+                        (uses[i].0 >> 32) as usize,
+                        (uses[i].0 & 0xffff_ffff) as usize,
+                    );
                     let m = 0.5 * (out.vertices[a] + out.vertices[b]);
                     report.open_edge_samples_mm.push(m.to_array());
                 }
@@ -284,7 +290,8 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
             queue.push_back(seed as u32);
             while let Some(t) = queue.pop_front() {
                 let ft = flip[t as usize].unwrap_or(false);
-                for &(n, same) in &adj[adj_start[t as usize] as usize..adj_start[t as usize + 1] as usize]
+                for &(n, same) in
+                    &adj[adj_start[t as usize] as usize..adj_start[t as usize + 1] as usize]
                 {
                     if flip[n as usize].is_none() {
                         // Same direction on the shared edge means one of them must flip.
@@ -294,7 +301,10 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
                     }
                 }
             }
-            let flipped = component.iter().filter(|&&t| flip[t as usize] == Some(true)).count();
+            let flipped = component
+                .iter()
+                .filter(|&&t| flip[t as usize] == Some(true))
+                .count();
             if 2 * flipped > component.len() {
                 for &t in &component {
                     flip[t as usize] = flip[t as usize].map(|f| !f);
@@ -309,7 +319,9 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
         }
         report.orientation_conflicts = links
             .iter()
-            .filter(|&&(a, b, same)| same ^ flip[a as usize].unwrap_or(false) ^ flip[b as usize].unwrap_or(false))
+            .filter(|&&(a, b, same)| {
+                same ^ flip[a as usize].unwrap_or(false) ^ flip[b as usize].unwrap_or(false)
+            })
             .count();
     }
 

@@ -35,15 +35,11 @@ fn read_part(
     name: &str,
     limits: &MeshLimits,
 ) -> Result<Option<String>, MeshError> {
-    let Some(index) = zip
-        .index_for_name(name)
-        .or_else(|| {
-            // Part names are case-insensitive in OPC.
-            (0..zip.len()).find(|&i| {
-                matches!(zip.name_for_index(i), Some(Ok(n)) if n.eq_ignore_ascii_case(name))
-            })
-        })
-    else {
+    let Some(index) = zip.index_for_name(name).or_else(|| {
+        // Part names are case-insensitive in OPC.
+        (0..zip.len())
+            .find(|&i| matches!(zip.name_for_index(i), Some(Ok(n)) if n.eq_ignore_ascii_case(name)))
+    }) else {
         return Ok(None);
     };
     let file = zip
@@ -222,7 +218,10 @@ fn parse_model(text: &str, part: &str, limits: &MeshLimits) -> Result<Mesh, Mesh
                 }
                 vertex_budget += 1;
                 if vertex_budget > 3 * limits.max_triangles {
-                    return Err(err_at(&reader, "more vertices than 3 × max_triangles".into()));
+                    return Err(err_at(
+                        &reader,
+                        "more vertices than 3 × max_triangles".into(),
+                    ));
                 }
                 obj.vertices.push(v);
             }
@@ -254,11 +253,19 @@ fn parse_model(text: &str, part: &str, limits: &MeshLimits) -> Result<Mesh, Mesh
                 }
                 let target = attr(&e, "objectid")
                     .and_then(|s| s.parse::<u64>().ok())
-                    .ok_or_else(|| err_at(&reader, format!("object {id}: component without a numeric objectid")))?;
+                    .ok_or_else(|| {
+                        err_at(
+                            &reader,
+                            format!("object {id}: component without a numeric objectid"),
+                        )
+                    })?;
                 let t = match attr(&e, "transform") {
                     None => DAffine3::IDENTITY,
                     Some(s) => parse_transform(&s).ok_or_else(|| {
-                        err_at(&reader, format!("object {id}: bad component transform {s:?}"))
+                        err_at(
+                            &reader,
+                            format!("object {id}: bad component transform {s:?}"),
+                        )
                     })?,
                 };
                 obj.components.push((target, t));
@@ -267,7 +274,9 @@ fn parse_model(text: &str, part: &str, limits: &MeshLimits) -> Result<Mesh, Mesh
             "item" if in_build => {
                 let target = attr(&e, "objectid")
                     .and_then(|s| s.parse::<u64>().ok())
-                    .ok_or_else(|| err_at(&reader, "build item without a numeric objectid".into()))?;
+                    .ok_or_else(|| {
+                        err_at(&reader, "build item without a numeric objectid".into())
+                    })?;
                 let t = match attr(&e, "transform") {
                     None => DAffine3::IDENTITY,
                     Some(s) => parse_transform(&s).ok_or_else(|| {
@@ -342,7 +351,8 @@ fn emit(
         }
         let base = mesh.vertices.len() as u32;
         for &i in tri {
-            mesh.vertices.push(t.transform_point3(obj.vertices[i as usize]));
+            mesh.vertices
+                .push(t.transform_point3(obj.vertices[i as usize]));
         }
         mesh.triangles.push([base, base + 1, base + 2]);
     }

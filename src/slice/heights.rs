@@ -141,7 +141,9 @@ pub(super) fn layer_spans(
             }
             let cos = (n.z / len).abs().min(1.0);
             let sin = (1.0 - cos * cos).sqrt();
-            let limit = options.criterion.max_thickness_mm(options.cusp_mm, cos, sin);
+            let limit = options
+                .criterion
+                .max_thickness_mm(options.cusp_mm, cos, sin);
             if limit >= max {
                 continue;
             }

@@ -59,6 +59,15 @@ pub struct SliceTolerances {
     pub max_gap_mm: f64,
     /// Consecutive loop points closer than this are merged, mm. Default 1e-7.
     pub point_eq_mm: f64,
+    /// A cutting plane closer than half of this to a vertex height is moved away from it
+    /// (up first, then down, in steps of this), so that a facet lying at a layer's
+    /// mid-height is treated the same whether the file rounded it up or down, mm.
+    /// Default 1e-4.
+    pub plane_clearance_mm: f64,
+    /// Loop points within this of the line through their neighbours are dropped
+    /// (collinear points, and the zero-width spikes that µm-scale folds of real meshes
+    /// leave), mm. Default 1e-4.
+    pub collinear_mm: f64,
     /// Loops enclosing less area are dropped (slivers from touching facets), mm².
     /// Default 1e-6.
     pub min_loop_area_mm2: f64,
@@ -75,6 +84,8 @@ impl Default for SliceTolerances {
         SliceTolerances {
             max_gap_mm: 2.0,
             point_eq_mm: 1e-7,
+            plane_clearance_mm: 1e-4,
+            collinear_mm: 1e-4,
             min_loop_area_mm2: 1e-6,
             z_eps_mm: 1e-6,
             validate_regions: true,
@@ -184,6 +195,9 @@ pub struct SliceReport {
     pub max_gap_closed_mm: f64,
     /// Loops dropped for enclosing less than `min_loop_area_mm2`.
     pub slivers_dropped: usize,
+    /// Layers whose loops touched or crossed themselves (µm-scale folds of real meshes)
+    /// and were resolved with an even-odd union (i_overlay) before validation.
+    pub layers_resolved_by_union: usize,
 }
 
 /// Progress callback: `(layers done, layers total)`, called from worker threads.
@@ -196,6 +210,8 @@ pub struct Slicer<'m> {
     tri_edges: Vec<[u32; 3]>,
     edge_count: usize,
     z_range: (f64, f64),
+    /// Sorted vertex heights.
+    vertex_z: Vec<f64>,
 }
 
 impl<'m> Slicer<'m> {
@@ -211,12 +227,35 @@ impl<'m> Slicer<'m> {
             }
             tri_edges[u.1 as usize][u.2 as usize] = id;
         }
+        let mut vertex_z: Vec<f64> = mesh.vertices.iter().map(|v| v.z).collect();
+        vertex_z.sort_by(f64::total_cmp);
         Ok(Slicer {
+            vertex_z,
             mesh,
             tri_edges,
             edge_count: id as usize + 1,
             z_range: (lo.z, hi.z),
         })
+    }
+
+    /// `z` moved off vertex heights (see [`SliceTolerances::plane_clearance_mm`]).
+    fn clear_plane(&self, z: f64, step: f64) -> f64 {
+        if step <= 0.0 {
+            return z;
+        }
+        let near = |p: f64| {
+            let i = self.vertex_z.partition_point(|&v| v < p - 0.5 * step);
+            self.vertex_z.get(i).is_some_and(|&v| v <= p + 0.5 * step)
+        };
+        for k in 0..16 {
+            // Offsets 0, +1, -1, +2, -2, ... steps.
+            let sign = if k % 2 == 1 { 1.0 } else { -1.0 };
+            let p = z + sign * ((k + 1) / 2) as f64 * step;
+            if !near(p) {
+                return p;
+            }
+        }
+        z
     }
 
     /// Bottom and top of the part, mm.
@@ -240,7 +279,10 @@ impl<'m> Slicer<'m> {
         use rayon::prelude::*;
         let done = AtomicUsize::new(0);
         let total = spans.len();
-        let planes: Vec<f64> = spans.iter().map(|s| s.mid_z_mm()).collect();
+        let planes: Vec<f64> = spans
+            .iter()
+            .map(|s| self.clear_plane(s.mid_z_mm(), tolerances.plane_clearance_mm))
+            .collect();
         let buckets = section::Buckets::new(self.mesh, &planes);
         let results: Vec<Result<(Vec<Region>, section::LayerNotes), SliceError>> = (0..total)
             .into_par_iter()
@@ -270,6 +312,7 @@ impl<'m> Slicer<'m> {
         for (span, r) in spans.iter().zip(results) {
             let (islands, notes) = r?;
             report.slivers_dropped += notes.slivers_dropped;
+            report.layers_resolved_by_union += notes.resolved_by_union as usize;
             for g in notes.gaps {
                 report.gaps_closed_count += 1;
                 report.max_gap_closed_mm = report.max_gap_closed_mm.max(g.gap_mm);

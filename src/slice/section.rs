@@ -73,6 +73,7 @@ const NONE: u32 = u32::MAX;
 pub(super) struct LayerNotes {
     pub gaps: Vec<GapClosed>,
     pub slivers_dropped: usize,
+    pub resolved_by_union: bool,
 }
 
 struct Segment {
@@ -191,7 +192,7 @@ pub(super) fn cut(
     // Step 4: clean loops and nest them into islands.
     let mut clean: Vec<(Vec<DVec2>, f64)> = Vec::with_capacity(loops.len());
     for l in loops {
-        let l = geom::dedup_loop(&l, tol.point_eq_mm);
+        let l = drop_collinear(&l, tol.collinear_mm.max(tol.point_eq_mm));
         let a = geom::signed_area(&l);
         if l.len() < 3 || a.abs() < tol.min_loop_area_mm2 {
             notes.slivers_dropped += 1;
@@ -199,19 +200,26 @@ pub(super) fn cut(
         }
         clean.push((l, a.abs()));
     }
-    let islands = nest(clean);
+    let loops: Vec<Vec<DVec2>> = clean.iter().map(|(l, _)| l.clone()).collect();
+    let mut islands = nest(clean);
     if tol.validate_regions {
         let gt = geom::Tolerances {
             point_eq_mm: tol.point_eq_mm,
             min_loop_area_mm2: tol.min_loop_area_mm2,
             ..Default::default()
         };
-        for (i, r) in islands.iter().enumerate() {
-            r.validate(&gt).map_err(|source| SliceError::BadRegion {
+        if first_invalid(&islands, &gt).is_some() {
+            // Step 5: real meshes leave µm-scale folds (a loop doubling back on itself);
+            // resolve the layer with an even-odd union, as PrusaSlicer does with Clipper.
+            islands = union_even_odd(&loops, tol);
+            notes.resolved_by_union = true;
+        }
+        if let Some((i, source)) = first_invalid(&islands, &gt) {
+            return Err(SliceError::BadRegion {
                 z_mm: z,
                 island: i,
                 source,
-            })?;
+            });
         }
     }
     Ok((islands, notes))
@@ -324,9 +332,11 @@ fn nest(mut loops: Vec<(Vec<DVec2>, f64)>) -> Vec<Region> {
     let mut regions: Vec<Region> = Vec::new();
     let mut taken: Vec<Option<Vec<DVec2>>> = loops.into_iter().map(|(l, _)| Some(l)).collect();
     for i in 0..taken.len() {
-        let Some(mut l) = taken[i].take() else { continue };
+        let Some(mut l) = taken[i].take() else {
+            continue;
+        };
         let ccw = geom::signed_area2(&l) > 0.0;
-        if depth[i] % 2 == 0 {
+        if depth[i].is_multiple_of(2) {
             if !ccw {
                 l.reverse();
             }
@@ -344,4 +354,89 @@ fn nest(mut loops: Vec<(Vec<DVec2>, f64)>) -> Vec<Region> {
         }
     }
     regions
+}
+
+fn first_invalid(islands: &[Region], tol: &geom::Tolerances) -> Option<(usize, geom::RegionError)> {
+    islands
+        .iter()
+        .enumerate()
+        .find_map(|(i, r)| r.validate(tol).err().map(|e| (i, e)))
+}
+
+/// Islands of `loops` under the even-odd rule, computed by i_overlay.
+fn union_even_odd(loops: &[Vec<DVec2>], tol: &SliceTolerances) -> Vec<Region> {
+    use i_overlay::core::fill_rule::FillRule;
+    use i_overlay::float::simplify::SimplifyShape;
+    let contours: Vec<Vec<[f64; 2]>> = loops
+        .iter()
+        .map(|l| l.iter().map(|p| [p.x, p.y]).collect())
+        .collect();
+    let mut options = i_overlay::float::overlay::OverlayOptions::<f64>::default();
+    options.ogc = true;
+    options.min_output_area = tol.min_loop_area_mm2;
+    let shapes = contours.simplify_shape_custom(
+        FillRule::EvenOdd,
+        options,
+        i_overlay::core::solver::Solver::default(),
+    );
+    let gt = geom::Tolerances {
+        point_eq_mm: tol.point_eq_mm,
+        ..Default::default()
+    };
+    shapes
+        .into_iter()
+        .filter_map(|shape| {
+            let mut it = shape.into_iter().map(|c| {
+                c.into_iter()
+                    .map(|[x, y]| DVec2::new(x, y))
+                    .collect::<Vec<_>>()
+            });
+            let outer = it.next()?;
+            let holes: Vec<Vec<DVec2>> = it
+                .filter(|h| geom::signed_area(h).abs() >= tol.min_loop_area_mm2)
+                .collect();
+            if geom::signed_area(&outer).abs() < tol.min_loop_area_mm2 {
+                return None;
+            }
+            Some(Region::new(outer, holes).normalised(&gt))
+        })
+        .collect()
+}
+
+/// Remove points within `eps` of the line through their neighbours: collinear points and
+/// the zero-width spikes (a loop doubling back on itself) that µm-scale folds of real
+/// meshes leave. Changes the area by at most `eps` × the perimeter.
+fn drop_collinear(l: &[DVec2], eps: f64) -> Vec<DVec2> {
+    let off_line = |a: DVec2, b: DVec2, c: DVec2| {
+        let ac = c - a;
+        let len = ac.length();
+        if len < eps {
+            return true; // a -> b -> back to a: a spike
+        }
+        (b - a).perp_dot(ac).abs() / len >= eps
+    };
+    let mut out: Vec<DVec2> = Vec::with_capacity(l.len());
+    for &p in l {
+        while out.len() >= 2 && !off_line(out[out.len() - 2], out[out.len() - 1], p) {
+            out.pop();
+        }
+        if out.last().is_none_or(|q| q.distance(p) >= eps) {
+            out.push(p);
+        }
+    }
+    // The seam where the loop closes.
+    loop {
+        let n = out.len();
+        if n < 3 {
+            break;
+        }
+        if out[n - 1].distance(out[0]) < eps || !off_line(out[n - 2], out[n - 1], out[0]) {
+            out.pop();
+        } else if !off_line(out[n - 1], out[0], out[1]) {
+            out.remove(0);
+        } else {
+            break;
+        }
+    }
+    out
 }
