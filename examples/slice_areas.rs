@@ -6,7 +6,10 @@
 //! cargo run --release --example slice_areas -- MESH --uniform 0.2      # layer mid-heights
 //! ```
 //!
-//! Output: `{"mesh": .., "report": {..}, "sections": [{"z_mm": .., "area_mm2": .., "islands": ..}], "seconds": ..}`.
+//! Output: `{"mesh": .., "report": {..}, "sections": [{"z_mm": .., "cut_z_mm": .., "area_mm2": ..,
+//! "islands": ..}], "seconds": ..}`; `cut_z_mm` is where the plane was really cut (moved off
+//! vertex heights, see `SliceTolerances::plane_clearance_mm`), `seconds` the time of the
+//! sections alone.
 
 use anyhow::{bail, Context, Result};
 use edo::mesh::{path::load_path, MeshLimits, RepairOptions};
@@ -54,7 +57,8 @@ fn main() -> Result<()> {
         .map(|(z, s)| {
             serde_json::json!({
                 "z_mm": z,
-                "area_mm2": s.iter().map(|r| r.area()).sum::<f64>(),
+                "cut_z_mm": slicer.cut_height_mm(*z, &tol),
+                "area_mm2": s.iter().map(|r| r.area()).sum::<f64>() + 0.0,
                 "islands": s.len(),
             })
         })

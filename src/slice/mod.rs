@@ -238,8 +238,10 @@ impl<'m> Slicer<'m> {
         })
     }
 
-    /// `z` moved off vertex heights (see [`SliceTolerances::plane_clearance_mm`]).
-    fn clear_plane(&self, z: f64, step: f64) -> f64 {
+    /// The height a plane asked for at `z` is actually cut at: `z` moved off vertex
+    /// heights by [`SliceTolerances::plane_clearance_mm`] steps when it is too close to one.
+    pub fn cut_height_mm(&self, z: f64, tolerances: &SliceTolerances) -> f64 {
+        let step = tolerances.plane_clearance_mm;
         if step <= 0.0 {
             return z;
         }
@@ -281,7 +283,7 @@ impl<'m> Slicer<'m> {
         let total = spans.len();
         let planes: Vec<f64> = spans
             .iter()
-            .map(|s| self.clear_plane(s.mid_z_mm(), tolerances.plane_clearance_mm))
+            .map(|s| self.cut_height_mm(s.mid_z_mm(), tolerances))
             .collect();
         let buckets = section::Buckets::new(self.mesh, &planes);
         let results: Vec<Result<(Vec<Region>, section::LayerNotes), SliceError>> = (0..total)
