@@ -8,6 +8,9 @@
 //! The crate is a pure synchronous core, one module per stage, data flowing one way:
 //!
 //! - [`geom`]: loops and regions (outer boundary Ce, holes Ci), their validation.
+//! - [`mesh`]: load a part (STL, 3MF) from bytes within size limits, validate and repair it.
+//! - [`slice`]: layer heights (uniform, or adaptive from slope and a Z limit) and the
+//!   islands of each layer, in parallel.
 //! - [`material`]: compositions, gradient functions f(d), equations (2)–(4), (6), (7).
 //!
 //! Only the binaries touch files, sockets and clocks.

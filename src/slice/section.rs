@@ -440,3 +440,64 @@ fn drop_collinear(l: &[DVec2], eps: f64) -> Vec<DVec2> {
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn v(x: f64, y: f64) -> DVec2 {
+        DVec2::new(x, y)
+    }
+
+    #[test]
+    fn spikes_and_collinear_points_are_dropped() {
+        // A square with a collinear point, a zero-width spike doubling back, and a
+        // duplicate point at the seam.
+        let l = vec![
+            v(0.0, 0.0),
+            v(1.0, 0.0),
+            v(2.0, 0.0),
+            v(2.0, 1.0),
+            v(2.0, 1.5),
+            v(2.0, 1.2),
+            v(2.0, 2.0),
+            v(0.0, 2.0),
+            v(0.0, 0.0),
+        ];
+        let out = drop_collinear(&l, 1e-4);
+        assert_eq!(out.len(), 4, "{out:?}");
+        assert!((geom::signed_area(&out) - 4.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn nesting_depths_alternate() {
+        let sq = |h: f64| vec![v(-h, -h), v(h, -h), v(h, h), v(-h, h)];
+        let loops: Vec<(Vec<DVec2>, f64)> = [1.0, 4.0, 2.0, 3.0]
+            .iter()
+            .map(|&h| (sq(h), 4.0 * h * h))
+            .collect();
+        let r = nest(loops);
+        assert_eq!(r.len(), 2);
+        assert!(r.iter().all(|r| r.holes.len() == 1));
+        assert!(r.iter().all(|r| geom::signed_area(&r.outer) > 0.0));
+        assert!(r.iter().all(|r| geom::signed_area(&r.holes[0]) < 0.0));
+    }
+
+    #[test]
+    fn even_odd_union_resolves_self_touching_loops() {
+        // A figure-eight: two squares sharing a corner, as one loop.
+        let l = vec![
+            v(0.0, 0.0),
+            v(1.0, 0.0),
+            v(1.0, 1.0),
+            v(2.0, 1.0),
+            v(2.0, 2.0),
+            v(1.0, 2.0),
+            v(1.0, 1.0),
+            v(0.0, 1.0),
+        ];
+        let r = union_even_odd(&[l], &SliceTolerances::default());
+        let area: f64 = r.iter().map(Region::area).sum();
+        assert!((area - 2.0).abs() < 1e-6, "{r:?}");
+    }
+}
