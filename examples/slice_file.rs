@@ -2,7 +2,7 @@
 //! summary (mesh report, slice report, layer count, times):
 //!
 //! ```text
-//! cargo run --release --example slice_file -- MESH [--uniform T | --adaptive MIN MAX CUSP]
+//! cargo run --release --example slice_file -- MESH [--uniform T | --adaptive MIN MAX CUSP] [--max-gap MM]
 //! ```
 
 use anyhow::{Context, Result};
@@ -21,7 +21,7 @@ fn main() -> Result<()> {
             .parse::<f64>()
             .with_context(|| format!("argument {i}"))
     };
-    let options = match args.get(1).map(String::as_str) {
+    let mut options = match args.get(1).map(String::as_str) {
         Some("--uniform") => SliceOptions::uniform(num(2)?),
         Some("--adaptive") => SliceOptions {
             layer_min_mm: num(2)?,
@@ -31,6 +31,9 @@ fn main() -> Result<()> {
         },
         _ => SliceOptions::default(),
     };
+    if let Some(i) = args.iter().position(|a| a == "--max-gap") {
+        options.tolerances.max_gap_mm = num(i + 1)?;
+    }
     let t0 = Instant::now();
     let (mesh, report) = load_path(
         std::path::Path::new(path),

@@ -238,3 +238,72 @@ fn progress_reaches_total() {
     slice_mesh(&m, &SliceOptions::uniform(0.2), Some(&cb)).unwrap();
     assert_eq!(max.load(Ordering::Relaxed), 50);
 }
+
+#[test]
+fn unusable_meshes_are_errors() {
+    let mut m = primitives::cylinder(1.0, 1.0, 8, 1);
+    m.triangles[2][1] = 10_000;
+    assert!(matches!(
+        slice_mesh(&m, &SliceOptions::uniform(0.2), None),
+        Err(edo::slice::SliceError::BadMesh(_))
+    ));
+    assert!(matches!(
+        slice_mesh(&Mesh::default(), &SliceOptions::uniform(0.2), None),
+        Err(edo::slice::SliceError::Empty)
+    ));
+    let m = primitives::cylinder(1.0, 1.0, 8, 1);
+    for (lo, hi) in [
+        (0.0, 0.2),
+        (0.3, 0.2),
+        (f64::NAN, 0.2),
+        (0.1, f64::INFINITY),
+    ] {
+        let o = SliceOptions {
+            layer_min_mm: lo,
+            layer_max_mm: hi,
+            ..Default::default()
+        };
+        assert!(matches!(
+            slice_mesh(&m, &o, None),
+            Err(edo::slice::SliceError::BadOptions(_))
+        ));
+    }
+}
+
+mod random_soup {
+    use super::*;
+    use glam::DVec3;
+    use proptest::prelude::*;
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+        /// Triangle soups on a coarse grid (vertices on planes, horizontal facets, open and
+        /// non-manifold edges everywhere): slicing returns layers or an error, never panics.
+        #[test]
+        fn slicing_soup_never_panics(
+            pts in proptest::collection::vec((0i32..5, 0i32..5, 0i32..5), 4..20),
+            tris in proptest::collection::vec((0usize..20, 0usize..20, 0usize..20), 1..40),
+            adaptive in any::<bool>(),
+        ) {
+            let vertices: Vec<DVec3> = pts
+                .iter()
+                .map(|&(x, y, z)| DVec3::new(x as f64, y as f64, z as f64 * 0.25))
+                .collect();
+            let n = vertices.len();
+            let triangles = tris
+                .iter()
+                .map(|&(a, b, c)| [(a % n) as u32, (b % n) as u32, (c % n) as u32])
+                .collect();
+            let m = Mesh { vertices, triangles };
+            if let Ok((m, _)) = repair(&m, &RepairOptions::default()) {
+                let opts = if adaptive {
+                    SliceOptions { layer_min_mm: 0.05, layer_max_mm: 0.3, ..Default::default() }
+                } else {
+                    SliceOptions::uniform(0.25)
+                };
+                let _ = slice_mesh(&m, &opts, None);
+            }
+        }
+    }
+}

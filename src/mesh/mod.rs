@@ -40,20 +40,50 @@ pub struct Mesh {
 
 impl Mesh {
     /// Axis-aligned bounding box `(min, max)` of the vertices used by triangles;
-    /// `None` for a mesh without triangles.
+    /// `None` for a mesh without triangles (out-of-range indices are skipped).
     pub fn bounds(&self) -> Option<(DVec3, DVec3)> {
-        let mut it = self.triangles.iter().flatten();
-        let first = self.vertices[*it.next()? as usize];
+        let mut it = self
+            .triangles
+            .iter()
+            .flatten()
+            .filter_map(|&i| self.vertices.get(i as usize).copied());
+        let first = it.next()?;
         let (mut lo, mut hi) = (first, first);
-        for &i in it {
-            let v = self.vertices[i as usize];
+        for v in it {
             lo = lo.min(v);
             hi = hi.max(v);
         }
         Some((lo, hi))
     }
 
-    /// The three corners of triangle `t`.
+    /// The first problem that would make the mesh unusable: an index out of range or a
+    /// coordinate that is not finite (what [`repair`] refuses).
+    pub fn check_indices_and_coordinates(&self) -> Result<(), MeshError> {
+        let nv = self.vertices.len();
+        for (t, tri) in self.triangles.iter().enumerate() {
+            for (corner, &i) in tri.iter().enumerate() {
+                let Some(v) = self.vertices.get(i as usize) else {
+                    return Err(MeshError::BadIndex {
+                        triangle: t as u64,
+                        index: i,
+                        vertex_count: nv as u64,
+                    });
+                };
+                if !v.is_finite() {
+                    return Err(MeshError::NotFinite {
+                        format: "mesh",
+                        triangle: t as u64,
+                        corner,
+                        at: None,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The three corners of triangle `t` (indices must be in range: see
+    /// [`Mesh::check_indices_and_coordinates`]).
     pub fn corners(&self, t: usize) -> [DVec3; 3] {
         let [a, b, c] = self.triangles[t];
         [

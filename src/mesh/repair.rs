@@ -108,26 +108,8 @@ pub(crate) fn edge_uses(triangles: &[[u32; 3]]) -> Vec<(u64, u32, u8)> {
 /// coordinates, bad indices and an empty mesh.
 pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport), MeshError> {
     // Step 1.
+    mesh.check_indices_and_coordinates()?;
     let nv = mesh.vertices.len();
-    for (t, tri) in mesh.triangles.iter().enumerate() {
-        for (corner, &i) in tri.iter().enumerate() {
-            let Some(v) = mesh.vertices.get(i as usize) else {
-                return Err(MeshError::BadIndex {
-                    triangle: t as u64,
-                    index: i,
-                    vertex_count: nv as u64,
-                });
-            };
-            if !v.is_finite() {
-                return Err(MeshError::NotFinite {
-                    format: "mesh",
-                    triangle: t as u64,
-                    corner,
-                    at: None,
-                });
-            }
-        }
-    }
     if mesh.triangles.is_empty() {
         return Err(MeshError::NoTriangles);
     }

@@ -5,6 +5,7 @@
 //! ([`AdaptiveCriterion::max_thickness_mm`]), written into a fine z grid (bins of
 //! `layer_min_mm / 8`) as a running minimum. Horizontal triangles do not limit thickness
 //! (a layer boundary on them leaves no staircase); they are collected as snap heights.
+//! (At most 4 million bins: a very tall part at very thin layers gets coarser bins.)
 //! Step 2: walk up from the part's bottom. A layer starts as thick as `layer_max_mm` and the
 //! caller's [`super::SliceOptions::max_thickness_at`] allow; every grid bin it overlaps may
 //! shrink it to that bin's limit, or, when the limit is smaller than the bin's distance
@@ -20,6 +21,8 @@ use serde::{Deserialize, Serialize};
 
 /// Grid bins per minimum layer thickness.
 const BINS_PER_MIN_LAYER: f64 = 8.0;
+/// At most this many grid bins (32 MB); coarser bins for very tall parts at thin layers.
+const MAX_BINS: f64 = 4_000_000.0;
 /// Refuse stacks of more layers than this (a guard against absurd options).
 const MAX_LAYERS: f64 = 10_000_000.0;
 
@@ -117,7 +120,7 @@ pub(super) fn layer_spans(
     let adaptive = max > min;
 
     // Step 1.
-    let res = min / BINS_PER_MIN_LAYER;
+    let res = (min / BINS_PER_MIN_LAYER).max(height / MAX_BINS);
     let nbins = if adaptive {
         (height / res).ceil() as usize + 1
     } else {

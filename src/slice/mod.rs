@@ -158,6 +158,8 @@ pub enum SliceError {
     BadOptions(String),
     #[error("the mesh has no triangles")]
     Empty,
+    #[error("the mesh cannot be sliced: {0}")]
+    BadMesh(#[from] crate::mesh::MeshError),
     #[error("the mesh is open at layer z = {z_mm:.4} mm: a section loop ends at ({x:.3}, {y:.3}) and no other loop end is within {max_gap_mm} mm{}; repair the mesh (close the hole) or raise max_gap_mm", nearest_mm.map(|d| format!(" (nearest {d:.3} mm)")).unwrap_or_default())]
     OpenLoop {
         z_mm: f64,
@@ -217,6 +219,7 @@ pub struct Slicer<'m> {
 impl<'m> Slicer<'m> {
     /// Index `mesh` (its triangles should have gone through [`crate::mesh::repair`]).
     pub fn new(mesh: &'m Mesh) -> Result<Self, SliceError> {
+        mesh.check_indices_and_coordinates()?;
         let (lo, hi) = mesh.bounds().ok_or(SliceError::Empty)?;
         let uses = crate::mesh::edge_uses(&mesh.triangles);
         let mut tri_edges = vec![[0u32; 3]; mesh.triangles.len()];

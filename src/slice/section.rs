@@ -57,15 +57,21 @@ impl Buckets {
 /// Per-thread working memory: for each edge id, the first segment starting on it.
 pub(super) struct Scratch {
     head: Vec<u32>,
+    /// For each edge id, how many segments end on it.
+    ends: Vec<u32>,
 }
 
 impl Scratch {
     pub(super) fn new(edge_count: usize) -> Self {
         Scratch {
             head: vec![NONE; edge_count],
+            ends: vec![0; edge_count],
         }
     }
 }
+
+/// More open chains than this in one layer: the mesh is too broken to close gaps in.
+const MAX_OPEN_CHAINS: usize = 2000;
 
 const NONE: u32 = u32::MAX;
 
@@ -135,6 +141,7 @@ pub(super) fn cut(
     for (i, s) in segs.iter_mut().enumerate() {
         s.next_same = scratch.head[s.start_edge as usize];
         scratch.head[s.start_edge as usize] = i as u32;
+        scratch.ends[s.end_edge as usize] += 1;
     }
 
     // Step 2: chain by edge id.
@@ -152,7 +159,13 @@ pub(super) fn cut(
     let mut loops: Vec<Vec<DVec2>> = Vec::new();
     // Open chains: (points, start edge, end edge); the last point is the chain's end.
     let mut open: Vec<(Vec<DVec2>, u32, u32)> = Vec::new();
-    for s in 0..segs.len() {
+    // Chains of an open mesh start where no segment ends (pass 0); closed loops start
+    // anywhere (pass 1).
+    let order = (0..segs.len())
+        .filter(|&s| scratch.ends[segs[s].start_edge as usize] == 0)
+        .chain(0..segs.len())
+        .collect::<Vec<_>>();
+    for s in order {
         if segs[s].used {
             continue;
         }
@@ -181,10 +194,21 @@ pub(super) fn cut(
     }
     for s in &segs {
         scratch.head[s.start_edge as usize] = NONE;
+        scratch.ends[s.end_edge as usize] = 0;
     }
 
     // Step 3: join open chains that meet on an edge (a chain begun mid-way), then close
     // gaps up to max_gap_mm, shortest first.
+    if open.len() > MAX_OPEN_CHAINS {
+        let end = *open[0].0.last().unwrap_or(&DVec2::ZERO);
+        return Err(SliceError::OpenLoop {
+            z_mm: z,
+            x: end.x,
+            y: end.y,
+            nearest_mm: None,
+            max_gap_mm: tol.max_gap_mm,
+        });
+    }
     if !open.is_empty() {
         join_open(&mut open, &mut loops, z, tol, &mut notes)?;
     }
