@@ -20,6 +20,9 @@ pub struct Tolerances {
     pub chord_mm: f64,
     /// Compositions must sum to 1 within this.
     pub composition_sum: f64,
+    /// Roads lying on the boundary of the area they are clipped to are kept whole by
+    /// clipping against that area grown by this much, mm.
+    pub clip_margin_mm: f64,
 }
 
 impl Default for Tolerances {
@@ -29,6 +32,7 @@ impl Default for Tolerances {
             min_loop_area_mm2: 1e-9,
             chord_mm: 0.01,
             composition_sum: 1e-9,
+            clip_margin_mm: 1e-3,
         }
     }
 }
@@ -243,6 +247,50 @@ pub fn dedup_loop(pts: &[DVec2], eps: f64) -> Vec<DVec2> {
     out
 }
 
+/// Douglas–Peucker simplification of a closed loop: drop vertices whose removal moves
+/// the loop by at most `tolerance_mm`.
+pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
+    let n = pts.len();
+    if n <= 4 || tolerance_mm <= 0.0 {
+        return pts.to_vec();
+    }
+    // Split the loop at vertex 0 and the vertex farthest from it.
+    let far = (1..n)
+        .max_by(|&a, &b| {
+            pts[a]
+                .distance_squared(pts[0])
+                .total_cmp(&pts[b].distance_squared(pts[0]))
+        })
+        .unwrap_or(n / 2);
+    let mut keep = vec![false; n];
+    keep[0] = true;
+    keep[far] = true;
+    let mut stack = vec![(0usize, far), (far, n)];
+    while let Some((a, b)) = stack.pop() {
+        if b <= a + 1 {
+            continue;
+        }
+        let (pa, pb) = (pts[a], pts[b % n]);
+        let mut worst = (0.0, a);
+        for (k, p) in pts.iter().enumerate().take(b).skip(a + 1) {
+            let d = point_segment_distance(*p, pa, pb);
+            if d > worst.0 {
+                worst = (d, k);
+            }
+        }
+        if worst.0 > tolerance_mm {
+            keep[worst.1] = true;
+            stack.push((a, worst.1));
+            stack.push((worst.1, b));
+        }
+    }
+    pts.iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(p, _)| *p)
+        .collect()
+}
+
 /// One connected area of a layer: an outer loop (the paper's external boundary Ce)
 /// and zero or more holes (internal boundaries Ci).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
@@ -399,6 +447,132 @@ impl Region {
     }
 }
 
+/// A uniform grid over the segments of a set of polylines, for nearest-distance queries
+/// (the gap between adjacent contours, D_max of eq (5), and inside-ness checks).
+#[derive(Debug, Clone)]
+pub struct SegmentIndex {
+    segments: Vec<(DVec2, DVec2)>,
+    origin: DVec2,
+    cell_mm: f64,
+    nx: usize,
+    ny: usize,
+    cells: Vec<Vec<u32>>,
+}
+
+impl SegmentIndex {
+    /// Index the edges of closed `loops` and open `polylines`.
+    pub fn new(loops: &[&[DVec2]], polylines: &[&[DVec2]]) -> Self {
+        let mut segments = Vec::new();
+        for l in loops {
+            let n = l.len();
+            for i in 0..n {
+                segments.push((l[i], l[(i + 1) % n]));
+            }
+        }
+        for l in polylines {
+            for w in l.windows(2) {
+                segments.push((w[0], w[1]));
+            }
+        }
+        let mut lo = DVec2::splat(f64::INFINITY);
+        let mut hi = DVec2::splat(f64::NEG_INFINITY);
+        let mut total = 0.0;
+        for (a, b) in &segments {
+            lo = lo.min(a.min(*b));
+            hi = hi.max(a.max(*b));
+            total += a.distance(*b);
+        }
+        if segments.is_empty() {
+            return SegmentIndex {
+                segments,
+                origin: DVec2::ZERO,
+                cell_mm: 1.0,
+                nx: 0,
+                ny: 0,
+                cells: Vec::new(),
+            };
+        }
+        let extent = (hi - lo).max(DVec2::splat(1e-9));
+        // About two segments per cell on average, at most ~1M cells.
+        let mean = (total / segments.len() as f64).max(1e-9);
+        let mut cell_mm = (mean * 2.0).max((extent.x * extent.y / 1.0e6).sqrt());
+        if !cell_mm.is_finite() || cell_mm <= 0.0 {
+            cell_mm = 1.0;
+        }
+        let nx = ((extent.x / cell_mm).ceil() as usize).clamp(1, 4096);
+        let ny = ((extent.y / cell_mm).ceil() as usize).clamp(1, 4096);
+        let cell_mm = (extent.x / nx as f64).max(extent.y / ny as f64);
+        let mut cells = vec![Vec::new(); nx * ny];
+        for (k, (a, b)) in segments.iter().enumerate() {
+            let (c0, r0) = Self::cell_of(lo, cell_mm, nx, ny, a.min(*b));
+            let (c1, r1) = Self::cell_of(lo, cell_mm, nx, ny, a.max(*b));
+            for r in r0..=r1 {
+                for c in c0..=c1 {
+                    cells[r * nx + c].push(k as u32);
+                }
+            }
+        }
+        SegmentIndex {
+            segments,
+            origin: lo,
+            cell_mm,
+            nx,
+            ny,
+            cells,
+        }
+    }
+
+    fn cell_of(origin: DVec2, cell: f64, nx: usize, ny: usize, p: DVec2) -> (usize, usize) {
+        let q = (p - origin) / cell;
+        let c = (q.x.floor().max(0.0) as usize).min(nx - 1);
+        let r = (q.y.floor().max(0.0) as usize).min(ny - 1);
+        (c, r)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.segments.is_empty()
+    }
+
+    /// Distance from `p` to the nearest indexed segment (infinity when empty).
+    pub fn distance(&self, p: DVec2) -> f64 {
+        if self.segments.is_empty() {
+            return f64::INFINITY;
+        }
+        let (pc, pr) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p);
+        // Distance from p to the grid box, so rings are counted from where p projects.
+        let box_hi = self.origin + DVec2::new(self.nx as f64, self.ny as f64) * self.cell_mm;
+        let outside = (self.origin - p).max(p - box_hi).max(DVec2::ZERO).length();
+        let mut best = f64::INFINITY;
+        let max_ring = self.nx.max(self.ny);
+        for ring in 0..=max_ring {
+            let r = ring as isize;
+            let (pc, pr) = (pc as isize, pr as isize);
+            for row in (pr - r)..=(pr + r) {
+                if row < 0 || row >= self.ny as isize {
+                    continue;
+                }
+                let edge_row = row == pr - r || row == pr + r;
+                let step = if edge_row { 1 } else { (2 * r).max(1) as usize };
+                let mut col = pc - r;
+                while col <= pc + r {
+                    if col >= 0 && col < self.nx as isize {
+                        for &k in &self.cells[row as usize * self.nx + col as usize] {
+                            let (a, b) = self.segments[k as usize];
+                            best = best.min(point_segment_distance(p, a, b));
+                        }
+                    }
+                    col += step as isize;
+                }
+            }
+            // Everything not yet visited is at least `ring` cells away from p's cell.
+            if best <= outside + ring as f64 * self.cell_mm {
+                break;
+            }
+        }
+        best
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -458,6 +632,37 @@ mod tests {
             crossing.normalised(&tol).validate(&tol),
             Err(RegionError::SelfIntersecting { .. })
         ));
+    }
+
+    #[test]
+    fn segment_index_matches_brute_force() {
+        let outer = square(DVec2::ZERO, 10.0);
+        let hole = square(DVec2::new(2.0, 1.0), 1.5);
+        let idx = SegmentIndex::new(&[&outer, &hole], &[]);
+        for k in 0..200 {
+            let p = DVec2::new(
+                (k as f64 * 0.37).sin() * 14.0,
+                (k as f64 * 0.91).cos() * 14.0,
+            );
+            let brute = point_loop_distance(p, &outer).min(point_loop_distance(p, &hole));
+            assert!((idx.distance(p) - brute).abs() < 1e-12, "{p}");
+        }
+    }
+
+    #[test]
+    fn simplify_keeps_corners_drops_collinear() {
+        let mut l = Vec::new();
+        for k in 0..10 {
+            l.push(DVec2::new(k as f64, 0.0));
+        }
+        for k in 0..10 {
+            l.push(DVec2::new(10.0, k as f64));
+        }
+        l.push(DVec2::new(10.0, 10.0));
+        l.push(DVec2::new(0.0, 10.0));
+        let s = simplify_loop(&l, 1e-6);
+        assert_eq!(s.len(), 4, "{s:?}");
+        assert!((signed_area(&s) - signed_area(&l)).abs() < 1e-9);
     }
 
     #[test]

@@ -15,6 +15,12 @@
 //!
 //! Only the binaries touch files, sockets and clocks.
 
+pub mod cli;
+pub mod edo;
 pub mod geom;
+pub mod job;
+pub mod material;
 pub mod mesh;
+pub mod report;
 pub mod slice;
+pub mod svg;

@@ -1,0 +1,453 @@
+//! The general pre-subdivision (§3.1 generalised): iso-contours of the normalised
+//! distance `d(p) = dist(p, Ci) / (dist(p, Ci) + dist(p, Ce))`.
+//!
+//! The radial construction of §3.1 only works where every radial line from the centre
+//! of Ci stays inside the region. This method works for any region with any number of
+//! holes: d is 0 on every hole (Ci), 1 on the outer loop (Ce), and its level sets at
+//! the eq (2) distances `d_j = (j − 1) / m` are the contours C2..Cm.
+//!
+//! Steps:
+//! 1. Sample a grid of nodes over the region (cell size from the planner options).
+//! 2. Classify nodes inside the outer loop / inside a hole by scanlines.
+//! 3. Distances to Ce and to Ci (holes, or the centre point when there is none) by a
+//!    vector distance transform seeded with exact nearest points near each boundary.
+//! 4. d per node, extended continuously outside the material (negative in holes, above
+//!    1 outside Ce) so every level set is a closed loop.
+//! 5. Marching triangles (four triangles per cell around its mean) extract the level
+//!    sets of the piecewise-linear interpolant. Level sets of one continuous
+//!    piecewise-linear function never cross each other, so contours of different
+//!    levels never intersect, by construction.
+
+use crate::geom::Region;
+use glam::DVec2;
+use std::collections::HashMap;
+
+/// Sampled normalised distance over a region.
+pub struct DistanceField {
+    origin: DVec2,
+    h: f64,
+    nx: usize,
+    ny: usize,
+    /// Normalised distance d at each node, row-major.
+    d: Vec<f64>,
+    /// Distance to Ce at each node (for locating the pole of inaccessibility).
+    pub(crate) de: Vec<f64>,
+    /// Node inside the material (inside Ce, outside every hole).
+    inside: Vec<bool>,
+}
+
+struct Grid {
+    origin: DVec2,
+    h: f64,
+    nx: usize,
+    ny: usize,
+}
+
+impl Grid {
+    fn over(region: &Region, cell_mm: f64, max_nodes: usize) -> Grid {
+        let (lo, hi) = region.bounds();
+        let ext = hi - lo;
+        let mut h = cell_mm.max(1e-6);
+        loop {
+            let nx = (ext.x / h).ceil() as usize + 5;
+            let ny = (ext.y / h).ceil() as usize + 5;
+            if nx.saturating_mul(ny) <= max_nodes.max(64) {
+                return Grid {
+                    origin: lo - DVec2::splat(2.0 * h),
+                    h,
+                    nx,
+                    ny,
+                };
+            }
+            h *= 1.25;
+        }
+    }
+
+    fn node(&self, c: usize, r: usize) -> DVec2 {
+        self.origin + DVec2::new(c as f64, r as f64) * self.h
+    }
+}
+
+/// Scanline parity fill of closed loops over grid nodes.
+fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
+    let mut rows: Vec<Vec<f64>> = vec![Vec::new(); grid.ny];
+    for l in loops {
+        let n = l.len();
+        for i in 0..n {
+            let (a, b) = (l[i], l[(i + 1) % n]);
+            let (ylo, yhi) = (a.y.min(b.y), a.y.max(b.y));
+            let r0 = ((ylo - grid.origin.y) / grid.h).ceil().max(0.0) as usize;
+            let r1 = (((yhi - grid.origin.y) / grid.h).floor().max(-1.0) + 1.0) as usize;
+            for (r, row) in rows.iter_mut().enumerate().take(r1.min(grid.ny)).skip(r0) {
+                let y = grid.origin.y + r as f64 * grid.h;
+                if (a.y > y) != (b.y > y) {
+                    row.push(a.x + (y - a.y) / (b.y - a.y) * (b.x - a.x));
+                }
+            }
+        }
+    }
+    let mut inside = vec![false; grid.nx * grid.ny];
+    for (r, xs) in rows.iter_mut().enumerate() {
+        xs.sort_by(f64::total_cmp);
+        for pair in xs.chunks_exact(2) {
+            let c0 = ((pair[0] - grid.origin.x) / grid.h).ceil().max(0.0) as usize;
+            let c1 = ((pair[1] - grid.origin.x) / grid.h).floor();
+            if c1 < 0.0 {
+                continue;
+            }
+            for c in c0..=(c1 as usize).min(grid.nx - 1) {
+                inside[r * grid.nx + c] = true;
+            }
+        }
+    }
+    inside
+}
+
+/// Vector distance transform: distance from every node to the nearest point of the
+/// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere.
+fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
+    let n = grid.nx * grid.ny;
+    let mut near = vec![DVec2::splat(f64::NAN); n];
+    let mut dist = vec![f64::INFINITY; n];
+    let band = 1.5 * grid.h;
+    for l in loops {
+        let m = l.len();
+        for i in 0..m {
+            let (a, b) = (l[i], l[(i + 1) % m]);
+            let lo = (a.min(b) - DVec2::splat(band) - grid.origin) / grid.h;
+            let hi = (a.max(b) + DVec2::splat(band) - grid.origin) / grid.h;
+            let (c0, r0) = (lo.x.ceil().max(0.0) as usize, lo.y.ceil().max(0.0) as usize);
+            let (c1, r1) = (
+                (hi.x.floor().max(0.0) as usize).min(grid.nx - 1),
+                (hi.y.floor().max(0.0) as usize).min(grid.ny - 1),
+            );
+            let ab = b - a;
+            let len2 = ab.length_squared();
+            for r in r0..=r1 {
+                for c in c0..=c1 {
+                    let p = grid.node(c, r);
+                    let t = if len2 > 0.0 {
+                        ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                    let q = a + ab * t;
+                    let d = p.distance(q);
+                    let k = r * grid.nx + c;
+                    if d < dist[k] {
+                        dist[k] = d;
+                        near[k] = q;
+                    }
+                }
+            }
+        }
+    }
+    let (nx, ny) = (grid.nx as isize, grid.ny as isize);
+    let relax =
+        |near: &mut Vec<DVec2>, dist: &mut Vec<f64>, c: isize, r: isize, dc: isize, dr: isize| {
+            let (cc, rr) = (c + dc, r + dr);
+            if cc < 0 || rr < 0 || cc >= nx || rr >= ny {
+                return;
+            }
+            let from = (rr * nx + cc) as usize;
+            let q = near[from];
+            if q.x.is_nan() {
+                return;
+            }
+            let k = (r * nx + c) as usize;
+            let d = grid.node(c as usize, r as usize).distance(q);
+            if d < dist[k] {
+                dist[k] = d;
+                near[k] = q;
+            }
+        };
+    for _ in 0..2 {
+        for r in 0..ny {
+            for c in 0..nx {
+                for (dc, dr) in [(-1, 0), (-1, -1), (0, -1), (1, -1)] {
+                    relax(&mut near, &mut dist, c, r, dc, dr);
+                }
+            }
+            for c in (0..nx).rev() {
+                relax(&mut near, &mut dist, c, r, 1, 0);
+            }
+        }
+        for r in (0..ny).rev() {
+            for c in (0..nx).rev() {
+                for (dc, dr) in [(1, 0), (1, 1), (0, 1), (-1, 1)] {
+                    relax(&mut near, &mut dist, c, r, dc, dr);
+                }
+            }
+            for c in 0..nx {
+                relax(&mut near, &mut dist, c, r, -1, 0);
+            }
+        }
+    }
+    dist
+}
+
+impl DistanceField {
+    /// Distances to Ce only: enough to find the pole of inaccessibility.
+    pub fn outer_only(region: &Region, cell_mm: f64, max_nodes: usize) -> DistanceField {
+        let grid = Grid::over(region, cell_mm, max_nodes);
+        let in_outer = fill_inside(&grid, &[&region.outer]);
+        let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
+        let in_hole = fill_inside(&grid, &holes);
+        let inside: Vec<bool> = in_outer
+            .iter()
+            .zip(&in_hole)
+            .map(|(o, h)| *o && !*h)
+            .collect();
+        let de = distance_to_loops(&grid, &[&region.outer]);
+        DistanceField {
+            origin: grid.origin,
+            h: grid.h,
+            nx: grid.nx,
+            ny: grid.ny,
+            d: Vec::new(),
+            de,
+            inside,
+        }
+    }
+
+    /// The normalised distance field of a region. Ci is the holes, or `centre` when the
+    /// region has none (growth rings about a point).
+    pub fn new(
+        region: &Region,
+        centre: Option<DVec2>,
+        cell_mm: f64,
+        max_nodes: usize,
+    ) -> DistanceField {
+        let grid = Grid::over(region, cell_mm, max_nodes);
+        let in_outer = fill_inside(&grid, &[&region.outer]);
+        let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
+        let in_hole = fill_inside(&grid, &holes);
+        let de = distance_to_loops(&grid, &[&region.outer]);
+        let di: Vec<f64> = if holes.is_empty() {
+            let c = centre.unwrap_or_else(|| crate::geom::centroid(&region.outer));
+            (0..grid.ny)
+                .flat_map(|r| (0..grid.nx).map(move |cc| (cc, r)))
+                .map(|(cc, r)| grid.node(cc, r).distance(c))
+                .collect()
+        } else {
+            distance_to_loops(&grid, &holes)
+        };
+        let mut d = vec![0.0; grid.nx * grid.ny];
+        let mut inside = vec![false; grid.nx * grid.ny];
+        for k in 0..d.len() {
+            let s = di[k] + de[k];
+            let t = if s > 0.0 { di[k] / s } else { 0.0 };
+            let e = if s > 0.0 { de[k] / s } else { 0.0 };
+            d[k] = if !in_outer[k] {
+                1.0 + e
+            } else if in_hole[k] {
+                -t
+            } else {
+                inside[k] = true;
+                t
+            };
+        }
+        DistanceField {
+            origin: grid.origin,
+            h: grid.h,
+            nx: grid.nx,
+            ny: grid.ny,
+            d,
+            de,
+            inside,
+        }
+    }
+
+    /// The inside node farthest from Ce (pole of inaccessibility, to grid precision),
+    /// and that distance.
+    pub fn pole(&self) -> Option<(DVec2, f64)> {
+        let mut best: Option<(usize, f64)> = None;
+        for (k, &de) in self.de.iter().enumerate() {
+            if self.inside[k] && best.is_none_or(|(_, b)| de > b) {
+                best = Some((k, de));
+            }
+        }
+        best.map(|(k, de)| {
+            let (c, r) = (k % self.nx, k / self.nx);
+            (self.origin + DVec2::new(c as f64, r as f64) * self.h, de)
+        })
+    }
+
+    /// Cell size actually used, mm.
+    pub fn cell_mm(&self) -> f64 {
+        self.h
+    }
+
+    /// Level sets at `d = k / m` for k = 1..m−1 (contours C2..Cm), each a list of closed
+    /// loops, extracted by marching triangles.
+    pub fn level_sets(&self, m: u32) -> Vec<Vec<Vec<DVec2>>> {
+        let levels = m.saturating_sub(1) as usize;
+        let mut segs: Vec<Vec<(u64, u64, DVec2, DVec2)>> = vec![Vec::new(); levels];
+        if levels == 0 {
+            return Vec::new();
+        }
+        let (nx, ny) = (self.nx, self.ny);
+        let nodes = (nx * ny) as u64;
+        let mf = m as f64;
+        let node_pos = |c: usize, r: usize| self.origin + DVec2::new(c as f64, r as f64) * self.h;
+        for r in 0..ny - 1 {
+            for c in 0..nx - 1 {
+                let ids = [
+                    (r * nx + c) as u64,
+                    (r * nx + c + 1) as u64,
+                    ((r + 1) * nx + c + 1) as u64,
+                    ((r + 1) * nx + c) as u64,
+                ];
+                let pos = [
+                    node_pos(c, r),
+                    node_pos(c + 1, r),
+                    node_pos(c + 1, r + 1),
+                    node_pos(c, r + 1),
+                ];
+                let val = [
+                    self.d[ids[0] as usize],
+                    self.d[ids[1] as usize],
+                    self.d[ids[2] as usize],
+                    self.d[ids[3] as usize],
+                ];
+                let lo = val.iter().copied().fold(f64::INFINITY, f64::min);
+                let hi = val.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                // Level k/m is crossed when lo < k/m <= hi.
+                let k_lo = ((lo * mf).floor() as i64 + 1).max(1);
+                let k_hi = ((hi * mf).floor() as i64).min(m as i64 - 1);
+                if k_lo > k_hi {
+                    continue;
+                }
+                let centre_id = nodes + (r * (nx - 1) + c) as u64;
+                let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
+                let centre_pos = 0.25 * (pos[0] + pos[1] + pos[2] + pos[3]);
+                for k in k_lo..=k_hi {
+                    let t = k as f64 / mf;
+                    let out = &mut segs[(k - 1) as usize];
+                    for e in 0..4 {
+                        let f = (e + 1) % 4;
+                        let tri = [
+                            (ids[e], pos[e], val[e]),
+                            (ids[f], pos[f], val[f]),
+                            (centre_id, centre_pos, centre_val),
+                        ];
+                        triangle_crossing(&tri, t, out);
+                    }
+                }
+            }
+        }
+        segs.into_iter().map(chain_segments).collect()
+    }
+}
+
+fn edge_key(a: u64, b: u64) -> u64 {
+    let (lo, hi) = if a < b { (a, b) } else { (b, a) };
+    // Node ids stay far below 2^32 (the grid is capped), so the pair packs into a u64.
+    (lo << 32) | hi
+}
+
+fn triangle_crossing(
+    tri: &[(u64, DVec2, f64); 3],
+    t: f64,
+    out: &mut Vec<(u64, u64, DVec2, DVec2)>,
+) {
+    let above = [tri[0].2 >= t, tri[1].2 >= t, tri[2].2 >= t];
+    let n_above = above.iter().filter(|a| **a).count();
+    if n_above == 0 || n_above == 3 {
+        return;
+    }
+    let mut pts: [(u64, DVec2); 2] = [(0, DVec2::ZERO); 2];
+    let mut n = 0;
+    for i in 0..3 {
+        let j = (i + 1) % 3;
+        if above[i] != above[j] {
+            let (pa, pb) = (tri[i], tri[j]);
+            let s = (t - pa.2) / (pb.2 - pa.2);
+            pts[n] = (edge_key(pa.0, pb.0), pa.1 + (pb.1 - pa.1) * s);
+            n += 1;
+        }
+    }
+    if n == 2 {
+        out.push((pts[0].0, pts[1].0, pts[0].1, pts[1].1));
+    }
+}
+
+/// Chain crossing segments into closed loops through their shared edge keys.
+fn chain_segments(segs: Vec<(u64, u64, DVec2, DVec2)>) -> Vec<Vec<DVec2>> {
+    let mut by_key: HashMap<u64, [usize; 2]> = HashMap::with_capacity(segs.len() * 2);
+    for (i, s) in segs.iter().enumerate() {
+        for key in [s.0, s.1] {
+            by_key
+                .entry(key)
+                .and_modify(|e| e[1] = i)
+                .or_insert([i, usize::MAX]);
+        }
+    }
+    let mut used = vec![false; segs.len()];
+    let mut loops = Vec::new();
+    for start in 0..segs.len() {
+        if used[start] {
+            continue;
+        }
+        used[start] = true;
+        let mut pts = vec![segs[start].2];
+        let first_key = segs[start].0;
+        let mut key = segs[start].1;
+        let mut point = segs[start].3;
+        let mut cur = start;
+        loop {
+            pts.push(point);
+            if key == first_key {
+                break;
+            }
+            let Some(pair) = by_key.get(&key) else { break };
+            let next = if pair[0] == cur { pair[1] } else { pair[0] };
+            if next == usize::MAX || used[next] {
+                break;
+            }
+            used[next] = true;
+            let s = segs[next];
+            if s.0 == key {
+                key = s.1;
+                point = s.3;
+            } else {
+                key = s.0;
+                point = s.2;
+            }
+            cur = next;
+        }
+        let l = crate::geom::dedup_loop(&pts, 1e-12);
+        if l.len() >= 3 {
+            loops.push(l);
+        }
+    }
+    loops
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::edo::shapes::circle;
+
+    #[test]
+    fn annulus_levels_are_circles() {
+        let outer = circle(DVec2::ZERO, 30.0, 0.001);
+        let mut hole = circle(DVec2::ZERO, 10.0, 0.001);
+        hole.reverse();
+        let region = Region::new(outer, vec![hole]);
+        let field = DistanceField::new(&region, None, 0.25, 1 << 22);
+        let levels = field.level_sets(10);
+        assert_eq!(levels.len(), 9);
+        for (k, loops) in levels.iter().enumerate() {
+            assert_eq!(loops.len(), 1, "level {k}");
+            let want = 10.0 + 20.0 * (k + 1) as f64 / 10.0;
+            for p in &loops[0] {
+                assert!(
+                    (p.length() - want).abs() < 0.02,
+                    "level {k}: {} vs {want}",
+                    p.length()
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,1036 @@
+//! The EDO method (§3 of the paper): pre-subdivision of a layer region into
+//! iso-composition contours C1..Cm+1 (eq (1), (2), (4)) and the equal distance offset
+//! fill of every sub-region S(n,n+1) (eq (5), (6), (7)).
+//!
+//! [`plan_region`] runs the paper's steps on one region (an outer loop Ce with holes
+//! Ci), named as in the paper:
+//!
+//! 1. **Pre-subdivision** (§3.1): the contours C1..Cm+1 as the areas `A_j` they enclose.
+//!    Growth rings use [`radial`] (the paper's radial lines and splines) when the region
+//!    is star-shaped about the centre of Ci, else [`field`] (iso-contours of the
+//!    normalised distance). Tooth-crown contours are equal distance offsets of Ce; fiber
+//!    contours are parallel lines across the region (§5, Fig. 5).
+//! 2. **Boundary offsets** (§3.2): C1 (when it is a real boundary) is offset outwards
+//!    and Cm+1 inwards by `boundary_offset_mm` (D_noz/2 by default) so roads stay
+//!    inside the part. The material the roads may cover is the region shrunk by the
+//!    same distance, the *interior*.
+//! 3. **Contour compositions**: eq (2) and eq (4).
+//! 4. **EDO fill** per sub-region: D_max (largest gap between its bounding contours
+//!    along the gradient), N_max by eq (5), the N_max − 1 equal distance offsets of the
+//!    bounding contour clipped to the sub-region (closed loops where they stay closed,
+//!    non-continuous segments where the neighbouring contour cuts them, Fig. 4(a)),
+//!    their compositions by eq (6) and the step width W by eq (7).
+//!
+//! The result is a compact [`LayerPlan`] (§3.2, last paragraph): per sub-region one
+//! contour composition, W and N_max, plus the road geometry.
+
+pub mod field;
+pub mod radial;
+pub mod shapes;
+
+use crate::geom::{Region, RegionError, SegmentIndex, Tolerances};
+use crate::material::{
+    contour_composition, contour_distance, offset_composition, offset_count, segment_count,
+    step_width, Composition, GradientFunction, OffsetDirection, StepWidth,
+};
+use glam::DVec2;
+use serde::{Deserialize, Serialize};
+use shapes::{Path, Shapes};
+
+/// How the region between Ci and Ce is divided into contours (job key `subdivision`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Subdivision {
+    /// Radial where the region is star-shaped about the centre of Ci, else distance.
+    #[default]
+    Auto,
+    /// The paper's radial lines and splines; refused where a radial line leaves the region.
+    Radial,
+    /// Iso-contours of the normalised distance; works for any region with holes.
+    Distance,
+}
+
+/// Which method actually produced a region's contours (reported per region).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SubdivisionMethod {
+    /// §3.1 radial lines and splines.
+    Radial,
+    /// Iso-contours of dist(p, Ci) / (dist(p, Ci) + dist(p, Ce)).
+    Distance,
+    /// Tooth-crown pattern: equal distance offsets of Ce.
+    Offset,
+    /// Fiber pattern: parallel lines across the region.
+    Parallel,
+}
+
+/// The 2D gradient pattern of §5, Fig. 5.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Pattern {
+    /// Closed contours about the holes (Ci) or, with no hole, about a centre point.
+    GrowthRings,
+    /// Contours following the outer surface inward over `depth_mm` (enamel over
+    /// dentin); the core deeper than that has the inner composition.
+    Crown { depth_mm: f64 },
+    /// Open contours across the region along `angle_deg` (0 = along +x); the
+    /// composition varies across them, from the `inner` side (smallest offset along the
+    /// normal) to the `outer` side.
+    Fibers { angle_deg: f64 },
+}
+
+/// A material gradient design: pattern, M(Ci), M(Ce) and f(d).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GradientDesign {
+    pub pattern: Pattern,
+    /// M(Ci): composition at the inner boundary (d = 0).
+    pub inner: Composition,
+    /// M(Ce): composition at the outer boundary (d = 1).
+    pub outer: Composition,
+    pub function: GradientFunction,
+}
+
+/// Planner settings; every tolerance and default documented here, not in the loops.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlanOptions {
+    /// R_mach: machine spatial resolution, mm (eq (1)).
+    pub r_mach_mm: f64,
+    /// D_noz: nozzle diameter, mm (eq (5)).
+    pub nozzle_mm: f64,
+    /// Offset of C1 outwards and Cm+1 inwards so roads stay inside the part (§3.2).
+    /// Default D_noz / 2.
+    pub boundary_offset_mm: f64,
+    pub subdivision: Subdivision,
+    /// Which bounding contour the equal distance offsets start from (eq (6)).
+    pub direction: OffsetDirection,
+    /// Radial lines at equal angular division (§3.1); doubled up to twice when the
+    /// splines would cross.
+    pub radial_lines: usize,
+    /// Grid cell of the distance method, mm. Default R_mach / 4.
+    pub field_cell_mm: Option<f64>,
+    /// Cap on distance-field grid nodes (the cell grows to respect it).
+    pub max_field_nodes: usize,
+    pub tolerances: Tolerances,
+}
+
+impl PlanOptions {
+    pub fn new(r_mach_mm: f64, nozzle_mm: f64) -> Self {
+        PlanOptions {
+            r_mach_mm,
+            nozzle_mm,
+            boundary_offset_mm: nozzle_mm / 2.0,
+            subdivision: Subdivision::Auto,
+            direction: OffsetDirection::Inward,
+            radial_lines: 360,
+            field_cell_mm: None,
+            max_field_nodes: 1 << 20,
+            tolerances: Tolerances::default(),
+        }
+    }
+
+    fn cell_mm(&self) -> f64 {
+        self.field_cell_mm.unwrap_or(self.r_mach_mm / 4.0)
+    }
+}
+
+/// An iso-composition contour C_j and the roads that build it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Contour {
+    /// j, 1-based: C1 is Ci, Cm+1 is Ce.
+    pub j: u32,
+    /// d_j of eq (2).
+    pub d: f64,
+    /// M(C_j) of eq (4).
+    pub composition: Composition,
+    /// Road centrelines (after the boundary offset for C1 and Cm+1, clipped to the part).
+    pub roads: Vec<Path>,
+}
+
+/// A sub-region S(n,n+1) between contours C_n and C_n+1, stored compactly.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SubRegion {
+    /// n: the sub-region lies between C_n and C_n+1. n = 0 is the crown pattern's core
+    /// inside C1, filled at the inner composition.
+    pub n: u32,
+    /// Largest distance between the bounding contours along the gradient, mm.
+    pub d_max_mm: f64,
+    /// N_max of eq (5).
+    pub n_max: u32,
+    pub direction: OffsetDirection,
+    /// Composition of the contour the offsets count from (C_n+1 inward, C_n outward).
+    pub from: Composition,
+    /// W of eq (7).
+    pub w: StepWidth,
+    /// The equal distance offsets i = 1..N_max − 1, in order of i.
+    pub offsets: Vec<Vec<Path>>,
+    /// Area of the sub-region, mm².
+    pub area_mm2: f64,
+    /// The sub-region itself (planning detail for previews and checks; not stored).
+    #[serde(skip)]
+    pub shape: Shapes,
+}
+
+impl SubRegion {
+    /// M(S(n,n+1), i) from the compact form: `from + i · W`.
+    pub fn composition_of(&self, i: u32) -> Composition {
+        let v = self
+            .from
+            .fractions()
+            .iter()
+            .zip(self.w.components())
+            .map(|(f, w)| f + i as f64 * w)
+            .collect();
+        Composition::new(v, 1e-6).unwrap_or_else(|_| self.from.clone())
+    }
+}
+
+/// The plan of one region (island) of a layer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RegionPlan {
+    /// Index of the island within its layer.
+    pub island: usize,
+    pub method: SubdivisionMethod,
+    /// m of eq (1).
+    pub m: u32,
+    /// L_short of eq (1), mm.
+    pub l_short_mm: f64,
+    /// Centre of the growth rings (radial method, or a region with no hole).
+    pub centre: Option<DVec2>,
+    /// Net area of the region, mm².
+    pub area_mm2: f64,
+    pub contours: Vec<Contour>,
+    pub sub_regions: Vec<SubRegion>,
+}
+
+/// The compact plan of one layer (§3.2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LayerPlan {
+    pub index: usize,
+    pub z_mm: f64,
+    pub thickness_mm: f64,
+    pub area_mm2: f64,
+    pub regions: Vec<RegionPlan>,
+}
+
+/// Why a region could not be planned; every variant names the island.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanError {
+    #[error("island {island}: {source}")]
+    Region { island: usize, source: RegionError },
+    #[error("island {island} is too thin for the machine: L_short = {l_short_mm:.3} mm against R_mach = {r_mach_mm} mm gives m = 0 (eq (1)); lower r_mach or drop the region")]
+    TooThin {
+        island: usize,
+        l_short_mm: f64,
+        r_mach_mm: f64,
+    },
+    #[error("island {island} is narrower than one road: nothing remains after offsetting its boundary by {offset_mm} mm")]
+    NarrowerThanRoad { island: usize, offset_mm: f64 },
+    #[error("island {island}: subdivision = \"radial\" needs a region star-shaped about the centre of its hole, but a radial line from ({x:.3}, {y:.3}) leaves it; use \"auto\" or \"distance\"")]
+    NotStarShaped { island: usize, x: f64, y: f64 },
+    #[error("island {island}: subdivision = \"radial\" needs exactly one hole (Ci) or none, it has {holes}; use \"auto\" or \"distance\"")]
+    SeveralHoles { island: usize, holes: usize },
+    #[error("island {island}: the radial spline contours cross a boundary or each other even with {lines} radial lines; use \"auto\" or \"distance\"")]
+    RadialCross { island: usize, lines: usize },
+    #[error("compositions have {inner} and {outer} fractions; M(Ci) and M(Ce) must name the same materials")]
+    CompositionMismatch { inner: usize, outer: usize },
+}
+
+/// A contour level: the area A_j enclosed by C_j (material on the Ci side of C_j).
+#[derive(Clone, Debug)]
+enum Level {
+    Shapes(Shapes),
+    /// `{p : normal · p < s}`, within a box around the region (fiber pattern).
+    HalfPlane {
+        normal: DVec2,
+        s: f64,
+        lo: DVec2,
+        hi: DVec2,
+    },
+}
+
+impl Level {
+    fn offset(&self, delta: f64, chord_mm: f64) -> Level {
+        match self {
+            Level::Shapes(s) => Level::Shapes(shapes::offset(s, delta, chord_mm)),
+            Level::HalfPlane { normal, s, lo, hi } => Level::HalfPlane {
+                normal: *normal,
+                s: s + delta,
+                lo: *lo,
+                hi: *hi,
+            },
+        }
+    }
+
+    fn to_shapes(&self) -> Shapes {
+        match self {
+            Level::Shapes(s) => s.clone(),
+            Level::HalfPlane { normal, s, lo, hi } => {
+                // The box corners' extent along the normal and along the line.
+                let t = normal.perp();
+                let corners = [*lo, DVec2::new(hi.x, lo.y), *hi, DVec2::new(lo.x, hi.y)];
+                let (mut s_lo, mut t_lo, mut t_hi) =
+                    (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+                for c in corners {
+                    s_lo = s_lo.min(normal.dot(c));
+                    t_lo = t_lo.min(t.dot(c));
+                    t_hi = t_hi.max(t.dot(c));
+                }
+                if *s <= s_lo {
+                    return Vec::new();
+                }
+                let s_lo = s_lo - 1.0;
+                let (t_lo, t_hi) = (t_lo - 1.0, t_hi + 1.0);
+                let p = |a: f64, b: f64| *normal * a + t * b;
+                vec![vec![vec![
+                    p(s_lo, t_lo),
+                    p(*s, t_lo),
+                    p(*s, t_hi),
+                    p(s_lo, t_hi),
+                ]]]
+            }
+        }
+    }
+
+    /// The road centrelines of this level's contour, clipped to `interior`.
+    fn roads(&self, interior: &Shapes, boundary_included: bool, eps: f64) -> Vec<Path> {
+        match self {
+            Level::Shapes(s) => shapes::loops(s)
+                .flat_map(|l| shapes::clip_loop(l, interior, boundary_included, eps))
+                .collect(),
+            Level::HalfPlane { normal, s, lo, hi } => {
+                let t = normal.perp();
+                let reach = lo.distance(*hi) + 1.0;
+                let mid = 0.5 * (*lo + *hi);
+                let foot = mid + *normal * (s - normal.dot(mid));
+                let line = [foot - t * reach, foot + t * reach];
+                shapes::clip_polyline(&line, interior, boundary_included)
+            }
+        }
+    }
+
+    fn is_empty(&self) -> bool {
+        match self {
+            Level::Shapes(s) => s.is_empty(),
+            Level::HalfPlane { .. } => self.to_shapes().is_empty(),
+        }
+    }
+}
+
+/// Step 1 result: levels A_1..A_m+1 and what produced them.
+struct PreSubdivision {
+    method: SubdivisionMethod,
+    m: u32,
+    l_short_mm: f64,
+    centre: Option<DVec2>,
+    /// A_1..A_m+1 (index j − 1).
+    levels: Vec<Level>,
+    /// Is C1 a real boundary of the part (holes), offset outwards by the boundary offset?
+    inner_is_boundary: bool,
+}
+
+/// Plan one region: validate it, subdivide it, and fill every sub-region (steps 1–4).
+pub fn plan_region(
+    region: &Region,
+    island: usize,
+    design: &GradientDesign,
+    opts: &PlanOptions,
+) -> Result<RegionPlan, PlanError> {
+    let tol = &opts.tolerances;
+    if design.inner.len() != design.outer.len() {
+        return Err(PlanError::CompositionMismatch {
+            inner: design.inner.len(),
+            outer: design.outer.len(),
+        });
+    }
+    let region = region.normalised(tol);
+    region
+        .validate(tol)
+        .map_err(|source| PlanError::Region { island, source })?;
+    let chord = tol.chord_mm;
+    let eps = (tol.point_eq_mm * 1e3).max(1e-7);
+
+    // Step 1: pre-subdivision.
+    let pre = match &design.pattern {
+        Pattern::GrowthRings => growth_rings(&region, island, opts)?,
+        Pattern::Crown { depth_mm } => crown(&region, island, *depth_mm, opts)?,
+        Pattern::Fibers { angle_deg } => fibers(&region, island, *angle_deg, opts)?,
+    };
+    let m = pre.m;
+
+    // Step 2: boundary offsets and the interior the roads may occupy.
+    let b = opts.boundary_offset_mm;
+    let mut region_loops = vec![region.outer.clone()];
+    region_loops.extend(region.holes.iter().cloned());
+    let region_shape = shapes::from_loops(&region_loops);
+    let interior = shapes::offset(&region_shape, -b, chord);
+    if interior.is_empty() {
+        return Err(PlanError::NarrowerThanRoad {
+            island,
+            offset_mm: b,
+        });
+    }
+    let mut levels = pre.levels;
+    if pre.inner_is_boundary {
+        levels[0] = levels[0].offset(b, chord);
+    }
+    let last = levels.len() - 1;
+    levels[last] = levels[last].offset(-b, chord);
+    let level_shapes: Vec<Shapes> = levels.iter().map(Level::to_shapes).collect();
+    // Roads on the interior's own boundary (C1 and Cm+1) must survive clipping whole:
+    // clip against the interior grown by a hair.
+    let clip_to = shapes::offset(&interior, opts.tolerances.clip_margin_mm, chord);
+
+    // Step 3: contours and their compositions, eq (2) and (4).
+    let compositions: Vec<Composition> = (1..=m + 1)
+        .map(|j| {
+            contour_composition(
+                &design.function,
+                contour_distance(j, m),
+                &design.inner,
+                &design.outer,
+            )
+        })
+        .collect();
+    let contours: Vec<Contour> = (1..=m + 1)
+        .map(|j| Contour {
+            j,
+            d: contour_distance(j, m),
+            composition: compositions[(j - 1) as usize].clone(),
+            roads: levels[(j - 1) as usize].roads(&clip_to, true, eps),
+        })
+        .collect();
+
+    // Step 4: EDO fill of each sub-region.
+    let mut sub_regions = Vec::with_capacity(m as usize + 1);
+    if pre.method == SubdivisionMethod::Offset {
+        if let Some(core) = crown_core(&level_shapes[0], &interior, &compositions[0], opts, eps) {
+            sub_regions.push(core);
+        }
+    }
+    for n in 1..=m {
+        let (lower, upper) = (&levels[(n - 1) as usize], &levels[n as usize]);
+        let s = shapes::intersection(
+            &shapes::difference(&level_shapes[n as usize], &level_shapes[(n - 1) as usize]),
+            &interior,
+        );
+        let area = shapes::area(&s);
+        if area <= tol.min_loop_area_mm2 {
+            continue;
+        }
+        let d_max_mm = gap_along_gradient(
+            lower,
+            &contours[n as usize].roads,
+            pre.centre,
+            &level_shapes[(n - 1) as usize],
+            opts,
+        );
+        let n_max = offset_count(d_max_mm, opts.nozzle_mm);
+        let (m_n, m_n1) = (&compositions[(n - 1) as usize], &compositions[n as usize]);
+        let from = match opts.direction {
+            OffsetDirection::Inward => m_n1.clone(),
+            OffsetDirection::Outward => m_n.clone(),
+        };
+        let w = if n_max >= 2 {
+            step_width(opts.direction, n_max, m_n, m_n1)
+        } else {
+            step_width(opts.direction, 2, m_n, m_n)
+        };
+        // Equal distance offsets, each one step from the previous: eroding (or
+        // dilating) by r1 then r2 is eroding by r1 + r2, and small steps keep the
+        // outline cheap where a contour has many vertices.
+        let step = d_max_mm / n_max.max(1) as f64;
+        let mut offsets = Vec::new();
+        let mut level = match opts.direction {
+            OffsetDirection::Inward => upper.clone(),
+            OffsetDirection::Outward => lower.clone(),
+        };
+        for i in 1..n_max {
+            level = match (opts.direction, lower.is_empty(), pre.centre) {
+                (OffsetDirection::Inward, _, _) => level.offset(-step, chord),
+                (OffsetDirection::Outward, true, Some(c)) => {
+                    Level::Shapes(vec![vec![shapes::circle(c, i as f64 * step, chord)]])
+                }
+                (OffsetDirection::Outward, _, _) => level.offset(step, chord),
+            };
+            if level.is_empty() {
+                break;
+            }
+            offsets.push(level.roads(&s, false, eps));
+        }
+        sub_regions.push(SubRegion {
+            n,
+            d_max_mm,
+            n_max,
+            direction: opts.direction,
+            from,
+            w,
+            offsets,
+            area_mm2: area,
+            shape: s,
+        });
+    }
+    Ok(RegionPlan {
+        island,
+        method: pre.method,
+        m,
+        l_short_mm: pre.l_short_mm,
+        centre: pre.centre,
+        area_mm2: region.area(),
+        contours,
+        sub_regions,
+    })
+}
+
+/// Plan every island of a layer.
+pub fn plan_layer(
+    index: usize,
+    z_mm: f64,
+    thickness_mm: f64,
+    islands: &[Region],
+    design: &GradientDesign,
+    opts: &PlanOptions,
+) -> Result<LayerPlan, PlanError> {
+    let regions = islands
+        .iter()
+        .enumerate()
+        .map(|(k, r)| plan_region(r, k, design, opts))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(LayerPlan {
+        index,
+        z_mm,
+        thickness_mm,
+        area_mm2: regions.iter().map(|r| r.area_mm2).sum(),
+        regions,
+    })
+}
+
+/// A layer planning failure, naming the layer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("layer {index} (z = {z_mm:.3} mm): {source}")]
+pub struct LayerError {
+    pub index: usize,
+    pub z_mm: f64,
+    pub source: PlanError,
+}
+
+/// Plan layers in parallel (rayon). A layer whose islands equal the previous layer's is
+/// planned once and reused with its own index and z.
+pub fn plan_layers(
+    slices: &[crate::job::LayerSlice],
+    design: &GradientDesign,
+    opts: &PlanOptions,
+) -> Result<Vec<LayerPlan>, LayerError> {
+    use rayon::prelude::*;
+    let firsts: Vec<usize> = (0..slices.len())
+        .filter(|&k| k == 0 || slices[k].islands != slices[k - 1].islands)
+        .collect();
+    let planned: Vec<LayerPlan> = firsts
+        .par_iter()
+        .map(|&k| {
+            let s = &slices[k];
+            plan_layer(s.index, s.z_mm, s.thickness_mm, &s.islands, design, opts).map_err(
+                |source| LayerError {
+                    index: s.index,
+                    z_mm: s.z_mm,
+                    source,
+                },
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut out = Vec::with_capacity(slices.len());
+    let mut next = 0;
+    for (k, s) in slices.iter().enumerate() {
+        if next < firsts.len() && firsts[next] == k {
+            out.push(planned[next].clone());
+            next += 1;
+        } else if let Some(prev) = out.last() {
+            let mut p: LayerPlan = LayerPlan::clone(prev);
+            p.index = s.index;
+            p.z_mm = s.z_mm;
+            p.thickness_mm = s.thickness_mm;
+            out.push(p);
+        }
+    }
+    Ok(out)
+}
+
+/// D_max: the largest distance from the upper contour's roads to the lower contour
+/// (or the growth-ring centre), i.e. the widest gap between C_n and C_n+1 along the
+/// gradient. Parallel contours have it exactly.
+fn gap_along_gradient(
+    lower: &Level,
+    upper_roads: &[Path],
+    centre: Option<DVec2>,
+    lower_shapes: &Shapes,
+    opts: &PlanOptions,
+) -> f64 {
+    if let Level::HalfPlane {
+        s: s_lower, normal, ..
+    } = lower
+    {
+        // Parallel lines: the gap is the distance between them.
+        let s_upper = upper_roads
+            .iter()
+            .flat_map(|p| p.points.iter())
+            .map(|p| normal.dot(*p))
+            .fold(f64::NEG_INFINITY, f64::max);
+        return (s_upper - s_lower).max(0.0);
+    }
+    let lower_loops: Vec<&[DVec2]> = shapes::loops(lower_shapes).map(|l| l.as_slice()).collect();
+    let index = SegmentIndex::new(&lower_loops, &[]);
+    let step = opts.nozzle_mm.max(1e-3);
+    let mut best: f64 = 0.0;
+    for road in upper_roads {
+        let pts = &road.points;
+        let n = pts.len();
+        let edges = if road.closed { n } else { n.saturating_sub(1) };
+        for k in 0..edges {
+            let (a, b) = (pts[k], pts[(k + 1) % n]);
+            let pieces = ((a.distance(b) / step).ceil() as usize).max(1);
+            for q in 0..pieces {
+                let p = a.lerp(b, q as f64 / pieces as f64);
+                let d = if index.is_empty() {
+                    centre.map_or(0.0, |c| p.distance(c))
+                } else {
+                    index.distance(p)
+                };
+                best = best.max(d);
+            }
+        }
+        if !road.closed {
+            if let Some(&p) = pts.last() {
+                let d = if index.is_empty() {
+                    centre.map_or(0.0, |c| p.distance(c))
+                } else {
+                    index.distance(p)
+                };
+                best = best.max(d);
+            }
+        }
+    }
+    best
+}
+
+fn growth_rings(
+    region: &Region,
+    island: usize,
+    opts: &PlanOptions,
+) -> Result<PreSubdivision, PlanError> {
+    let tol = &opts.tolerances;
+    let holes_shape = shapes::from_loops(&region.holes);
+    let outer_shape = shapes::from_loops(std::slice::from_ref(&region.outer));
+    let pole = || {
+        field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes)
+            .pole()
+            .map(|(p, _)| p)
+    };
+    // Radial first, where asked or allowed.
+    if opts.subdivision != Subdivision::Distance {
+        let radial_err = match radial::RadialSubdivision::new(
+            &region.outer,
+            &region.holes,
+            if region.holes.is_empty() {
+                pole()
+            } else {
+                None
+            },
+            opts.radial_lines,
+        ) {
+            Ok(rs0) => {
+                let m = segment_count(rs0.l_short_mm, opts.r_mach_mm);
+                if m == 0 {
+                    return Err(PlanError::TooThin {
+                        island,
+                        l_short_mm: rs0.l_short_mm,
+                        r_mach_mm: opts.r_mach_mm,
+                    });
+                }
+                let mut lines = rs0.lines;
+                let mut rs = rs0;
+                let mut result = None;
+                for _ in 0..3 {
+                    match rs.contours(m, &region.outer, &region.holes, tol.chord_mm) {
+                        Ok(cs) => {
+                            result = Some(cs);
+                            break;
+                        }
+                        Err(_) => {
+                            lines *= 2;
+                            match radial::RadialSubdivision::new(
+                                &region.outer,
+                                &region.holes,
+                                Some(rs.centre),
+                                lines,
+                            ) {
+                                Ok(r) => rs = r,
+                                Err(_) => break,
+                            }
+                        }
+                    }
+                }
+                match result {
+                    Some(cs) => {
+                        let mut levels = vec![Level::Shapes(holes_shape)];
+                        levels.extend(
+                            cs.into_iter()
+                                .map(|c| Level::Shapes(shapes::from_loops(&[c]))),
+                        );
+                        levels.push(Level::Shapes(outer_shape));
+                        return Ok(PreSubdivision {
+                            method: SubdivisionMethod::Radial,
+                            m,
+                            l_short_mm: rs.l_short_mm,
+                            centre: Some(rs.centre),
+                            levels,
+                            inner_is_boundary: !region.holes.is_empty(),
+                        });
+                    }
+                    None => PlanError::RadialCross { island, lines },
+                }
+            }
+            Err(radial::RadialFailure::SeveralHoles(holes)) => {
+                PlanError::SeveralHoles { island, holes }
+            }
+            Err(radial::RadialFailure::NotStarShaped { centre }) => PlanError::NotStarShaped {
+                island,
+                x: centre.x,
+                y: centre.y,
+            },
+            Err(radial::RadialFailure::ContoursCross) => PlanError::RadialCross {
+                island,
+                lines: opts.radial_lines,
+            },
+        };
+        if opts.subdivision == Subdivision::Radial {
+            return Err(radial_err);
+        }
+    }
+    // The general method: iso-contours of the normalised distance.
+    let (centre, l_short_mm) = if region.holes.is_empty() {
+        let f = field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes);
+        match f.pole() {
+            Some((p, r)) => (
+                Some(p),
+                crate::geom::point_loop_distance(p, &region.outer).max(r),
+            ),
+            None => (None, 0.0),
+        }
+    } else {
+        (None, shortest_wall(region))
+    };
+    let m = segment_count(l_short_mm, opts.r_mach_mm);
+    if m == 0 {
+        return Err(PlanError::TooThin {
+            island,
+            l_short_mm,
+            r_mach_mm: opts.r_mach_mm,
+        });
+    }
+    let f = field::DistanceField::new(region, centre, opts.cell_mm(), opts.max_field_nodes);
+    let mut levels = vec![Level::Shapes(holes_shape)];
+    let chord = opts.tolerances.chord_mm;
+    levels.extend(f.level_sets(m).into_iter().map(|loops| {
+        let loops: Vec<Vec<DVec2>> = loops
+            .iter()
+            .map(|l| crate::geom::simplify_loop(l, chord))
+            .collect();
+        Level::Shapes(shapes::from_loops(&loops))
+    }));
+    levels.push(Level::Shapes(outer_shape));
+    Ok(PreSubdivision {
+        method: SubdivisionMethod::Distance,
+        m,
+        l_short_mm,
+        centre,
+        levels,
+        inner_is_boundary: !region.holes.is_empty(),
+    })
+}
+
+/// L_short for a region with holes: the thinnest wall between any hole and Ce.
+fn shortest_wall(region: &Region) -> f64 {
+    let holes: Vec<&[DVec2]> = region.holes.iter().map(|h| h.as_slice()).collect();
+    let to_holes = SegmentIndex::new(&holes, &[]);
+    let to_outer = SegmentIndex::new(&[&region.outer], &[]);
+    let a = region
+        .outer
+        .iter()
+        .map(|p| to_holes.distance(*p))
+        .fold(f64::INFINITY, f64::min);
+    let b = region
+        .holes
+        .iter()
+        .flat_map(|h| h.iter())
+        .map(|p| to_outer.distance(*p))
+        .fold(f64::INFINITY, f64::min);
+    a.min(b)
+}
+
+fn crown(
+    region: &Region,
+    island: usize,
+    depth_mm: f64,
+    opts: &PlanOptions,
+) -> Result<PreSubdivision, PlanError> {
+    let m = segment_count(depth_mm, opts.r_mach_mm);
+    if m == 0 {
+        return Err(PlanError::TooThin {
+            island,
+            l_short_mm: depth_mm,
+            r_mach_mm: opts.r_mach_mm,
+        });
+    }
+    let outer_shape = shapes::from_loops(std::slice::from_ref(&region.outer));
+    let chord = opts.tolerances.chord_mm;
+    let levels = (1..=m + 1)
+        .map(|j| {
+            let depth = depth_mm * (1.0 - contour_distance(j, m));
+            Level::Shapes(shapes::offset(&outer_shape, -depth, chord))
+        })
+        .collect();
+    Ok(PreSubdivision {
+        method: SubdivisionMethod::Offset,
+        m,
+        l_short_mm: depth_mm,
+        centre: None,
+        levels,
+        inner_is_boundary: false,
+    })
+}
+
+/// The crown core inside C1, at the inner composition (W = 0): first the walls of any
+/// hole inside the core (they are part surface, offset by the boundary offset like
+/// every surface), then equal distance offsets of the core one nozzle apart, each one
+/// step from the previous (concentric fill).
+fn crown_core(
+    a1: &Shapes,
+    interior: &Shapes,
+    m1: &Composition,
+    opts: &PlanOptions,
+    eps: f64,
+) -> Option<SubRegion> {
+    let chord = opts.tolerances.chord_mm;
+    let core = shapes::intersection(a1, interior);
+    let area = shapes::area(&core);
+    if area <= opts.tolerances.min_loop_area_mm2 {
+        return None;
+    }
+    let mut offsets = Vec::new();
+    let a1_grown = shapes::offset(a1, opts.tolerances.clip_margin_mm, chord);
+    let walls: Vec<Path> = interior
+        .iter()
+        .flat_map(|shape| shape.iter().skip(1))
+        .flat_map(|hole| shapes::clip_loop(hole, &a1_grown, true, eps))
+        .collect();
+    if !walls.is_empty() {
+        offsets.push(walls);
+    }
+    let mut level = core.clone();
+    for _ in 0..100_000 {
+        level = shapes::offset(&level, -opts.nozzle_mm, chord);
+        if level.is_empty() {
+            break;
+        }
+        let roads: Vec<Path> = shapes::loops(&level)
+            .map(|l| Path {
+                points: l.clone(),
+                closed: true,
+            })
+            .collect();
+        offsets.push(roads);
+    }
+    let n_max = offsets.len() as u32 + 1;
+    Some(SubRegion {
+        n: 0,
+        d_max_mm: n_max as f64 * opts.nozzle_mm,
+        n_max,
+        direction: OffsetDirection::Inward,
+        from: m1.clone(),
+        w: step_width(OffsetDirection::Inward, 2, m1, m1),
+        offsets,
+        area_mm2: area,
+        shape: core,
+    })
+}
+
+fn fibers(
+    region: &Region,
+    island: usize,
+    angle_deg: f64,
+    opts: &PlanOptions,
+) -> Result<PreSubdivision, PlanError> {
+    let a = angle_deg.to_radians();
+    let normal = DVec2::new(-a.sin(), a.cos());
+    let (lo, hi) = region.bounds();
+    let (mut s_min, mut s_max) = (f64::INFINITY, f64::NEG_INFINITY);
+    for p in &region.outer {
+        s_min = s_min.min(normal.dot(*p));
+        s_max = s_max.max(normal.dot(*p));
+    }
+    let l_short_mm = s_max - s_min;
+    let m = segment_count(l_short_mm, opts.r_mach_mm);
+    if m == 0 {
+        return Err(PlanError::TooThin {
+            island,
+            l_short_mm,
+            r_mach_mm: opts.r_mach_mm,
+        });
+    }
+    let pad = DVec2::splat(1.0);
+    let levels = (1..=m + 1)
+        .map(|j| Level::HalfPlane {
+            normal,
+            s: s_min + contour_distance(j, m) * l_short_mm,
+            lo: lo - pad,
+            hi: hi + pad,
+        })
+        .collect();
+    Ok(PreSubdivision {
+        method: SubdivisionMethod::Parallel,
+        m,
+        l_short_mm,
+        centre: None,
+        levels,
+        inner_is_boundary: true,
+    })
+}
+
+/// The composition of equal distance offset `i` of `sub` exactly by eq (6), from the
+/// bounding contours' compositions.
+pub fn offset_composition_eq6(plan: &RegionPlan, sub: &SubRegion, i: u32) -> Composition {
+    if sub.n == 0 {
+        return sub.from.clone();
+    }
+    let m_n = &plan.contours[(sub.n - 1) as usize].composition;
+    let m_n1 = &plan.contours[sub.n as usize].composition;
+    offset_composition(sub.direction, i, sub.n_max, m_n, m_n1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn comp(v: &[f64]) -> Composition {
+        Composition::new(v.to_vec(), 1e-12).unwrap()
+    }
+
+    pub(crate) fn annulus(r_in: f64, r_out: f64) -> Region {
+        let outer = shapes::circle(DVec2::ZERO, r_out, 0.002);
+        let mut hole = shapes::circle(DVec2::ZERO, r_in, 0.002);
+        hole.reverse();
+        Region::new(outer, vec![hole])
+    }
+
+    fn design(pattern: Pattern) -> GradientDesign {
+        GradientDesign {
+            pattern,
+            inner: comp(&[1.0, 0.0]),
+            outer: comp(&[0.0, 1.0]),
+            function: GradientFunction::LINEAR,
+        }
+    }
+
+    #[test]
+    fn paper_annulus_reproduces_section_3() {
+        let opts = PlanOptions::new(2.0, 0.5);
+        let plan = plan_region(
+            &annulus(10.0, 30.0),
+            0,
+            &design(Pattern::GrowthRings),
+            &opts,
+        )
+        .unwrap();
+        assert_eq!(plan.method, SubdivisionMethod::Radial);
+        assert_eq!(plan.m, 10);
+        assert_eq!(plan.contours.len(), 11);
+        let c4 = &plan.contours[3];
+        let c5 = &plan.contours[4];
+        assert!(c4.composition.max_abs_diff(&comp(&[0.7, 0.3])) <= 1e-12);
+        assert!(c5.composition.max_abs_diff(&comp(&[0.6, 0.4])) <= 1e-12);
+        let s45 = plan.sub_regions.iter().find(|s| s.n == 4).unwrap();
+        assert_eq!(s45.n_max, 4);
+        assert!((s45.d_max_mm - 2.0).abs() < 0.01, "{}", s45.d_max_mm);
+        assert!((s45.w.components()[0] - 0.025).abs() <= 1e-12);
+        let want = [[0.625, 0.375], [0.65, 0.35], [0.675, 0.325]];
+        for (i, w) in (1..=3).zip(want) {
+            let m = offset_composition_eq6(&plan, s45, i);
+            assert!(m.max_abs_diff(&comp(&w)) <= 1e-12);
+            assert!(s45.composition_of(i).max_abs_diff(&comp(&w)) <= 1e-12);
+            // Offset i of C5 inward lies at r = 18 - i * 0.5, as one closed loop.
+            let roads = &s45.offsets[(i - 1) as usize];
+            assert_eq!(roads.len(), 1);
+            assert!(roads[0].closed);
+            let r = 18.0 - 0.5 * i as f64;
+            assert!(
+                roads[0]
+                    .points
+                    .iter()
+                    .all(|p| (p.length() - r).abs() < 0.02),
+                "offset {i}"
+            );
+        }
+        // C1 and C11 roads are the boundaries offset by D_noz / 2 into the part.
+        assert!(plan.contours[0].roads[0]
+            .points
+            .iter()
+            .all(|p| (p.length() - 10.25).abs() < 0.02));
+        assert!(plan.contours[10].roads[0]
+            .points
+            .iter()
+            .all(|p| (p.length() - 29.75).abs() < 0.02));
+    }
+
+    /// No road may double back on itself (a needle of material): the outline builder's
+    /// occasional spikes must be cleaned away. Uses the job file's circle tolerance.
+    #[test]
+    fn no_road_doubles_back() {
+        let mut opts = PlanOptions::new(2.0, 0.5);
+        for subdivision in [Subdivision::Radial, Subdivision::Distance] {
+            opts.subdivision = subdivision;
+            let outer = shapes::circle(DVec2::ZERO, 30.0, 0.01);
+            let mut hole = shapes::circle(DVec2::ZERO, 10.0, 0.01);
+            hole.reverse();
+            let plan = plan_region(
+                &Region::new(outer, vec![hole]),
+                0,
+                &design(Pattern::GrowthRings),
+                &opts,
+            )
+            .unwrap();
+            let roads = plan.contours.iter().flat_map(|c| c.roads.iter()).chain(
+                plan.sub_regions
+                    .iter()
+                    .flat_map(|s| s.offsets.iter().flatten()),
+            );
+            for p in roads {
+                let n = p.points.len();
+                let turns = if p.closed { n } else { n.saturating_sub(2) };
+                for k in 0..turns {
+                    let (a, b, c) = (p.points[k], p.points[(k + 1) % n], p.points[(k + 2) % n]);
+                    let (u, v) = (b - a, c - b);
+                    assert!(
+                        u.dot(v) > -0.5 * u.length() * v.length(),
+                        "{subdivision:?}: road turns back at {b} ({a} -> {b} -> {c})"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn distance_method_agrees_on_the_annulus() {
+        let mut opts = PlanOptions::new(2.0, 0.5);
+        opts.subdivision = Subdivision::Distance;
+        let plan = plan_region(
+            &annulus(10.0, 30.0),
+            0,
+            &design(Pattern::GrowthRings),
+            &opts,
+        )
+        .unwrap();
+        assert_eq!(plan.method, SubdivisionMethod::Distance);
+        assert_eq!(plan.m, 10);
+        let s45 = plan.sub_regions.iter().find(|s| s.n == 4).unwrap();
+        assert_eq!(s45.n_max, 4);
+    }
+}

@@ -1,0 +1,347 @@
+//! Thin wrappers over i_overlay for the region algebra the EDO method needs: equal
+//! distance offsets of contours (outline with round joins), booleans between the areas
+//! enclosed by contours, and clipping of offset loops to a sub-region (which turns a
+//! loop cut by the neighbouring contour into the non-continuous segments of Fig. 4(a)).
+
+use glam::DVec2;
+use i_overlay::core::fill_rule::FillRule;
+use i_overlay::core::overlay_rule::OverlayRule;
+use i_overlay::float::clip::FloatClip;
+use i_overlay::float::simplify::SimplifyShape;
+use i_overlay::float::single::SingleFloatOverlay;
+use i_overlay::mesh::float::outline::offset::OutlineOffset;
+use i_overlay::mesh::float::style::{LineJoin, OutlineStyle};
+use i_overlay::string::clip::ClipRule;
+use serde::{Deserialize, Serialize};
+
+/// Polygons with holes as i_overlay returns them: each shape is an outer loop
+/// (counter-clockwise) followed by its holes (clockwise).
+pub type Shapes = Vec<Vec<Vec<DVec2>>>;
+
+/// A road centreline: an open polyline, or a closed loop (last vertex joins the first).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Path {
+    pub points: Vec<DVec2>,
+    pub closed: bool,
+}
+
+impl Path {
+    pub fn length_mm(&self) -> f64 {
+        let open = crate::geom::polyline_length(&self.points);
+        if self.closed && self.points.len() > 1 {
+            open + self.points[0].distance(self.points[self.points.len() - 1])
+        } else {
+            open
+        }
+    }
+}
+
+/// Area of a set of shapes, mm² (holes subtracted).
+pub fn area(shapes: &Shapes) -> f64 {
+    shapes
+        .iter()
+        .flat_map(|s| s.iter())
+        .map(|l| crate::geom::signed_area(l))
+        .sum::<f64>()
+}
+
+/// All loops of a set of shapes.
+pub fn loops(shapes: &Shapes) -> impl Iterator<Item = &Vec<DVec2>> {
+    shapes.iter().flat_map(|s| s.iter())
+}
+
+/// Clean loops into valid shapes (even-odd: a loop inside another is a hole).
+pub fn from_loops(loops: &[Vec<DVec2>]) -> Shapes {
+    if loops.is_empty() {
+        return Vec::new();
+    }
+    loops.to_vec().simplify_shape(FillRule::EvenOdd)
+}
+
+/// Round-join arc angle (segment length over radius) giving `chord_mm` sagitta at `radius`.
+fn arc_angle(radius: f64, chord_mm: f64) -> f64 {
+    let r = radius.abs().max(1e-9);
+    (8.0 * chord_mm / r)
+        .sqrt()
+        .clamp(0.01 * std::f64::consts::PI, 0.25 * std::f64::consts::PI)
+}
+
+/// Offset every boundary of `shapes` by `delta_mm` (positive grows the area, negative
+/// shrinks it), with round joins: the equal distance offset of §3.2.
+pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
+    if shapes.is_empty() {
+        return Vec::new();
+    }
+    if delta_mm == 0.0 {
+        return shapes.clone();
+    }
+    let style =
+        OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
+    let mut out = shapes.outline(&style);
+    for shape in &mut out {
+        for l in shape.iter_mut() {
+            // Round joins leave runs of micro-edges; later booleans and offsets slow
+            // down badly on them, and they carry no shape beyond the chord tolerance.
+            *l = crate::geom::simplify_loop(l, chord_mm);
+            remove_spikes(l);
+        }
+        shape.retain(|l| l.len() >= 3);
+    }
+    out.retain(|s| !s.is_empty());
+    out
+}
+
+/// Remove zero-area antennae (the path runs out and straight back) and repeated
+/// vertices from a closed loop. The outline builder occasionally leaves such spikes
+/// where a join meets an almost straight corner; a road along one would be a needle
+/// of material.
+pub fn remove_spikes(l: &mut Vec<DVec2>) {
+    let mut out: Vec<DVec2> = Vec::with_capacity(l.len());
+    for &p in l.iter() {
+        push_unspiked(&mut out, p);
+    }
+    // The loop closes from the last vertex to the first: check across that seam too.
+    loop {
+        let m = out.len();
+        if m < 3 {
+            break;
+        }
+        if is_spike(out[m - 2], out[m - 1], out[0]) {
+            out.pop();
+        } else if is_spike(out[m - 1], out[0], out[1]) {
+            out.remove(0);
+        } else {
+            break;
+        }
+    }
+    *l = out;
+}
+
+fn is_spike(a: DVec2, b: DVec2, c: DVec2) -> bool {
+    let (u, v) = (b - a, c - b);
+    let (lu, lv) = (u.length(), v.length());
+    if lu <= 1e-12 || lv <= 1e-12 {
+        return true;
+    }
+    // Turning back by more than about 179.4 degrees.
+    u.dot(v) < 0.0 && u.perp_dot(v).abs() <= 1e-2 * lu * lv
+}
+
+fn push_unspiked(out: &mut Vec<DVec2>, p: DVec2) {
+    out.push(p);
+    while out.len() >= 3 {
+        let m = out.len();
+        if is_spike(out[m - 3], out[m - 2], out[m - 1]) {
+            out.remove(m - 2);
+        } else {
+            break;
+        }
+    }
+}
+
+fn boolean(a: &Shapes, b: &Shapes, rule: OverlayRule) -> Shapes {
+    a.overlay(b, rule, FillRule::NonZero)
+}
+
+/// `a` minus `b`.
+pub fn difference(a: &Shapes, b: &Shapes) -> Shapes {
+    if a.is_empty() || b.is_empty() {
+        return a.clone();
+    }
+    boolean(a, b, OverlayRule::Difference)
+}
+
+/// `a` and `b`.
+pub fn intersection(a: &Shapes, b: &Shapes) -> Shapes {
+    if a.is_empty() || b.is_empty() {
+        return Vec::new();
+    }
+    boolean(a, b, OverlayRule::Intersect)
+}
+
+/// `a` or `b`.
+pub fn union(a: &Shapes, b: &Shapes) -> Shapes {
+    if a.is_empty() {
+        return b.clone();
+    }
+    if b.is_empty() {
+        return a.clone();
+    }
+    boolean(a, b, OverlayRule::Union)
+}
+
+/// The parts of closed loop `l` strictly inside `by` (or on its boundary when
+/// `boundary_included`): the whole loop as one closed path when nothing cuts it, else
+/// the open pieces, with the piece through the loop's start vertex joined up.
+pub fn clip_loop(l: &[DVec2], by: &Shapes, boundary_included: bool, eps_mm: f64) -> Vec<Path> {
+    if l.len() < 2 || by.is_empty() {
+        return Vec::new();
+    }
+    let mut ring = l.to_vec();
+    ring.push(l[0]);
+    let rule = ClipRule {
+        invert: false,
+        boundary_included,
+    };
+    let pieces: Vec<Vec<DVec2>> = ring.clip_by(by, FillRule::NonZero, rule);
+    stitch_loop_pieces(pieces, crate::geom::loop_length(l), eps_mm)
+}
+
+/// The parts of open polyline `line` inside `by`.
+pub fn clip_polyline(line: &[DVec2], by: &Shapes, boundary_included: bool) -> Vec<Path> {
+    if line.len() < 2 || by.is_empty() {
+        return Vec::new();
+    }
+    let rule = ClipRule {
+        invert: false,
+        boundary_included,
+    };
+    let pieces: Vec<Vec<DVec2>> = line.to_vec().clip_by(by, FillRule::NonZero, rule);
+    pieces
+        .into_iter()
+        .filter(|p| p.len() >= 2)
+        .map(|points| Path {
+            points,
+            closed: false,
+        })
+        .collect()
+}
+
+/// Join clipped pieces of one loop back together where they meet end to start, and
+/// recognise the unclipped loop.
+fn stitch_loop_pieces(mut pieces: Vec<Vec<DVec2>>, loop_len: f64, eps: f64) -> Vec<Path> {
+    pieces.retain(|p| p.len() >= 2);
+    // Join pieces whose end meets another's start (the clipper may split at the seam).
+    let mut joined = true;
+    while joined && pieces.len() > 1 {
+        joined = false;
+        'outer: for i in 0..pieces.len() {
+            for j in 0..pieces.len() {
+                if i == j {
+                    continue;
+                }
+                let (ei, sj) = (pieces[i][pieces[i].len() - 1], pieces[j][0]);
+                if ei.distance(sj) <= eps {
+                    let tail = pieces.remove(j);
+                    let i = if j < i { i - 1 } else { i };
+                    pieces[i].extend_from_slice(&tail[1..]);
+                    joined = true;
+                    break 'outer;
+                }
+            }
+        }
+    }
+    pieces
+        .into_iter()
+        .map(|mut points| {
+            let n = points.len();
+            let closes = n > 3 && points[0].distance(points[n - 1]) <= eps;
+            let len = crate::geom::polyline_length(&points);
+            if closes && (len - loop_len).abs() <= (loop_len * 1e-6).max(eps * 10.0) {
+                points.pop();
+                Path {
+                    points,
+                    closed: true,
+                }
+            } else {
+                Path {
+                    points,
+                    closed: false,
+                }
+            }
+        })
+        .collect()
+}
+
+/// A regular polygon approximating a circle at chord tolerance `chord_mm`, counter-clockwise.
+pub fn circle(centre: DVec2, radius_mm: f64, chord_mm: f64) -> Vec<DVec2> {
+    let r = radius_mm.abs().max(1e-9);
+    let step = (2.0 * (1.0 - (chord_mm / r).min(1.0)).acos()).max(1e-3);
+    let n = ((std::f64::consts::TAU / step).ceil() as usize).clamp(8, 4096);
+    (0..n)
+        .map(|k| {
+            let a = std::f64::consts::TAU * k as f64 / n as f64;
+            centre + r * DVec2::new(a.cos(), a.sin())
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn square(h: f64) -> Vec<DVec2> {
+        vec![
+            DVec2::new(-h, -h),
+            DVec2::new(h, -h),
+            DVec2::new(h, h),
+            DVec2::new(-h, h),
+        ]
+    }
+
+    #[test]
+    fn offset_shrinks_and_grows() {
+        let s = from_loops(&[square(5.0)]);
+        assert!((area(&s) - 100.0).abs() < 1e-6);
+        let inner = offset(&s, -1.0, 0.001);
+        assert!((area(&inner) - 64.0).abs() < 1e-3, "{}", area(&inner));
+        let outer = offset(&s, 1.0, 0.001);
+        // 10x10 plus four 10x1 strips plus a unit circle.
+        let want = 100.0 + 40.0 + std::f64::consts::PI;
+        assert!((area(&outer) - want).abs() < 0.01, "{}", area(&outer));
+    }
+
+    #[test]
+    fn clipping_a_loop_keeps_it_closed_or_cuts_it() {
+        let by = from_loops(&[square(5.0)]);
+        let inside = clip_loop(&square(2.0), &by, false, 1e-6);
+        assert_eq!(inside.len(), 1);
+        assert!(inside[0].closed);
+        assert!((inside[0].length_mm() - 16.0).abs() < 1e-6);
+        // A loop straddling the right edge keeps its left part as one open piece.
+        let shifted: Vec<DVec2> = square(2.0)
+            .iter()
+            .map(|p| *p + DVec2::new(4.0, 0.0))
+            .collect();
+        let cut = clip_loop(&shifted, &by, false, 1e-6);
+        assert_eq!(cut.len(), 1, "{cut:?}");
+        assert!(!cut[0].closed);
+        assert!(
+            (cut[0].length_mm() - 10.0).abs() < 1e-6,
+            "{}",
+            cut[0].length_mm()
+        );
+    }
+
+    #[test]
+    fn spikes_are_removed() {
+        let mut l = vec![
+            DVec2::new(0.0, 0.0),
+            DVec2::new(2.0, 0.0),
+            DVec2::new(3.0, 0.0),
+            DVec2::new(2.0, 0.0),
+            DVec2::new(2.0, 2.0),
+            DVec2::new(2.0, 2.0),
+            DVec2::new(0.0, 2.0),
+        ];
+        remove_spikes(&mut l);
+        assert_eq!(
+            l,
+            vec![
+                DVec2::new(0.0, 0.0),
+                DVec2::new(2.0, 0.0),
+                DVec2::new(2.0, 2.0),
+                DVec2::new(0.0, 2.0)
+            ]
+        );
+    }
+
+    #[test]
+    fn booleans() {
+        let a = from_loops(&[square(5.0)]);
+        let b = from_loops(&[square(2.0)]);
+        assert!((area(&difference(&a, &b)) - 84.0).abs() < 1e-6);
+        assert!((area(&intersection(&a, &b)) - 16.0).abs() < 1e-6);
+        assert!((area(&union(&a, &b)) - 100.0).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,251 @@
+//! The plan report (`docs/plan-report.md`): what will be built, layer by layer, as JSON.
+//!
+//! Per layer its z, thickness and area; per region the subdivision method, m, every
+//! contour (index j, composition, length) and every sub-region (index n, D_max, N_max,
+//! the composition of each equal distance offset in order by eq (6), W); totals,
+//! the compact-representation size against a voxel composition grid, and planning time.
+
+use crate::edo::{offset_composition_eq6, LayerPlan, RegionPlan, SubdivisionMethod};
+use crate::job::Job;
+use serde::Serialize;
+
+/// Version tag of the report schema.
+pub const SCHEMA: &str = "edo.plan-report/1";
+
+#[derive(Debug, Clone, Serialize)]
+pub struct PlanReport {
+    pub schema: &'static str,
+    pub job: String,
+    pub materials: Vec<String>,
+    pub settings: Settings,
+    pub layers: Vec<LayerReport>,
+    pub totals: Totals,
+    pub planning_time_ms: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Settings {
+    pub pattern: crate::edo::Pattern,
+    pub function: crate::material::GradientFunction,
+    pub inner: Vec<f64>,
+    pub outer: Vec<f64>,
+    pub subdivision: crate::edo::Subdivision,
+    pub direction: crate::material::OffsetDirection,
+    pub r_mach_mm: f64,
+    pub nozzle_mm: f64,
+    pub boundary_offset_mm: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LayerReport {
+    pub index: usize,
+    pub z_mm: f64,
+    pub thickness_mm: f64,
+    pub area_mm2: f64,
+    pub regions: Vec<RegionReport>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct RegionReport {
+    pub island: usize,
+    pub method: SubdivisionMethod,
+    pub m: u32,
+    pub l_short_mm: f64,
+    pub centre: Option<[f64; 2]>,
+    pub area_mm2: f64,
+    pub contours: Vec<ContourReport>,
+    pub sub_regions: Vec<SubRegionReport>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ContourReport {
+    pub j: u32,
+    pub d: f64,
+    pub composition: Vec<f64>,
+    pub length_mm: f64,
+    /// Closed loops and open pieces the contour's roads consist of.
+    pub paths: usize,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SubRegionReport {
+    pub n: u32,
+    pub d_max_mm: f64,
+    pub n_max: u32,
+    pub direction: crate::material::OffsetDirection,
+    pub w: Vec<f64>,
+    pub area_mm2: f64,
+    /// Equal distance offsets i = 1..N_max − 1 in order.
+    pub offsets: Vec<OffsetReport>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct OffsetReport {
+    pub i: u32,
+    pub composition: Vec<f64>,
+    pub length_mm: f64,
+    pub paths: usize,
+    /// Of those, how many are closed loops (the rest are non-continuous segments).
+    pub closed: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct Totals {
+    pub layers: usize,
+    pub regions: usize,
+    pub contours: usize,
+    pub sub_regions: usize,
+    pub offsets: usize,
+    pub paths: usize,
+    pub contour_length_mm: f64,
+    pub offset_length_mm: f64,
+    /// Bytes of the compact material information (§3.2): per sub-region one contour
+    /// composition, W and N_max (f64 fractions, u32 count).
+    pub compact_material_bytes: usize,
+    /// Bytes of the whole plan with its geometry (postcard encoding).
+    pub plan_bytes: usize,
+    /// Bytes of a voxel composition grid at R_mach / 4 over each layer's bounding box
+    /// (one f64 fraction per material per voxel).
+    pub voxel_grid_bytes: usize,
+}
+
+fn region_report(r: &RegionPlan) -> RegionReport {
+    RegionReport {
+        island: r.island,
+        method: r.method,
+        m: r.m,
+        l_short_mm: r.l_short_mm,
+        centre: r.centre.map(|c| [c.x, c.y]),
+        area_mm2: r.area_mm2,
+        contours: r
+            .contours
+            .iter()
+            .map(|c| ContourReport {
+                j: c.j,
+                d: c.d,
+                composition: c.composition.fractions().to_vec(),
+                length_mm: c.roads.iter().map(|p| p.length_mm()).sum(),
+                paths: c.roads.len(),
+            })
+            .collect(),
+        sub_regions: r
+            .sub_regions
+            .iter()
+            .map(|s| SubRegionReport {
+                n: s.n,
+                d_max_mm: s.d_max_mm,
+                n_max: s.n_max,
+                direction: s.direction,
+                w: s.w.components().to_vec(),
+                area_mm2: s.area_mm2,
+                offsets: s
+                    .offsets
+                    .iter()
+                    .enumerate()
+                    .map(|(k, paths)| OffsetReport {
+                        i: k as u32 + 1,
+                        composition: offset_composition_eq6(r, s, k as u32 + 1)
+                            .fractions()
+                            .to_vec(),
+                        length_mm: paths.iter().map(|p| p.length_mm()).sum(),
+                        paths: paths.len(),
+                        closed: paths.iter().filter(|p| p.closed).count(),
+                    })
+                    .collect(),
+            })
+            .collect(),
+    }
+}
+
+/// Bytes of the compact material information of one layer plan.
+pub fn compact_material_bytes(layer: &LayerPlan) -> usize {
+    layer
+        .regions
+        .iter()
+        .map(|r| {
+            r.sub_regions
+                .iter()
+                .map(|s| (s.from.len() + s.w.components().len()) * 8 + 4)
+                .sum::<usize>()
+        })
+        .sum()
+}
+
+/// Bytes of a voxel composition grid at `r_mach / 4` over the layer's bounding box.
+pub fn voxel_grid_bytes(
+    islands: &[crate::geom::Region],
+    materials: usize,
+    r_mach_mm: f64,
+) -> usize {
+    let cell = r_mach_mm / 4.0;
+    islands
+        .iter()
+        .map(|r| {
+            let (lo, hi) = r.bounds();
+            let nx = ((hi.x - lo.x) / cell).ceil() as usize;
+            let ny = ((hi.y - lo.y) / cell).ceil() as usize;
+            nx * ny * materials * 8
+        })
+        .sum()
+}
+
+/// Build the report for a planned job.
+pub fn build(
+    job: &Job,
+    slices: &[crate::job::LayerSlice],
+    layers: &[LayerPlan],
+    planning_time_ms: f64,
+) -> PlanReport {
+    let mut totals = Totals {
+        layers: layers.len(),
+        ..Totals::default()
+    };
+    let mut reports = Vec::with_capacity(layers.len());
+    for (k, l) in layers.iter().enumerate() {
+        let regions: Vec<RegionReport> = l.regions.iter().map(region_report).collect();
+        for r in &regions {
+            totals.regions += 1;
+            totals.contours += r.contours.len();
+            totals.sub_regions += r.sub_regions.len();
+            totals.contour_length_mm += r.contours.iter().map(|c| c.length_mm).sum::<f64>();
+            totals.paths += r.contours.iter().map(|c| c.paths).sum::<usize>();
+            for s in &r.sub_regions {
+                totals.offsets += s.offsets.len();
+                totals.offset_length_mm += s.offsets.iter().map(|o| o.length_mm).sum::<f64>();
+                totals.paths += s.offsets.iter().map(|o| o.paths).sum::<usize>();
+            }
+        }
+        totals.compact_material_bytes += compact_material_bytes(l);
+        totals.plan_bytes += postcard::to_stdvec(l).map(|v| v.len()).unwrap_or(0);
+        if let Some(s) = slices.get(k) {
+            totals.voxel_grid_bytes +=
+                voxel_grid_bytes(&s.islands, job.materials.len(), job.plan.r_mach_mm);
+        }
+        reports.push(LayerReport {
+            index: l.index,
+            z_mm: l.z_mm,
+            thickness_mm: l.thickness_mm,
+            area_mm2: l.area_mm2,
+            regions,
+        });
+    }
+    PlanReport {
+        schema: SCHEMA,
+        job: job.name.clone(),
+        materials: job.materials.clone(),
+        settings: Settings {
+            pattern: job.design.pattern.clone(),
+            function: job.design.function.clone(),
+            inner: job.design.inner.fractions().to_vec(),
+            outer: job.design.outer.fractions().to_vec(),
+            subdivision: job.plan.subdivision,
+            direction: job.plan.direction,
+            r_mach_mm: job.plan.r_mach_mm,
+            nozzle_mm: job.plan.nozzle_mm,
+            boundary_offset_mm: job.plan.boundary_offset_mm,
+        },
+        layers: reports,
+        totals,
+        planning_time_ms,
+    }
+}

@@ -1,0 +1,245 @@
+//! SVG previews of planned layers (Fig. 3 and 4 of the paper): every road coloured by
+//! its composition, contours drawn bolder than equal distance offsets, the part
+//! boundary in grey, and a legend mapping colours to materials and showing the
+//! contour compositions from Ci to Ce.
+//!
+//! Pure: returns the SVG text; writing files is the caller's business.
+
+use crate::edo::shapes::Path;
+use crate::edo::{offset_composition_eq6, LayerPlan};
+use crate::geom::Region;
+use glam::DVec2;
+use std::fmt::Write;
+
+/// Base colours of up to 8 materials, in syringe order (sRGB).
+pub const PALETTE: [[u8; 3]; 8] = [
+    [31, 119, 180],
+    [214, 39, 40],
+    [44, 160, 44],
+    [255, 127, 14],
+    [148, 103, 189],
+    [140, 86, 75],
+    [227, 119, 194],
+    [23, 190, 207],
+];
+
+/// The colour of a composition: the fraction-weighted mix of its materials' colours.
+pub fn mix_colour(fractions: &[f64]) -> String {
+    let mut rgb = [0.0f64; 3];
+    for (k, f) in fractions.iter().enumerate() {
+        let base = PALETTE[k % PALETTE.len()];
+        for c in 0..3 {
+            rgb[c] += f.clamp(0.0, 1.0) * base[c] as f64;
+        }
+    }
+    format!(
+        "#{:02x}{:02x}{:02x}",
+        rgb[0].round().clamp(0.0, 255.0) as u8,
+        rgb[1].round().clamp(0.0, 255.0) as u8,
+        rgb[2].round().clamp(0.0, 255.0) as u8
+    )
+}
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+/// What to draw around the roads.
+pub struct PreviewInput<'a> {
+    pub job_name: &'a str,
+    pub materials: &'a [String],
+    pub nozzle_mm: f64,
+    pub islands: &'a [Region],
+}
+
+struct Frame {
+    lo: DVec2,
+    hi: DVec2,
+}
+
+impl Frame {
+    fn xy(&self, p: DVec2) -> (f64, f64) {
+        (p.x - self.lo.x, self.hi.y - p.y)
+    }
+
+    fn points(&self, pts: &[DVec2]) -> String {
+        let mut s = String::with_capacity(pts.len() * 16);
+        for p in pts {
+            let (x, y) = self.xy(*p);
+            let _ = write!(s, "{x:.3},{y:.3} ");
+        }
+        s
+    }
+}
+
+fn path_element(out: &mut String, f: &Frame, p: &Path, colour: &str, width: f64, extra: &str) {
+    let tag = if p.closed { "polygon" } else { "polyline" };
+    let _ = writeln!(
+        out,
+        r#"<{tag} points="{}" fill="none" stroke="{colour}" stroke-width="{width:.3}" stroke-linejoin="round" stroke-linecap="round"{extra}/>"#,
+        f.points(&p.points)
+    );
+}
+
+/// One layer as an SVG document.
+pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
+    let mut lo = DVec2::splat(f64::INFINITY);
+    let mut hi = DVec2::splat(f64::NEG_INFINITY);
+    for r in input.islands {
+        let (a, b) = r.bounds();
+        lo = lo.min(a);
+        hi = hi.max(b);
+    }
+    if !lo.is_finite() || !hi.is_finite() {
+        lo = DVec2::ZERO;
+        hi = DVec2::ONE;
+    }
+    let margin = 0.05 * (hi - lo).max_element().max(1.0);
+    let f = Frame {
+        lo: lo - DVec2::splat(margin),
+        hi: hi + DVec2::splat(margin),
+    };
+    let size = f.hi - f.lo;
+    let legend_w = size.x.max(size.y) * 0.75;
+    let total_w = size.x + legend_w;
+    // Legend rows: title, materials, contour header, up to 14 contours, footer.
+    let contour_rows = layer
+        .regions
+        .first()
+        .map_or(0, |r| r.contours.len().min(14));
+    let rows = 4 + input.materials.len() + contour_rows;
+    let line = size.x.max(size.y) / 28.0;
+    let height = size.y.max(line * (rows as f64 + 1.0));
+    let px_per_mm = 1000.0 / total_w;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {total_w:.3} {height:.3}" width="{:.0}" height="{:.0}">"#,
+        total_w * px_per_mm,
+        height * px_per_mm
+    );
+    let _ = writeln!(
+        out,
+        "<title>{} layer {} z={:.3} mm</title>",
+        escape(input.job_name),
+        layer.index,
+        layer.z_mm
+    );
+    let _ = writeln!(
+        out,
+        r#"<rect x="0" y="0" width="{total_w:.3}" height="{:.3}" fill="white"/>"#,
+        size.y
+    );
+    // Part boundary.
+    let _ = writeln!(out, r#"<g id="boundary">"#);
+    let hair = 0.1 * input.nozzle_mm;
+    for r in input.islands {
+        for l in r.loops() {
+            let _ = writeln!(
+                out,
+                r#"<polygon points="{}" fill="none" stroke="grey" stroke-width="{hair:.3}"/>"#,
+                f.points(l)
+            );
+        }
+    }
+    let _ = writeln!(out, "</g>");
+    // Equal distance offsets, thinner, under the contours.
+    let _ = writeln!(out, r#"<g id="offsets">"#);
+    for r in &layer.regions {
+        for s in &r.sub_regions {
+            for (k, paths) in s.offsets.iter().enumerate() {
+                let colour = mix_colour(offset_composition_eq6(r, s, k as u32 + 1).fractions());
+                for p in paths {
+                    path_element(&mut out, &f, p, &colour, 0.35 * input.nozzle_mm, "");
+                }
+            }
+        }
+    }
+    let _ = writeln!(out, "</g>");
+    let _ = writeln!(out, r#"<g id="contours">"#);
+    for r in &layer.regions {
+        for c in &r.contours {
+            let colour = mix_colour(c.composition.fractions());
+            for p in &c.roads {
+                path_element(&mut out, &f, p, &colour, 0.7 * input.nozzle_mm, "");
+            }
+        }
+    }
+    let _ = writeln!(out, "</g>");
+    // Legend.
+    let x0 = size.x + legend_w * 0.08;
+    let font = line * 0.6;
+    let mut y = line;
+    let _ = writeln!(
+        out,
+        r#"<g id="legend" font-family="sans-serif" font-size="{font:.3}">"#
+    );
+    let _ = writeln!(
+        out,
+        r#"<text x="{x0:.3}" y="{y:.3}" font-weight="bold">{} — layer {}, z {:.3} mm</text>"#,
+        escape(input.job_name),
+        layer.index,
+        layer.z_mm
+    );
+    y += line;
+    for (k, name) in input.materials.iter().enumerate() {
+        let mut pure = vec![0.0; input.materials.len()];
+        pure[k] = 1.0;
+        let _ = writeln!(
+            out,
+            r#"<rect x="{x0:.3}" y="{:.3}" width="{:.3}" height="{:.3}" fill="{}"/><text x="{:.3}" y="{y:.3}">{}</text>"#,
+            y - font,
+            font,
+            font,
+            mix_colour(&pure),
+            x0 + font * 1.5,
+            escape(name)
+        );
+        y += line;
+    }
+    if let Some(r) = layer.regions.first() {
+        let _ = writeln!(
+            out,
+            r#"<text x="{x0:.3}" y="{y:.3}">contours C1..C{} ({:?}, m = {})</text>"#,
+            r.m + 1,
+            r.method,
+            r.m
+        );
+        y += line * 0.5;
+        let rows = (r.contours.len()).min(14);
+        let step = (r.contours.len() as f64 / rows as f64).max(1.0);
+        let mut k = 0.0;
+        while (k as usize) < r.contours.len() {
+            let c = &r.contours[k as usize];
+            let label: Vec<String> = c
+                .composition
+                .fractions()
+                .iter()
+                .map(|v| format!("{v:.3}"))
+                .collect();
+            let _ = writeln!(
+                out,
+                r#"<rect x="{x0:.3}" y="{y:.3}" width="{:.3}" height="{:.3}" fill="{}"/><text x="{:.3}" y="{:.3}">C{} [{}]</text>"#,
+                font * 2.0,
+                line * 0.8,
+                mix_colour(c.composition.fractions()),
+                x0 + font * 2.5,
+                y + font,
+                c.j,
+                label.join(", ")
+            );
+            y += line;
+            k += step;
+        }
+        let _ = writeln!(
+            out,
+            r#"<text x="{x0:.3}" y="{:.3}">bold: contours; thin: equal distance offsets</text>"#,
+            y + line * 0.5
+        );
+    }
+    let _ = writeln!(out, "</g>\n</svg>");
+    out
+}
