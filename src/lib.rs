@@ -5,16 +5,24 @@
 //! graded materials using a novel equal distance offset approach") and drives a
 //! multi-syringe slurry extruder over a serial link to build it.
 //!
-//! The crate is a pure synchronous core, one module per stage, data flowing one way:
+//! The crate is a pure synchronous core, one module per stage, data flowing one way
+//! (see `../shared/ARCHITECTURE.md`):
 //!
 //! - [`geom`]: loops and regions (outer boundary Ce, holes Ci), their validation.
-//! - [`material`]: compositions, gradient functions f(d), equations (2)–(4), (6), (7).
+//! - [`mesh`]: load a part (STL, 3MF) from bytes within size limits, validate and repair it.
+//! - [`slice`]: layer heights (uniform, or adaptive from slope and a Z limit) and the
+//!   sections of each layer as islands.
+//! - [`material`]: compositions, gradient functions f(d), equations (1)–(7).
+//! - [`edo`]: the EDO method on a layer: pre-subdivision into contours C1..Cm+1 and the
+//!   equal distance offset fill of every sub-region, as a compact [`edo::LayerPlan`].
+//! - [`job`]: the job file (`docs/job-format.md`).
+//! - [`report`], [`svg`]: the plan report (`docs/plan-report.md`) and layer previews.
 //! - [`machine`]: the move stream in fixed point (µm, nl, ratios of 65535), the one move
 //!   type host, link and simulator share.
 //! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
-//! - [`linktest`]: `edoctl link-test`, qualifies a cable/machine by streaming dry-run moves.
 //!
-//! Only the binaries touch files, sockets and clocks.
+//! Around the core: [`cli`] and [`linktest`] do the command-line tools' I/O; only they
+//! and the binaries touch files, sockets and clocks.
 
 pub mod cli;
 pub mod edo;
@@ -24,5 +32,7 @@ pub mod link;
 pub mod linktest;
 pub mod machine;
 pub mod material;
+pub mod mesh;
 pub mod report;
+pub mod slice;
 pub mod svg;
