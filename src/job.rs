@@ -44,7 +44,8 @@ struct RawJob {
 struct RawGeometry {
     polygon: Option<RawRegion>,
     regions: Option<Vec<RawRegion>>,
-    height: f64,
+    height: Option<f64>,
+    mesh: Option<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -109,6 +110,17 @@ struct RawGradient {
     direction: Option<OffsetDirection>,
     depth: Option<f64>,
     angle: Option<f64>,
+    #[serde(default)]
+    z: Vec<RawZStation>,
+    z_step: Option<f64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawZStation {
+    z: f64,
+    inner: Vec<f64>,
+    outer: Vec<f64>,
 }
 
 fn default_pattern() -> String {
@@ -140,6 +152,8 @@ struct RawProcess {
     boundary_offset: Option<f64>,
     radial_lines: Option<usize>,
     field_cell: Option<f64>,
+    cusp: Option<f64>,
+    thin_regions: Option<crate::edo::ThinRegions>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -149,11 +163,14 @@ enum LayerSpec {
     Range { min: f64, max: f64 },
 }
 
-/// Layer heights: uniform when `min_mm == max_mm`.
+/// Layer heights: uniform when `min_mm == max_mm`, else adaptive (mesh slope and the
+/// Z gradient step).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct LayerHeights {
     pub min_mm: f64,
     pub max_mm: f64,
+    /// Largest staircase (cusp) height of adaptive layers on a sloped surface, mm.
+    pub cusp_mm: f64,
 }
 
 /// What the job builds.
@@ -164,6 +181,17 @@ pub enum Geometry {
         islands: Vec<Region>,
         height_mm: f64,
     },
+    /// A triangle mesh (STL or 3MF), its path as written in the job: relative paths are
+    /// relative to the job file. Reading it is the caller's business.
+    Mesh { path: String },
+}
+
+/// M(Ci) and M(Ce) at a height: a station of a Z-varying gradient.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ZStation {
+    pub z_mm: f64,
+    pub inner: Composition,
+    pub outer: Composition,
 }
 
 /// A validated job.
@@ -173,18 +201,24 @@ pub struct Job {
     pub geometry: Geometry,
     /// One material per syringe, in syringe order.
     pub materials: Vec<String>,
+    /// The 2D gradient design; with [`Job::z_stations`] its compositions vary with height.
     pub design: GradientDesign,
+    /// Stations of a Z-varying gradient, ascending in z (empty: the same in every layer).
+    pub z_stations: Vec<ZStation>,
+    /// Largest change of any volume fraction allowed across one layer where the
+    /// composition varies along Z (limits the layer thickness).
+    pub z_step: f64,
     pub plan: PlanOptions,
     pub layers: LayerHeights,
 }
 
-/// One layer to plan: its index, top z, thickness and islands.
+/// One layer to plan: its index in the job's stack, its geometry and the gradient design
+/// at its mid-height.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LayerSlice {
     pub index: usize,
-    pub z_mm: f64,
-    pub thickness_mm: f64,
-    pub islands: Vec<Region>,
+    pub layer: crate::slice::Layer,
+    pub design: GradientDesign,
 }
 
 impl Job {
@@ -254,21 +288,18 @@ impl Job {
             }
             plan.radial_lines = n;
         }
+        if let Some(t) = p.thin_regions {
+            plan.thin_regions = t;
+        }
         if let Some(c) = p.field_cell {
             positive(c, "process.field_cell", &bad)?;
             plan.field_cell_mm = Some(c);
         }
-        let layers = match p.layer {
-            None => LayerHeights {
-                min_mm: p.nozzle / 2.0,
-                max_mm: p.nozzle / 2.0,
-            },
+        let (min_mm, max_mm) = match p.layer {
+            None => (p.nozzle / 2.0, p.nozzle / 2.0),
             Some(LayerSpec::Uniform(h)) => {
                 positive(h, "process.layer", &bad)?;
-                LayerHeights {
-                    min_mm: h,
-                    max_mm: h,
-                }
+                (h, h)
             }
             Some(LayerSpec::Range { min, max }) => {
                 positive(min, "process.layer.min", &bad)?;
@@ -279,11 +310,15 @@ impl Job {
                         format!("min ({min}) is above max ({max})"),
                     ));
                 }
-                LayerHeights {
-                    min_mm: min,
-                    max_mm: max,
-                }
+                (min, max)
             }
+        };
+        let cusp_mm = p.cusp.unwrap_or(max_mm / 2.0);
+        positive(cusp_mm, "process.cusp", &bad)?;
+        let layers = LayerHeights {
+            min_mm,
+            max_mm,
+            cusp_mm,
         };
         // Gradient.
         let g = raw.gradient;
@@ -373,64 +408,135 @@ impl Job {
         }
         // Geometry.
         let geo = raw.geometry;
-        positive(geo.height, "geometry.height", &bad)?;
-        let specs: Vec<(String, RawRegion)> = match (geo.polygon, geo.regions) {
-            (Some(_), Some(_)) => {
+        let geometry = match (geo.mesh, geo.polygon.is_some() || geo.regions.is_some()) {
+            (Some(_), true) => {
                 return Err(bad(
                     "geometry",
-                    "give either polygon (one island) or regions (several), not both".into(),
+                    "give either mesh = \"part.stl\" or polygon/regions, not both".into(),
                 ))
             }
-            (None, None) => {
-                return Err(bad(
-                    "geometry",
-                    "missing polygon = { outer = [...], holes = [...] } or regions = [...]".into(),
-                ))
-            }
-            (Some(r), None) => vec![("geometry.polygon".to_string(), r)],
-            (None, Some(rs)) => {
-                if rs.is_empty() {
-                    return Err(bad("geometry.regions", "is empty".into()));
+            (Some(path), false) => {
+                if geo.height.is_some() {
+                    return Err(bad(
+                        "geometry.height",
+                        "applies to an extruded polygon; a mesh has its own height".into(),
+                    ));
                 }
-                rs.into_iter()
-                    .enumerate()
-                    .map(|(i, r)| (format!("geometry.regions[{i}]"), r))
-                    .collect()
+                if path.trim().is_empty() {
+                    return Err(bad(
+                        "geometry.mesh",
+                        "is empty; give the path of an STL or 3MF file".into(),
+                    ));
+                }
+                Geometry::Mesh { path }
+            }
+            (None, _) => {
+                let height = geo.height.ok_or_else(|| {
+                    bad(
+                        "geometry.height",
+                        "missing: the extrusion height of the polygon, mm".into(),
+                    )
+                })?;
+                positive(height, "geometry.height", &bad)?;
+                let specs: Vec<(String, RawRegion)> = match (geo.polygon, geo.regions) {
+                    (Some(_), Some(_)) => {
+                        return Err(bad("geometry", "give either polygon (one island) or regions (several), not both".into()))
+                    }
+                    (None, None) => {
+                        return Err(bad(
+                            "geometry",
+                            "missing mesh = \"part.stl\", polygon = { outer = [...], holes = [...] } or regions = [...]".into(),
+                        ))
+                    }
+                    (Some(r), None) => vec![("geometry.polygon".to_string(), r)],
+                    (None, Some(rs)) => {
+                        if rs.is_empty() {
+                            return Err(bad("geometry.regions", "is empty".into()));
+                        }
+                        rs.into_iter()
+                            .enumerate()
+                            .map(|(i, r)| (format!("geometry.regions[{i}]"), r))
+                            .collect()
+                    }
+                };
+                let mut islands = Vec::with_capacity(specs.len());
+                for (key, r) in specs {
+                    let outer =
+                        loop_points(&r.outer, &format!("{key}.outer"), tolerances.chord_mm, &bad)?;
+                    let holes = r
+                        .holes
+                        .iter()
+                        .enumerate()
+                        .map(|(i, h)| {
+                            loop_points(h, &format!("{key}.holes[{i}]"), tolerances.chord_mm, &bad)
+                        })
+                        .collect::<Result<Vec<_>, _>>()?;
+                    let region = Region::new(outer, holes).normalised(&tolerances);
+                    region
+                        .validate(&tolerances)
+                        .map_err(|e| bad(&key, e.to_string()))?;
+                    islands.push(region);
+                }
+                for i in 0..islands.len() {
+                    for j in 0..i {
+                        if islands_overlap(&islands[i], &islands[j]) {
+                            return Err(bad(
+                                "geometry.regions",
+                                format!("regions {j} and {i} overlap; islands must be disjoint (put a region inside another's hole, not over it)"),
+                            ));
+                        }
+                    }
+                }
+                Geometry::Extruded {
+                    islands,
+                    height_mm: height,
+                }
             }
         };
-        let mut islands = Vec::with_capacity(specs.len());
-        for (key, r) in specs {
-            let outer = loop_points(&r.outer, &format!("{key}.outer"), tolerances.chord_mm, &bad)?;
-            let holes = r
-                .holes
-                .iter()
-                .enumerate()
-                .map(|(i, h)| {
-                    loop_points(h, &format!("{key}.holes[{i}]"), tolerances.chord_mm, &bad)
-                })
-                .collect::<Result<Vec<_>, _>>()?;
-            let region = Region::new(outer, holes).normalised(&tolerances);
-            region
-                .validate(&tolerances)
-                .map_err(|e| bad(&key, e.to_string()))?;
-            islands.push(region);
-        }
-        for i in 0..islands.len() {
-            for j in 0..i {
-                if islands_overlap(&islands[i], &islands[j]) {
+        // Z-varying gradient.
+        let mut z_stations = Vec::with_capacity(g.z.len());
+        for (k, st) in g.z.into_iter().enumerate() {
+            let key = format!("gradient.z[{k}]");
+            if !st.z.is_finite() {
+                return Err(bad(
+                    &format!("{key}.z"),
+                    format!("must be a finite height in mm, got {}", st.z),
+                ));
+            }
+            if let Some(prev) = z_stations.last().map(|p: &ZStation| p.z_mm) {
+                if st.z <= prev {
                     return Err(bad(
-                        "geometry.regions",
-                        format!("regions {j} and {i} overlap; islands must be disjoint (put a region inside another's hole, not over it)"),
+                        &format!("{key}.z"),
+                        format!("stations must ascend in z; {} follows {prev}", st.z),
                     ));
                 }
             }
+            let inner = Composition::with_len(st.inner, n, tolerances.composition_sum)
+                .map_err(|e| bad(&format!("{key}.inner"), format!("M(Ci): {e}")))?;
+            let outer = Composition::with_len(st.outer, n, tolerances.composition_sum)
+                .map_err(|e| bad(&format!("{key}.outer"), format!("M(Ce): {e}")))?;
+            z_stations.push(ZStation {
+                z_mm: st.z,
+                inner,
+                outer,
+            });
+        }
+        let z_step = g.z_step.unwrap_or(DEFAULT_Z_STEP);
+        if !z_step.is_finite() || z_step <= 0.0 || z_step > 1.0 {
+            return Err(bad(
+                "gradient.z_step",
+                format!("must be a fraction in (0, 1], got {z_step}"),
+            ));
+        }
+        if g.z_step.is_some() && z_stations.is_empty() {
+            return Err(bad(
+                "gradient.z_step",
+                "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
+            ));
         }
         Ok(Job {
             name: raw.name,
-            geometry: Geometry::Extruded {
-                islands,
-                height_mm: geo.height,
-            },
+            geometry,
             materials,
             design: GradientDesign {
                 pattern,
@@ -438,30 +544,127 @@ impl Job {
                 outer,
                 function,
             },
+            z_stations,
+            z_step,
             plan,
             layers,
         })
     }
 
-    /// The layers to plan: an extruded polygon is cut into equal layers no thicker than
-    /// the maximum layer height; `z_mm` is each layer's top.
-    pub fn layer_slices(&self) -> Vec<LayerSlice> {
-        match &self.geometry {
-            Geometry::Extruded { islands, height_mm } => {
-                let count = ((height_mm / self.layers.max_mm) - 1e-9).ceil().max(1.0) as usize;
-                let t = height_mm / count as f64;
-                (0..count)
-                    .map(|index| LayerSlice {
-                        index,
-                        z_mm: t * (index + 1) as f64,
-                        thickness_mm: t,
-                        islands: islands.clone(),
-                    })
-                    .collect()
+    /// The gradient design at height `z_mm`: M(Ci) and M(Ce) interpolated between the
+    /// Z stations by the job's own f(d) (clamped beyond the first and last station).
+    pub fn design_at(&self, z_mm: f64) -> GradientDesign {
+        let mut d = self.design.clone();
+        let st = &self.z_stations;
+        if st.is_empty() {
+            return d;
+        }
+        let k = st.partition_point(|s| s.z_mm <= z_mm);
+        let (inner, outer) = if k == 0 {
+            (st[0].inner.clone(), st[0].outer.clone())
+        } else if k == st.len() {
+            (st[k - 1].inner.clone(), st[k - 1].outer.clone())
+        } else {
+            let (a, b) = (&st[k - 1], &st[k]);
+            let t = (z_mm - a.z_mm) / (b.z_mm - a.z_mm);
+            (
+                crate::material::contour_composition(&d.function, t, &a.inner, &b.inner),
+                crate::material::contour_composition(&d.function, t, &a.outer, &b.outer),
+            )
+        };
+        d.inner = inner;
+        d.outer = outer;
+        d
+    }
+
+    /// The thickest layer starting at `z_bottom_mm` across which no volume fraction of
+    /// M(Ci) or M(Ce) changes by more than `z_step` (infinite without Z stations).
+    pub fn z_step_limit_mm(&self, z_bottom_mm: f64) -> f64 {
+        if self.z_stations.is_empty() {
+            return f64::INFINITY;
+        }
+        let at = self.design_at(z_bottom_mm);
+        let change = |t: f64| {
+            let d = self.design_at(z_bottom_mm + t);
+            d.inner
+                .max_abs_diff(&at.inner)
+                .max(d.outer.max_abs_diff(&at.outer))
+        };
+        let hi = self.layers.max_mm;
+        if change(hi) <= self.z_step {
+            return hi;
+        }
+        let (mut lo, mut hi) = (0.0, hi);
+        for _ in 0..40 {
+            let mid = 0.5 * (lo + hi);
+            if change(mid) <= self.z_step {
+                lo = mid;
+            } else {
+                hi = mid;
             }
         }
+        lo
+    }
+
+    /// The layer stack of an extruded polygon: equal layers no thicker than the maximum
+    /// layer height, thinner where a Z gradient needs it. `z_mm` is each layer's top.
+    /// `None` for a mesh job (see [`crate::slice`]).
+    pub fn extruded_layers(&self) -> Option<Vec<crate::slice::Layer>> {
+        let Geometry::Extruded { islands, height_mm } = &self.geometry else {
+            return None;
+        };
+        let layer = |z_mm: f64, thickness_mm: f64| crate::slice::Layer {
+            z_mm,
+            thickness_mm,
+            islands: islands.clone(),
+        };
+        if self.z_stations.is_empty() {
+            let count = ((height_mm / self.layers.max_mm) - 1e-9).ceil().max(1.0) as usize;
+            let t = height_mm / count as f64;
+            return Some((0..count).map(|k| layer(t * (k + 1) as f64, t)).collect());
+        }
+        let mut out = Vec::new();
+        let mut z = 0.0;
+        while z < height_mm - 1e-9 && out.len() < 10_000_000 {
+            let want = self
+                .z_step_limit_mm(z)
+                .clamp(self.layers.min_mm, self.layers.max_mm);
+            let left = height_mm - z;
+            // Never leave a sliver thinner than the minimum layer for the top.
+            let t = if left <= want + 1e-9 {
+                left
+            } else if left < want + self.layers.min_mm {
+                left / 2.0
+            } else {
+                want
+            };
+            z += t;
+            out.push(layer(z, t));
+        }
+        Some(out)
+    }
+
+    /// Attach indices and per-layer gradient designs (sampled at mid-height) to a stack
+    /// of layers that starts at index `first_index`.
+    pub fn layer_slices(
+        &self,
+        first_index: usize,
+        layers: Vec<crate::slice::Layer>,
+    ) -> Vec<LayerSlice> {
+        layers
+            .into_iter()
+            .enumerate()
+            .map(|(k, layer)| LayerSlice {
+                index: first_index + k,
+                design: self.design_at(layer.mid_z_mm()),
+                layer,
+            })
+            .collect()
     }
 }
+
+/// Default largest fraction change across one layer of a Z-varying gradient.
+pub const DEFAULT_Z_STEP: f64 = 0.02;
 
 fn positive<E>(v: f64, key: &str, bad: &impl Fn(&str, String) -> E) -> Result<(), E> {
     if !v.is_finite() || v <= 0.0 {
@@ -594,7 +797,7 @@ nozzle = 0.5
         let job = Job::from_toml(GOOD, "job.toml").unwrap();
         assert_eq!(job.materials, ["A", "B"]);
         assert_eq!(job.plan.r_mach_mm, 2.0);
-        let layers = job.layer_slices();
+        let layers = job.extruded_layers().unwrap();
         assert_eq!(layers.len(), 2);
         assert!((layers[1].z_mm - 0.4).abs() < 1e-12);
     }

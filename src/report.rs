@@ -18,6 +18,12 @@ pub struct PlanReport {
     pub job: String,
     pub materials: Vec<String>,
     pub settings: Settings,
+    /// Mesh validation and repair (mesh jobs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mesh: Option<crate::mesh::MeshReport>,
+    /// What slicing had to do beyond cutting (mesh jobs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub slicing: Option<crate::slice::SliceReport>,
     pub layers: Vec<LayerReport>,
     pub totals: Totals,
     pub planning_time_ms: f64,
@@ -42,6 +48,9 @@ pub struct LayerReport {
     pub z_mm: f64,
     pub thickness_mm: f64,
     pub area_mm2: f64,
+    /// M(Ci) and M(Ce) of this layer (they vary with a Z gradient).
+    pub inner: Vec<f64>,
+    pub outer: Vec<f64>,
     pub regions: Vec<RegionReport>,
 }
 
@@ -53,6 +62,8 @@ pub struct RegionReport {
     pub l_short_mm: f64,
     pub centre: Option<[f64; 2]>,
     pub area_mm2: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
     pub contours: Vec<ContourReport>,
     pub sub_regions: Vec<SubRegionReport>,
 }
@@ -117,6 +128,7 @@ fn region_report(r: &RegionPlan) -> RegionReport {
         l_short_mm: r.l_short_mm,
         centre: r.centre.map(|c| [c.x, c.y]),
         area_mm2: r.area_mm2,
+        note: r.note.clone(),
         contours: r
             .contours
             .iter()
@@ -189,11 +201,19 @@ pub fn voxel_grid_bytes(
         .sum()
 }
 
+/// What a mesh job's loading and slicing reported.
+#[derive(Debug, Clone, Default)]
+pub struct MeshNotes {
+    pub mesh: Option<crate::mesh::MeshReport>,
+    pub slicing: Option<crate::slice::SliceReport>,
+}
+
 /// Build the report for a planned job.
 pub fn build(
     job: &Job,
     slices: &[crate::job::LayerSlice],
     layers: &[LayerPlan],
+    notes: MeshNotes,
     planning_time_ms: f64,
 ) -> PlanReport {
     let mut totals = Totals {
@@ -219,13 +239,16 @@ pub fn build(
         totals.plan_bytes += postcard::to_stdvec(l).map(|v| v.len()).unwrap_or(0);
         if let Some(s) = slices.get(k) {
             totals.voxel_grid_bytes +=
-                voxel_grid_bytes(&s.islands, job.materials.len(), job.plan.r_mach_mm);
+                voxel_grid_bytes(&s.layer.islands, job.materials.len(), job.plan.r_mach_mm);
         }
+        let design = slices.get(k).map(|s| &s.design).unwrap_or(&job.design);
         reports.push(LayerReport {
             index: l.index,
             z_mm: l.z_mm,
             thickness_mm: l.thickness_mm,
             area_mm2: l.area_mm2,
+            inner: design.inner.fractions().to_vec(),
+            outer: design.outer.fractions().to_vec(),
             regions,
         });
     }
@@ -244,6 +267,8 @@ pub fn build(
             nozzle_mm: job.plan.nozzle_mm,
             boundary_offset_mm: job.plan.boundary_offset_mm,
         },
+        mesh: notes.mesh,
+        slicing: notes.slicing,
         layers: reports,
         totals,
         planning_time_ms,

@@ -1,10 +1,16 @@
-//! `edoctl plan JOB.toml [--report FILE|-] [--svg DIR]`: plan a job offline.
+//! `edoctl plan JOB.toml [--report FILE|-] [--svg DIR] [--layers A..B]`: plan a job
+//! offline. Reads the job and its mesh (relative paths are relative to the job file),
+//! slices, runs the EDO method on every layer, writes the report and previews.
 
-use crate::edo::plan_layers;
-use crate::job::{Geometry, Job};
+use crate::edo::{plan_layers, LayerPlan};
+use crate::job::{Geometry, Job, LayerSlice};
+use crate::mesh::{MeshLimits, RepairOptions};
+use crate::report::MeshNotes;
+use crate::slice::{SliceOptions, Slicer};
 use anyhow::{Context, Result};
-use std::io::Write;
-use std::path::PathBuf;
+use std::io::{IsTerminal, Write};
+use std::ops::Range;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Largest job file read, bytes (a job is a few kB; this keeps a wrong path from
@@ -21,10 +27,38 @@ pub struct PlanArgs {
     /// Write one SVG preview per layer into DIR (created if missing).
     #[arg(long, value_name = "DIR")]
     pub svg: Option<PathBuf>,
+    /// Plan only layers A to B−1 (0-based, like 10..20; "7" plans layer 7 alone).
+    #[arg(long, value_name = "A..B", value_parser = parse_layer_range)]
+    pub layers: Option<Range<usize>>,
+    /// No progress bar even on a terminal.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// Parse `A..B` (half-open) or a single index `A`.
+pub fn parse_layer_range(s: &str) -> Result<Range<usize>, String> {
+    let num = |t: &str| {
+        t.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("\"{t}\" is not a layer index; use A..B (e.g. 10..20) or A"))
+    };
+    let r = match s.split_once("..") {
+        Some((a, b)) => num(a)?..num(b)?,
+        None => {
+            let a = num(s)?;
+            a..a + 1
+        }
+    };
+    if r.start >= r.end {
+        return Err(format!(
+            "layer range {s} is empty; the end is exclusive (10..20 plans layers 10 to 19)"
+        ));
+    }
+    Ok(r)
 }
 
 /// Read a job file with a size limit and parse it.
-pub fn load_job(path: &std::path::Path) -> Result<Job> {
+pub fn load_job(path: &Path) -> Result<Job> {
     let meta = std::fs::metadata(path)
         .with_context(|| format!("cannot read job file {}", path.display()))?;
     if meta.len() > MAX_JOB_BYTES {
@@ -40,14 +74,119 @@ pub fn load_job(path: &std::path::Path) -> Result<Job> {
     Ok(Job::from_toml(&text, &path.display().to_string())?)
 }
 
+/// A progress bar on standard error when it is a terminal and not `quiet`.
+fn bar(len: u64, what: &str, quiet: bool) -> Option<indicatif::ProgressBar> {
+    if quiet || !std::io::stderr().is_terminal() {
+        return None;
+    }
+    let b = indicatif::ProgressBar::new(len);
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("{msg:>10} [{bar:40}] {pos}/{len} layers ({eta})")
+    {
+        b.set_style(style.progress_chars("=> "));
+    }
+    b.set_message(what.to_string());
+    Some(b)
+}
+
+/// The job's layers (sliced from its mesh, or its extruded polygon), restricted to
+/// `range`, with per-layer designs, and what loading and slicing reported.
+pub fn job_layers(
+    job: &Job,
+    job_path: &Path,
+    range: Option<Range<usize>>,
+    quiet: bool,
+) -> Result<(Vec<LayerSlice>, MeshNotes)> {
+    let pick = |n: usize| -> Result<Range<usize>> {
+        match &range {
+            None => Ok(0..n),
+            Some(r) if r.start < n => Ok(r.start..r.end.min(n)),
+            Some(r) => anyhow::bail!(
+                "--layers {}..{}: the job has {n} layers (0..{n})",
+                r.start,
+                r.end
+            ),
+        }
+    };
+    match &job.geometry {
+        Geometry::Extruded { .. } => {
+            let all = job.extruded_layers().unwrap_or_default();
+            let r = pick(all.len())?;
+            let layers = all[r.clone()].to_vec();
+            Ok((job.layer_slices(r.start, layers), MeshNotes::default()))
+        }
+        Geometry::Mesh { path } => {
+            let mesh_path = job_path.parent().unwrap_or(Path::new(".")).join(path);
+            let limits = MeshLimits::default();
+            let bytes = crate::mesh::path::read_limited(&mesh_path, &limits)
+                .with_context(|| format!("geometry.mesh: cannot load {}", mesh_path.display()))?;
+            let (mesh, mesh_report) =
+                crate::mesh::load_and_repair(&bytes, &limits, &RepairOptions::default())
+                    .with_context(|| format!("geometry.mesh: {}", mesh_path.display()))?;
+            let limit = |z: f64| job.z_step_limit_mm(z);
+            let opts = SliceOptions {
+                layer_min_mm: job.layers.min_mm,
+                layer_max_mm: job.layers.max_mm,
+                cusp_mm: job.layers.cusp_mm,
+                max_thickness_at: if job.z_stations.is_empty() {
+                    None
+                } else {
+                    Some(&limit)
+                },
+                ..SliceOptions::default()
+            };
+            let slicer =
+                Slicer::new(&mesh).with_context(|| format!("slicing {}", mesh_path.display()))?;
+            let spans = slicer
+                .layer_spans(&opts)
+                .with_context(|| format!("slicing {}", mesh_path.display()))?;
+            let r = pick(spans.len())?;
+            let b = bar(r.len() as u64, "slicing", quiet);
+            let progress = |done: usize, _total: usize| {
+                if let Some(b) = &b {
+                    b.set_position(done as u64);
+                }
+            };
+            let (layers, slice_report) = slicer
+                .slice(&spans[r.clone()], &opts.tolerances, Some(&progress))
+                .with_context(|| format!("slicing {}", mesh_path.display()))?;
+            if let Some(b) = b {
+                b.finish_and_clear();
+            }
+            Ok((
+                job.layer_slices(r.start, layers),
+                MeshNotes {
+                    mesh: Some(mesh_report),
+                    slicing: Some(slice_report),
+                },
+            ))
+        }
+    }
+}
+
+/// Plan the given layers with a progress bar.
+pub fn plan_with_progress(job: &Job, slices: &[LayerSlice], quiet: bool) -> Result<Vec<LayerPlan>> {
+    let b = bar(slices.len() as u64, "planning", quiet);
+    let progress = |done: usize, _total: usize| {
+        if let Some(b) = &b {
+            b.set_position(done as u64);
+        }
+    };
+    let layers = plan_layers(slices, &job.plan, Some(&progress))?;
+    if let Some(b) = b {
+        b.finish_and_clear();
+    }
+    Ok(layers)
+}
+
 pub fn run(args: &PlanArgs) -> Result<()> {
     let job = load_job(&args.job)?;
-    let slices = job.layer_slices();
     let started = Instant::now();
-    let layers = plan_layers(&slices, &job.design, &job.plan)
+    let (slices, notes) = job_layers(&job, &args.job, args.layers.clone(), args.quiet)?;
+    let layers = plan_with_progress(&job, &slices, args.quiet)
         .with_context(|| format!("planning {}", args.job.display()))?;
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
-    let report = crate::report::build(&job, &slices, &layers, planning_time_ms);
+    let report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
 
     let to_stdout = args.report.as_deref() == Some("-");
     let mut human: Box<dyn Write> = if to_stdout {
@@ -60,7 +199,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         if to_stdout {
             println!("{json}");
         } else {
-            if let Some(parent) = std::path::Path::new(target)
+            if let Some(parent) = Path::new(target)
                 .parent()
                 .filter(|p| !p.as_os_str().is_empty())
             {
@@ -73,7 +212,6 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     }
     if let Some(dir) = &args.svg {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        let Geometry::Extruded { .. } = &job.geometry;
         for (layer, slice) in layers.iter().zip(&slices) {
             let svg = crate::svg::layer_svg(
                 layer,
@@ -81,7 +219,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
                     job_name: &job.name,
                     materials: &job.materials,
                     nozzle_mm: job.plan.nozzle_mm,
-                    islands: &slice.islands,
+                    islands: &slice.layer.islands,
                 },
             );
             let file = dir.join(format!("layer-{:04}.svg", layer.index));
@@ -95,11 +233,19 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         "{}: {} layer(s) planned in {:.1} ms",
         job.name, t.layers, planning_time_ms
     )?;
+    if let Some(m) = &report.mesh {
+        writeln!(
+            human,
+            "  mesh: {} triangles, {:.1} mm³, {} open edges, {} non-manifold edges, {} degenerate and {} duplicate triangles removed",
+            m.triangles, m.volume_mm3, m.open_edges, m.non_manifold_edges, m.degenerate_triangles, m.duplicate_triangles
+        )?;
+    }
     if let Some(l) = layers.first() {
         for r in &l.regions {
             writeln!(
                 human,
-                "  island {}: {:?} subdivision, m = {}, L_short = {:.3} mm, {} sub-regions, {} offsets",
+                "  layer {} island {}: {:?} subdivision, m = {}, L_short = {:.3} mm, {} sub-regions, {} offsets",
+                l.index,
                 r.island,
                 r.method,
                 r.m,
@@ -120,7 +266,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         t.compact_material_bytes, t.plan_bytes, t.voxel_grid_bytes
     )?;
     if let Some(dir) = &args.svg {
-        writeln!(human, "  previews: {}/layer-*.svg", dir.display())?;
+        writeln!(human, "  previews: {}", dir.join("layer-*.svg").display())?;
     }
     Ok(())
 }

@@ -50,6 +50,19 @@ pub enum Subdivision {
     Distance,
 }
 
+/// What to do with a region thinner than the machine resolves (eq (1) gives m = 0) or
+/// narrower than one road (job key `[process] thin_regions`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum ThinRegions {
+    /// Refuse the plan with an error naming the region (right for a designed polygon).
+    #[default]
+    Refuse,
+    /// Plan it with m = 1 (one sub-region from M(Ci) to M(Ce)), and skip an island no
+    /// road fits in, saying so in the region's note (right for the tips of a real part).
+    Fill,
+}
+
 /// Which method actually produced a region's contours (reported per region).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -110,6 +123,7 @@ pub struct PlanOptions {
     pub field_cell_mm: Option<f64>,
     /// Cap on distance-field grid nodes (the cell grows to respect it).
     pub max_field_nodes: usize,
+    pub thin_regions: ThinRegions,
     pub tolerances: Tolerances,
 }
 
@@ -124,6 +138,7 @@ impl PlanOptions {
             radial_lines: 360,
             field_cell_mm: None,
             max_field_nodes: 1 << 20,
+            thin_regions: ThinRegions::Refuse,
             tolerances: Tolerances::default(),
         }
     }
@@ -200,6 +215,10 @@ pub struct RegionPlan {
     pub area_mm2: f64,
     pub contours: Vec<Contour>,
     pub sub_regions: Vec<SubRegion>,
+    /// Why the region was planned differently from the method's rule (m clamped to 1,
+    /// or skipped as narrower than one road), when it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
 }
 
 /// The compact plan of one layer (§3.2).
@@ -215,9 +234,9 @@ pub struct LayerPlan {
 /// Why a region could not be planned; every variant names the island.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PlanError {
-    #[error("island {island}: {source}")]
-    Region { island: usize, source: RegionError },
-    #[error("island {island} is too thin for the machine: L_short = {l_short_mm:.3} mm against R_mach = {r_mach_mm} mm gives m = 0 (eq (1)); lower r_mach or drop the region")]
+    #[error("island {island}: {problem}")]
+    Region { island: usize, problem: RegionError },
+    #[error("island {island} is too thin for the machine: L_short = {l_short_mm:.3} mm against R_mach = {r_mach_mm} mm gives m = 0 (eq (1)); lower r_mach, or set [process] thin_regions = \"fill\"")]
     TooThin {
         island: usize,
         l_short_mm: f64,
@@ -328,6 +347,19 @@ struct PreSubdivision {
     inner_is_boundary: bool,
 }
 
+/// Eq (1), and what `thin_regions` says to do when it gives m = 0.
+fn resolved_m(l_short_mm: f64, island: usize, opts: &PlanOptions) -> Result<u32, PlanError> {
+    match segment_count(l_short_mm, opts.r_mach_mm) {
+        0 if opts.thin_regions == ThinRegions::Fill && l_short_mm > 0.0 => Ok(1),
+        0 => Err(PlanError::TooThin {
+            island,
+            l_short_mm,
+            r_mach_mm: opts.r_mach_mm,
+        }),
+        m => Ok(m),
+    }
+}
+
 /// Plan one region: validate it, subdivide it, and fill every sub-region (steps 1–4).
 pub fn plan_region(
     region: &Region,
@@ -345,7 +377,7 @@ pub fn plan_region(
     let region = region.normalised(tol);
     region
         .validate(tol)
-        .map_err(|source| PlanError::Region { island, source })?;
+        .map_err(|problem| PlanError::Region { island, problem })?;
     let chord = tol.chord_mm;
     let eps = (tol.point_eq_mm * 1e3).max(1e-7);
 
@@ -364,6 +396,21 @@ pub fn plan_region(
     let region_shape = shapes::from_loops(&region_loops);
     let interior = shapes::offset(&region_shape, -b, chord);
     if interior.is_empty() {
+        if opts.thin_regions == ThinRegions::Fill {
+            return Ok(RegionPlan {
+                island,
+                method: pre.method,
+                m: 0,
+                l_short_mm: pre.l_short_mm,
+                centre: pre.centre,
+                area_mm2: region.area(),
+                contours: Vec::new(),
+                sub_regions: Vec::new(),
+                note: Some(format!(
+                    "skipped: narrower than one road (nothing remains {b} mm inside its boundary)"
+                )),
+            });
+        }
         return Err(PlanError::NarrowerThanRoad {
             island,
             offset_mm: b,
@@ -484,6 +531,12 @@ pub fn plan_region(
         area_mm2: region.area(),
         contours,
         sub_regions,
+        note: (segment_count(pre.l_short_mm, opts.r_mach_mm) == 0).then(|| {
+            format!(
+                "m clamped to 1: L_short = {:.3} mm is under half of R_mach = {} mm (thin_regions = fill)",
+                pre.l_short_mm, opts.r_mach_mm
+            )
+        }),
     })
 }
 
@@ -512,48 +565,59 @@ pub fn plan_layer(
 
 /// A layer planning failure, naming the layer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("layer {index} (z = {z_mm:.3} mm): {source}")]
+#[error("layer {index} (z = {z_mm:.3} mm): {problem}")]
 pub struct LayerError {
     pub index: usize,
     pub z_mm: f64,
-    pub source: PlanError,
+    pub problem: PlanError,
 }
 
-/// Plan layers in parallel (rayon). A layer whose islands equal the previous layer's is
-/// planned once and reused with its own index and z.
+/// Plan layers in parallel (rayon), each with its own gradient design. A layer whose
+/// islands and design equal the previous layer's is planned once and reused with its
+/// own index and z. `progress` hears `(layers done, layers total)`.
 pub fn plan_layers(
     slices: &[crate::job::LayerSlice],
-    design: &GradientDesign,
     opts: &PlanOptions,
+    progress: Option<&(dyn Fn(usize, usize) + Sync)>,
 ) -> Result<Vec<LayerPlan>, LayerError> {
     use rayon::prelude::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
     let firsts: Vec<usize> = (0..slices.len())
-        .filter(|&k| k == 0 || slices[k].islands != slices[k - 1].islands)
+        .filter(|&k| {
+            k == 0
+                || slices[k].layer.islands != slices[k - 1].layer.islands
+                || slices[k].design != slices[k - 1].design
+        })
         .collect();
+    let done = AtomicUsize::new(0);
     let planned: Vec<LayerPlan> = firsts
         .par_iter()
         .map(|&k| {
             let s = &slices[k];
-            plan_layer(s.index, s.z_mm, s.thickness_mm, &s.islands, design, opts).map_err(
-                |source| LayerError {
+            let l = &s.layer;
+            let r = plan_layer(s.index, l.z_mm, l.thickness_mm, &l.islands, &s.design, opts)
+                .map_err(|problem| LayerError {
                     index: s.index,
-                    z_mm: s.z_mm,
-                    source,
-                },
-            )
+                    z_mm: l.z_mm,
+                    problem,
+                });
+            if let Some(p) = progress {
+                p(done.fetch_add(1, Ordering::Relaxed) + 1, firsts.len());
+            }
+            r
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let mut out = Vec::with_capacity(slices.len());
+    let mut out: Vec<LayerPlan> = Vec::with_capacity(slices.len());
     let mut next = 0;
     for (k, s) in slices.iter().enumerate() {
         if next < firsts.len() && firsts[next] == k {
             out.push(planned[next].clone());
             next += 1;
         } else if let Some(prev) = out.last() {
-            let mut p: LayerPlan = LayerPlan::clone(prev);
+            let mut p = prev.clone();
             p.index = s.index;
-            p.z_mm = s.z_mm;
-            p.thickness_mm = s.thickness_mm;
+            p.z_mm = s.layer.z_mm;
+            p.thickness_mm = s.layer.thickness_mm;
             out.push(p);
         }
     }
@@ -643,14 +707,7 @@ fn growth_rings(
             opts.radial_lines,
         ) {
             Ok(rs0) => {
-                let m = segment_count(rs0.l_short_mm, opts.r_mach_mm);
-                if m == 0 {
-                    return Err(PlanError::TooThin {
-                        island,
-                        l_short_mm: rs0.l_short_mm,
-                        r_mach_mm: opts.r_mach_mm,
-                    });
-                }
+                let m = resolved_m(rs0.l_short_mm, island, opts)?;
                 let mut lines = rs0.lines;
                 let mut rs = rs0;
                 let mut result = None;
@@ -726,14 +783,7 @@ fn growth_rings(
         Some(c) => crate::geom::point_loop_distance(c, &region.outer),
         None => f.thinnest_wall().unwrap_or(0.0),
     };
-    let m = segment_count(l_short_mm, opts.r_mach_mm);
-    if m == 0 {
-        return Err(PlanError::TooThin {
-            island,
-            l_short_mm,
-            r_mach_mm: opts.r_mach_mm,
-        });
-    }
+    let m = resolved_m(l_short_mm, island, opts)?;
     let mut levels = vec![Level::Shapes(holes_shape)];
     let chord = opts.tolerances.chord_mm;
     levels.extend(f.level_sets(m).into_iter().map(|loops| {
@@ -760,14 +810,7 @@ fn crown(
     depth_mm: f64,
     opts: &PlanOptions,
 ) -> Result<PreSubdivision, PlanError> {
-    let m = segment_count(depth_mm, opts.r_mach_mm);
-    if m == 0 {
-        return Err(PlanError::TooThin {
-            island,
-            l_short_mm: depth_mm,
-            r_mach_mm: opts.r_mach_mm,
-        });
-    }
+    let m = resolved_m(depth_mm, island, opts)?;
     let outer_shape = shapes::from_loops(std::slice::from_ref(&region.outer));
     let chord = opts.tolerances.chord_mm;
     let levels = (1..=m + 1)
@@ -856,14 +899,7 @@ fn fibers(
         s_max = s_max.max(normal.dot(*p));
     }
     let l_short_mm = s_max - s_min;
-    let m = segment_count(l_short_mm, opts.r_mach_mm);
-    if m == 0 {
-        return Err(PlanError::TooThin {
-            island,
-            l_short_mm,
-            r_mach_mm: opts.r_mach_mm,
-        });
-    }
+    let m = resolved_m(l_short_mm, island, opts)?;
     let pad = DVec2::splat(1.0);
     let levels = (1..=m + 1)
         .map(|j| Level::HalfPlane {
