@@ -153,6 +153,7 @@ struct RawProcess {
     radial_lines: Option<usize>,
     field_cell: Option<f64>,
     cusp: Option<f64>,
+    max_gap: Option<f64>,
     thin_regions: Option<crate::edo::ThinRegions>,
 }
 
@@ -171,6 +172,8 @@ pub struct LayerHeights {
     pub max_mm: f64,
     /// Largest staircase (cusp) height of adaptive layers on a sloped surface, mm.
     pub cusp_mm: f64,
+    /// Largest gap in a mesh section closed with a straight segment, mm.
+    pub max_gap_mm: f64,
 }
 
 /// What the job builds.
@@ -315,10 +318,15 @@ impl Job {
         };
         let cusp_mm = p.cusp.unwrap_or(max_mm / 2.0);
         positive(cusp_mm, "process.cusp", &bad)?;
+        let max_gap_mm = p.max_gap.unwrap_or(crate::slice::SliceTolerances::default().max_gap_mm);
+        if !max_gap_mm.is_finite() || max_gap_mm < 0.0 {
+            return Err(bad("process.max_gap", format!("must be a distance of 0 or more in mm, got {max_gap_mm}")));
+        }
         let layers = LayerHeights {
             min_mm,
             max_mm,
             cusp_mm,
+            max_gap_mm,
         };
         // Gradient.
         let g = raw.gradient;

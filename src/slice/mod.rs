@@ -160,7 +160,7 @@ pub enum SliceError {
     Empty,
     #[error("the mesh cannot be sliced: {0}")]
     BadMesh(#[from] crate::mesh::MeshError),
-    #[error("the mesh is open at layer z = {z_mm:.4} mm: a section loop ends at ({x:.3}, {y:.3}) and no other loop end is within {max_gap_mm} mm{}; repair the mesh (close the hole) or raise max_gap_mm", nearest_mm.map(|d| format!(" (nearest {d:.3} mm)")).unwrap_or_default())]
+    #[error("the mesh is open at layer z = {z_mm:.4} mm: a section loop ends at ({x:.3}, {y:.3}) and no other loop end is within {max_gap_mm} mm{}; repair the mesh (close the hole) or allow a larger gap (job key [process] max_gap)", nearest_mm.map(|d| format!(" (nearest {d:.3} mm)")).unwrap_or_default())]
     OpenLoop {
         z_mm: f64,
         x: f64,
