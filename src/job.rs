@@ -318,9 +318,14 @@ impl Job {
         };
         let cusp_mm = p.cusp.unwrap_or(max_mm / 2.0);
         positive(cusp_mm, "process.cusp", &bad)?;
-        let max_gap_mm = p.max_gap.unwrap_or(crate::slice::SliceTolerances::default().max_gap_mm);
+        let max_gap_mm = p
+            .max_gap
+            .unwrap_or(crate::slice::SliceTolerances::default().max_gap_mm);
         if !max_gap_mm.is_finite() || max_gap_mm < 0.0 {
-            return Err(bad("process.max_gap", format!("must be a distance of 0 or more in mm, got {max_gap_mm}")));
+            return Err(bad(
+                "process.max_gap",
+                format!("must be a distance of 0 or more in mm, got {max_gap_mm}"),
+            ));
         }
         let layers = LayerHeights {
             min_mm,

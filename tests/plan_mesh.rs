@@ -28,7 +28,10 @@ fn run_plan(job: &Path, extra: &[&str]) -> (bool, serde_json::Value, String) {
 
 #[test]
 fn femur_layer_range_with_z_gradient() {
-    let (ok, r, err) = run_plan(&examples().join("femur-graded.toml"), &["--layers", "560..563"]);
+    let (ok, r, err) = run_plan(
+        &examples().join("femur-graded.toml"),
+        &["--layers", "560..563"],
+    );
     assert!(ok, "{err}");
     let layers = r["layers"].as_array().unwrap();
     assert_eq!(layers.len(), 3);
@@ -36,7 +39,11 @@ fn femur_layer_range_with_z_gradient() {
     for l in layers {
         let t = l["thickness_mm"].as_f64().unwrap();
         assert!((0.2 - 1e-9..=0.6 + 1e-9).contains(&t), "{t}");
-        assert!(l["regions"].as_array().unwrap().iter().all(|g| g["m"].as_u64().unwrap() >= 1));
+        assert!(l["regions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|g| g["m"].as_u64().unwrap() >= 1));
     }
     // Mid-shaft: the Z gradient gives an almost pure Ti core.
     assert!(layers[0]["inner"][0].as_f64().unwrap() > 0.9);
@@ -62,8 +69,14 @@ fn z_step_limits_layer_thickness() {
     let (ok, r, err) = run_plan(&job, &[]);
     assert!(ok, "{err}");
     let layers = r["layers"].as_array().unwrap();
-    let inner0: Vec<f64> = layers.iter().map(|l| l["inner"][0].as_f64().unwrap()).collect();
-    let thick: Vec<f64> = layers.iter().map(|l| l["thickness_mm"].as_f64().unwrap()).collect();
+    let inner0: Vec<f64> = layers
+        .iter()
+        .map(|l| l["inner"][0].as_f64().unwrap())
+        .collect();
+    let thick: Vec<f64> = layers
+        .iter()
+        .map(|l| l["thickness_mm"].as_f64().unwrap())
+        .collect();
     // Where M(Ci) changes (z < 2) layers are thin enough for a 0.05 step; above, 1 mm.
     for w in inner0.windows(2) {
         assert!((w[1] - w[0]).abs() <= 0.05 + 1e-9, "{inner0:?}");
@@ -87,11 +100,21 @@ fn write_job(dir: &Path, mesh: &str) -> PathBuf {
 fn bad_meshes_are_refused_with_the_place_named() {
     let dir = tempfile::tempdir().unwrap();
     let (ok, _, err) = run_plan(&write_job(dir.path(), "missing.stl"), &[]);
-    assert!(!ok && err.contains("geometry.mesh") && err.contains("missing.stl"), "{err}");
-    std::fs::write(dir.path().join("junk.stl"), b"solid junk\n facet normal nonsense\n").unwrap();
+    assert!(
+        !ok && err.contains("geometry.mesh") && err.contains("missing.stl"),
+        "{err}"
+    );
+    std::fs::write(
+        dir.path().join("junk.stl"),
+        b"solid junk\n facet normal nonsense\n",
+    )
+    .unwrap();
     let (ok, _, err) = run_plan(&write_job(dir.path(), "junk.stl"), &[]);
     assert!(!ok && err.contains("junk.stl"), "{err}");
-    let (ok, _, err) = run_plan(&examples().join("femur-graded.toml"), &["--layers", "5000..5001"]);
+    let (ok, _, err) = run_plan(
+        &examples().join("femur-graded.toml"),
+        &["--layers", "5000..5001"],
+    );
     assert!(!ok && err.contains("layers"), "{err}");
     // The open bunny scan (shared test mesh): refused at a named layer and place.
     let bunny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/meshes/stanford-bunny.stl");
@@ -99,6 +122,9 @@ fn bad_meshes_are_refused_with_the_place_named() {
         let (ok, _, err) = run_plan(&write_job(dir.path(), &bunny.display().to_string()), &[]);
         assert!(!ok && err.contains("z ="), "{err}");
     } else {
-        eprintln!("note: {} not found; open-mesh case skipped", bunny.display());
+        eprintln!(
+            "note: {} not found; open-mesh case skipped",
+            bunny.display()
+        );
     }
 }

@@ -119,7 +119,9 @@ pub struct PlanOptions {
     /// Radial lines at equal angular division (§3.1); doubled up to twice when the
     /// splines would cross.
     pub radial_lines: usize,
-    /// Grid cell of the distance method, mm. Default R_mach / 4.
+    /// Grid cell of the distance method, mm. Default R_mach / 3: contours R_mach apart
+    /// are resolved by three cells, and the piecewise-linear level sets of the smooth
+    /// normalised distance sit well within the chord tolerance of the exact ones.
     pub field_cell_mm: Option<f64>,
     /// Cap on distance-field grid nodes (the cell grows to respect it).
     pub max_field_nodes: usize,
@@ -144,7 +146,7 @@ impl PlanOptions {
     }
 
     fn cell_mm(&self) -> f64 {
-        self.field_cell_mm.unwrap_or(self.r_mach_mm / 4.0)
+        self.field_cell_mm.unwrap_or(self.r_mach_mm / 3.0)
     }
 }
 
@@ -379,6 +381,24 @@ pub fn plan_region(
         .validate(tol)
         .map_err(|problem| PlanError::Region { island, problem })?;
     let chord = tol.chord_mm;
+    // Drop vertices that carry no shape beyond the chord tolerance (dense scans and
+    // slicer output): every later offset and boolean scales with the vertex count.
+    // Kept only if the simplified region is still sound.
+    let region = {
+        let simpler = Region::new(
+            crate::geom::simplify_loop(&region.outer, chord),
+            region
+                .holes
+                .iter()
+                .map(|h| crate::geom::simplify_loop(h, chord))
+                .collect(),
+        );
+        if simpler.validate(tol).is_ok() {
+            simpler
+        } else {
+            region
+        }
+    };
     let eps = (tol.point_eq_mm * 1e3).max(1e-7);
 
     // Step 1: pre-subdivision.
