@@ -43,32 +43,10 @@ pub fn write_line(out: &mut impl Write, line: &RecordLine) -> anyhow::Result<()>
     Ok(())
 }
 
-/// Colours of syringe materials 0..7 (RGB), mixed linearly by composition.
-const PALETTE: [[f64; 3]; 8] = [
-    [31.0, 119.0, 180.0],
-    [214.0, 39.0, 40.0],
-    [44.0, 160.0, 44.0],
-    [255.0, 127.0, 14.0],
-    [148.0, 103.0, 189.0],
-    [140.0, 86.0, 75.0],
-    [227.0, 119.0, 194.0],
-    [23.0, 190.0, 207.0],
-];
-
-/// Colour of a composition.
+/// Colour of a composition: the planner's preview colours (`edo::svg::mix_colour`), so
+/// planned and as-built drawings compare side by side.
 pub fn colour(composition: &[f64]) -> String {
-    let mut rgb = [0.0; 3];
-    for (c, p) in composition.iter().zip(PALETTE.iter()) {
-        for k in 0..3 {
-            rgb[k] += c * p[k];
-        }
-    }
-    format!(
-        "#{:02x}{:02x}{:02x}",
-        rgb[0].clamp(0.0, 255.0) as u8,
-        rgb[1].clamp(0.0, 255.0) as u8,
-        rgb[2].clamp(0.0, 255.0) as u8
-    )
+    edo::svg::mix_colour(composition)
 }
 
 /// Draw every layer of `record` into `dir/layer-NNNN.svg`; returns the files written.
