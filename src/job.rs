@@ -271,6 +271,15 @@ impl Job {
         let p = raw.process;
         positive(p.r_mach, "process.r_mach", &bad)?;
         positive(p.nozzle, "process.nozzle", &bad)?;
+        if p.nozzle > p.r_mach {
+            return Err(bad(
+                "process.nozzle",
+                format!(
+                    "the nozzle ({} mm) is wider than the machine resolution r_mach ({} mm): contours about r_mach apart would get overlapping roads; use r_mach >= nozzle",
+                    p.nozzle, p.r_mach
+                ),
+            ));
+        }
         let mut plan = PlanOptions::new(p.r_mach, p.nozzle);
         plan.tolerances = tolerances;
         if let Some(b) = p.boundary_offset {
@@ -828,6 +837,8 @@ nozzle = 0.5
         assert!(e.contains("process.r_mach"), "{e}");
         let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 0.0"));
         assert!(e.contains("process.nozzle"), "{e}");
+        let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 2.5"));
+        assert!(e.contains("process.nozzle") && e.contains("r_mach"), "{e}");
         let e = err(&GOOD.replace("r_mach = 2.0", "r_mach = nan"));
         assert!(e.contains("process.r_mach"), "{e}");
         let e = err(&GOOD.replace("pattern = \"growth-rings\"", "pattern = \"zebra\""));
