@@ -69,3 +69,48 @@ fn example_jobs_become_exact_move_streams() {
         assert!(total > 0.0);
     }
 }
+
+/// The sum of each drive's E over the file equals the plan's per-syringe volume divided by
+/// the barrel area, for both flavours.
+#[test]
+fn gcode_drive_sums_equal_plan_volumes() {
+    use edo::machine::gcode::{summed_drive_e, Flavor, GcodeSettings};
+    let job = job("paper-annulus");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices, &job.design, &job.plan).unwrap();
+    let process = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let dir = tempfile::tempdir().unwrap();
+    for (flavor, direct) in [
+        (Flavor::Rrf, false),
+        (Flavor::Marlin, false),
+        (Flavor::Marlin, true),
+    ] {
+        let settings = GcodeSettings {
+            flavor,
+            barrel_area_mm2: 165.0,
+            marlin_direct_mixing: direct,
+        };
+        let path = dir.path().join(format!("{flavor:?}-{direct}.gcode"));
+        let summary = edo::cli::gcode::write(&job, &layers, &process, &settings, &path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let sums = summed_drive_e(&text, 2, flavor);
+        for (d, (e, v)) in sums.iter().zip(&summary.commanded_nl).enumerate() {
+            let want = *v as f64 / 1000.0 / 165.0;
+            assert!(
+                (e - want).abs() <= 2e-5,
+                "{flavor:?} drive {d}: E sum {e} against {want}"
+            );
+            assert!((summary.gcode.extrude_e_mm[d] - want).abs() <= 1e-5);
+        }
+        assert!(want_nonzero(&summary.commanded_nl));
+        match flavor {
+            Flavor::Rrf => assert!(text.contains("M563 P0 D0:1")),
+            Flavor::Marlin if direct => assert!(text.contains(" A") && !text.contains("M163")),
+            Flavor::Marlin => assert!(text.contains("M163 S1") && text.contains("M164 S0")),
+        }
+    }
+}
+
+fn want_nonzero(v: &[u64]) -> bool {
+    v.iter().all(|&x| x > 0)
+}
