@@ -17,6 +17,9 @@
 //!   equal distance offset fill of every sub-region, as a compact [`edo::LayerPlan`].
 //! - [`job`]: the job file (`docs/job-format.md`).
 //! - [`report`], [`svg`]: the plan report (`docs/plan-report.md`) and layer previews.
+//! - [`toolpath`]: process planning (§4, Fig. 4(a)): filling order, seams, flow raise in
+//!   narrow sub-areas, coverage measure.
+//! - [`pipeline`]: planned layers to machine moves (the stable API the daemon streams).
 //! - [`machine`]: the move stream in fixed point (µm, nl, ratios of 65535), the one move
 //!   type host, link and simulator share.
 //! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
@@ -33,6 +36,8 @@ pub mod linktest;
 pub mod machine;
 pub mod material;
 pub mod mesh;
+pub mod pipeline;
 pub mod report;
 pub mod slice;
 pub mod svg;
+pub mod toolpath;

@@ -17,6 +17,8 @@
 //! A move with [`MAX_SYRINGES`] syringes encodes (postcard) to at most [`MAX_MOVE_BYTES`]
 //! bytes, well inside one link frame (see `docs/protocol.md`).
 
+pub mod gcode;
+
 use serde::{Deserialize, Serialize};
 
 /// Most syringes (primary materials) a machine may have.

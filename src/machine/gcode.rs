@@ -1,0 +1,314 @@
+//! G-code export of a move stream, so labs with a Duet (RepRapFirmware) or Marlin mixing
+//! syringe printer can build edo's plans without edod. Contract: `docs/gcode.md`.
+//!
+//! Extrusion is relative (`M83`) and in millimetres of plunger travel: a syringe's volume
+//! V (nl) becomes E = V / 1000 / A mm for a barrel cross-section A (mm²). Printed E values
+//! are rounded cumulatively per drive (to 10⁻⁵ mm), so the sum of each drive's E over the
+//! file equals that drive's commanded volume / A within 10⁻⁵ mm.
+
+use super::{Move, MoveKind};
+use serde::{Deserialize, Serialize};
+use std::fmt::Write;
+
+/// Which firmware reads the file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Flavor {
+    /// RepRapFirmware 3: a tool over all drives (`M563 P0 D0:1:..`), per-move `E a:b:c`.
+    Rrf,
+    /// Marlin with `MIXING_EXTRUDER`: mix set per move with `M163`/`M164` (or `A B C ..`
+    /// weights in `G1` with `DIRECT_MIXING_IN_G1`), total E per move.
+    Marlin,
+}
+
+/// Export settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GcodeSettings {
+    pub flavor: Flavor,
+    /// Barrel cross-section of every syringe, mm². Default 165 (a 10 mL syringe, 14.5 mm
+    /// bore).
+    pub barrel_area_mm2: f64,
+    /// Marlin only: put the mix into `G1` as `A B C ..` weights (`DIRECT_MIXING_IN_G1`)
+    /// instead of `M163`/`M164` lines. Default false.
+    pub marlin_direct_mixing: bool,
+}
+
+impl Default for GcodeSettings {
+    fn default() -> Self {
+        GcodeSettings {
+            flavor: Flavor::Rrf,
+            barrel_area_mm2: 165.0,
+            marlin_direct_mixing: false,
+        }
+    }
+}
+
+/// What the file commands in total.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GcodeStats {
+    /// Sum of each drive's printed E over Extrude moves, mm.
+    pub extrude_e_mm: Vec<f64>,
+    pub lines: usize,
+}
+
+/// Marlin's mixing letters for drives 0..5.
+const MARLIN_MIX_AXES: [char; 6] = ['A', 'B', 'C', 'D', 'H', 'I'];
+
+/// The file cannot represent the stream.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum GcodeError {
+    #[error("barrel_area_mm2 must be a positive number, got {0}")]
+    BarrelArea(f64),
+    #[error("Marlin mixing supports at most 6 drives (A B C D H I), the job has {0}")]
+    TooManyDrives(usize),
+}
+
+/// Cumulative rounding of one drive's E to 10⁻⁵ mm.
+#[derive(Default, Clone)]
+struct Drive {
+    exact_mm: f64,
+    printed_units: i64,
+}
+
+impl Drive {
+    /// Add `mm` and return the increment to print, in 10⁻⁵ mm units.
+    fn add(&mut self, mm: f64) -> i64 {
+        self.exact_mm += mm;
+        let target = (self.exact_mm * 1e5).round() as i64;
+        let d = target - self.printed_units;
+        self.printed_units = target;
+        d
+    }
+}
+
+fn e(units: i64) -> String {
+    let sign = if units < 0 { "-" } else { "" };
+    let u = units.unsigned_abs();
+    format!("{sign}{}.{:05}", u / 100_000, u % 100_000)
+}
+
+fn mm(um: i32) -> String {
+    let sign = if um < 0 { "-" } else { "" };
+    let u = um.unsigned_abs();
+    format!("{sign}{}.{:03}", u / 1000, u % 1000)
+}
+
+fn f_mm_min(um_s: u32) -> String {
+    format!("{:.1}", f64::from(um_s) * 60.0 / 1000.0)
+}
+
+/// Write the G-code for `moves` (one job, in order) over `drives` syringes into `out`.
+/// `header` lines are written as comments first.
+pub fn write_gcode(
+    moves: &[Move],
+    drives: usize,
+    settings: &GcodeSettings,
+    header: &[String],
+    out: &mut String,
+) -> Result<GcodeStats, GcodeError> {
+    let a = settings.barrel_area_mm2;
+    if !(a.is_finite() && a > 0.0) {
+        return Err(GcodeError::BarrelArea(a));
+    }
+    if settings.flavor == Flavor::Marlin && drives > MARLIN_MIX_AXES.len() {
+        return Err(GcodeError::TooManyDrives(drives));
+    }
+    let drives = drives.max(1);
+    let nl_to_mm = |v: u32| f64::from(v) / 1000.0 / a;
+    let mut ext = vec![Drive::default(); drives];
+    // Retract/prime E is rounded on its own so it never disturbs the extrusion sums.
+    let mut aux = vec![Drive::default(); drives];
+    let mut lines = 0usize;
+    let mut line = |out: &mut String, s: &str| {
+        out.push_str(s);
+        out.push('\n');
+        lines += 1;
+    };
+    for h in header {
+        line(out, &format!("; {h}"));
+    }
+    let all: Vec<String> = (0..drives).map(|d| d.to_string()).collect();
+    match settings.flavor {
+        Flavor::Rrf => {
+            line(
+                out,
+                "; RepRapFirmware 3: one mixing tool over all syringe drives",
+            );
+            line(out, &format!("M563 P0 D{} H-1 S\"edo\"", all.join(":")));
+            line(out, "T0");
+        }
+        Flavor::Marlin => {
+            line(
+                out,
+                "; Marlin MIXING_EXTRUDER: mix per move, E is the total plunger travel",
+            );
+            line(out, "T0");
+        }
+    }
+    line(out, "G21 ; millimetres");
+    line(out, "G90 ; absolute positions");
+    line(out, "M83 ; relative extrusion");
+    let mut last_mix: Option<Vec<i64>> = None;
+    let mut s = String::new();
+    for m in moves {
+        s.clear();
+        match &m.kind {
+            MoveKind::Home => s.push_str("G28"),
+            MoveKind::LayerMark { layer, z_um } => {
+                let _ = write!(s, ";LAYER:{layer} Z{}", mm(*z_um));
+            }
+            MoveKind::Dwell { duration_ms } => {
+                let _ = write!(s, "G4 P{duration_ms}");
+            }
+            MoveKind::Travel { to, feed_um_s } => {
+                let _ = write!(
+                    s,
+                    "G0 X{} Y{} Z{} F{}",
+                    mm(to.x_um),
+                    mm(to.y_um),
+                    mm(to.z_um),
+                    f_mm_min(*feed_um_s)
+                );
+            }
+            MoveKind::Retract {
+                volumes_nl,
+                duration_ms,
+            }
+            | MoveKind::Prime {
+                volumes_nl,
+                duration_ms,
+            } => {
+                let sign = if matches!(m.kind, MoveKind::Retract { .. }) {
+                    -1.0
+                } else {
+                    1.0
+                };
+                let units: Vec<i64> = (0..drives)
+                    .map(|d| aux[d].add(sign * volumes_nl.get(d).map_or(0.0, |&v| nl_to_mm(v))))
+                    .collect();
+                // Plunger-only move: E over the duration, as a feed in mm/min of the
+                // largest drive's travel.
+                let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e5;
+                let feed = most * 60_000.0 / f64::from((*duration_ms).max(1));
+                let what = if sign < 0.0 { "retract" } else { "prime" };
+                match settings.flavor {
+                    Flavor::Rrf => {
+                        let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
+                        let _ = write!(s, "G1 E{} F{:.1} ; {what}", es.join(":"), feed.max(1.0));
+                    }
+                    Flavor::Marlin => {
+                        let total: i64 = units.iter().sum();
+                        let _ = write!(s, "G1 E{} F{:.1} ; {what}", e(total), feed.max(1.0));
+                    }
+                }
+            }
+            MoveKind::Extrude {
+                to,
+                feed_um_s,
+                volumes_nl,
+                ..
+            } => {
+                let units: Vec<i64> = (0..drives)
+                    .map(|d| ext[d].add(volumes_nl.get(d).map_or(0.0, |&v| nl_to_mm(v))))
+                    .collect();
+                let xyz = format!("G1 X{} Y{} Z{}", mm(to.x_um), mm(to.y_um), mm(to.z_um));
+                match settings.flavor {
+                    Flavor::Rrf => {
+                        let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
+                        let _ = write!(s, "{xyz} E{} F{}", es.join(":"), f_mm_min(*feed_um_s));
+                    }
+                    Flavor::Marlin => {
+                        let total: i64 = units.iter().sum();
+                        if settings.marlin_direct_mixing {
+                            let _ = write!(s, "{xyz} E{}", e(total));
+                            if total > 0 {
+                                for (d, u) in units.iter().enumerate() {
+                                    let _ = write!(s, " {}{}", MARLIN_MIX_AXES[d], e(*u));
+                                }
+                            }
+                            let _ = write!(s, " F{}", f_mm_min(*feed_um_s));
+                        } else {
+                            if total > 0 && last_mix.as_ref() != Some(&units) {
+                                for (d, u) in units.iter().enumerate() {
+                                    line(out, &format!("M163 S{d} P{}", e(*u)));
+                                }
+                                line(out, "M164 S0");
+                                last_mix = Some(units.clone());
+                            }
+                            let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(*feed_um_s));
+                        }
+                    }
+                }
+            }
+        }
+        line(out, &s);
+    }
+    Ok(GcodeStats {
+        extrude_e_mm: ext.iter().map(|d| d.printed_units as f64 / 1e5).collect(),
+        lines,
+    })
+}
+
+/// Sum each drive's E over the Extrude lines of a file this module wrote (for checks).
+/// RRF: the `E a:b:c` values; Marlin: the total E split by the preceding `M163` weights
+/// (or the `A B C` weights on the line).
+pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
+    let mut sums = vec![0.0; drives];
+    let mut weights = vec![0.0; drives];
+    for l in gcode.lines() {
+        let code = l.split(';').next().unwrap_or("").trim();
+        if let Some(rest) = code.strip_prefix("M163 ") {
+            let mut s = None;
+            let mut p = None;
+            for w in rest.split_whitespace() {
+                if let Some(v) = w.strip_prefix('S') {
+                    s = v.parse::<usize>().ok();
+                } else if let Some(v) = w.strip_prefix('P') {
+                    p = v.parse::<f64>().ok();
+                }
+            }
+            if let (Some(s), Some(p)) = (s, p) {
+                if s < drives {
+                    weights[s] = p;
+                }
+            }
+            continue;
+        }
+        if !code.starts_with("G1 X") {
+            continue;
+        }
+        let mut es: Vec<f64> = Vec::new();
+        let mut line_weights = vec![0.0; drives];
+        let mut direct = false;
+        for w in code.split_whitespace() {
+            if let Some(v) = w.strip_prefix('E') {
+                es = v.split(':').filter_map(|x| x.parse().ok()).collect();
+            }
+            for (d, c) in MARLIN_MIX_AXES.iter().enumerate().take(drives) {
+                if let Some(v) = w.strip_prefix(*c) {
+                    line_weights[d] = v.parse().unwrap_or(0.0);
+                    direct = true;
+                }
+            }
+        }
+        match flavor {
+            Flavor::Rrf => {
+                for (s, v) in sums.iter_mut().zip(&es) {
+                    *s += v;
+                }
+            }
+            Flavor::Marlin => {
+                let total = es.first().copied().unwrap_or(0.0);
+                let w = if direct { &line_weights } else { &weights };
+                let wsum: f64 = w.iter().sum();
+                if wsum > 0.0 {
+                    for (s, wi) in sums.iter_mut().zip(w) {
+                        *s += total * wi / wsum;
+                    }
+                }
+            }
+        }
+    }
+    sums
+}

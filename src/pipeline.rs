@@ -1,0 +1,633 @@
+//! From planned layers to machine moves: the stable entry point the daemon, the CLI and
+//! the G-code export call.
+//!
+//! ```text
+//! LayerPlan ──toolpath::fill_order──> Vec<ToolPath> ──layer_moves──> Vec<Move> + stats
+//! ```
+//!
+//! # API
+//!
+//! - [`ProcessSettings`]: every process number with a documented default; serde with
+//!   `deny_unknown_fields`, so a `[toolpath]` TOML table fills it
+//!   ([`ProcessSettings::from_toml`]). [`ProcessSettings::for_nozzle`] gives the defaults
+//!   for a nozzle.
+//! - [`StreamState`]: what carries over from one layer to the next: the nozzle position,
+//!   whether the syringes are pressurised (or retracted, and by how much), the per-syringe
+//!   volumes planned (exact, `f64`) and commanded (fixed point) so far, and the mixing
+//!   chamber's content. Create one per job with [`StreamState::new`] and pass it to every
+//!   layer in order. Its fields are private; read it through its methods.
+//! - [`layer_moves`]: one layer to moves, numbered from `first_index`, plus
+//!   [`LayerStats`].
+//!
+//! # Moves of a layer
+//!
+//! `LayerMark`, then for each path in Fig. 4(a) order (see [`crate::toolpath`]): if the
+//! nozzle is not at the path start, extrusion cessation — `Retract` (when pressurised and
+//! the travel is at least `retract_min_travel_mm`), `Travel`, `Prime` (exactly the volumes
+//! retracted), `Dwell` — then one `Extrude` per centreline edge at constant scanning
+//! speed (`print_feed_mm_s`).
+//!
+//! # Volumes
+//!
+//! A road of width w (the nozzle, times the vertex width factor) on a layer of thickness h
+//! is modelled as a rectangle w × h (roads one width apart tile the layer); an edge of
+//! length L deposits w · h · L mm³ (1 mm³ = 1000 nl), split over the syringes by the
+//! composition. The fixed-point volumes are rounded cumulatively per syringe: after every
+//! move, each syringe's commanded total is its exact planned total rounded to the nearest
+//! nanolitre, so totals never drift (at most 0.5 nl per syringe over a whole job) and a
+//! move's volumes sum to its total exactly by construction.
+
+use crate::edo::LayerPlan;
+use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT, MAX_SYRINGES};
+use crate::toolpath::{self, OrderSettings, SeamMode, SubRegionOrder, ToolPath};
+use glam::{DVec2, DVec3};
+use serde::{Deserialize, Serialize};
+
+/// Process settings: feeds, road width, extrusion cessation, flow limits, mixing chamber,
+/// seams. Units in the names; defaults documented per field (see [`Default`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ProcessSettings {
+    /// Nozzle diameter D_noz, mm. Default 0.4 (set from the job's `process.nozzle`).
+    pub nozzle_mm: f64,
+    /// Nominal road width, mm. Default: `nozzle_mm`.
+    pub road_width_mm: Option<f64>,
+    /// Scanning speed while extruding, mm/s (constant; flow changes width, not speed).
+    /// Default 10.
+    pub print_feed_mm_s: f64,
+    /// Travel speed, mm/s. Default 40.
+    pub travel_feed_mm_s: f64,
+    /// Volume pulled back over all syringes at each extrusion cessation, nl (split by the
+    /// current composition; the prime pushes the same volumes back). Default 200.
+    pub retract_nl: u32,
+    /// Duration of a retract, ms. Default 150.
+    pub retract_ms: u32,
+    /// Duration of the re-prime, ms. Default 150.
+    pub prime_ms: u32,
+    /// Dwell after the re-prime so pressure settles before the road starts, ms. Default 100.
+    pub dwell_ms: u32,
+    /// Travels shorter than this keep the syringes pressurised (no retract/prime), mm.
+    /// Default 0: every travel is an extrusion cessation, as in §4.
+    pub retract_min_travel_mm: f64,
+    /// Largest width (flow) factor a road may be raised to in narrow sub-areas.
+    /// Default 1.5.
+    pub max_flow_factor: f64,
+    /// Raise the flow where a gap needs a non-integer number of roads (§4, Fig. 4(a)
+    /// (i)–(iii)). Default true.
+    pub flow_raise: bool,
+    /// Fill what a raised road still leaves with thin gap-fill roads. Default true.
+    pub gap_fill: bool,
+    /// Narrowest gap-fill road, as a fraction of the road width. Default 0.25.
+    pub gap_fill_min_factor: f64,
+    /// Dead volume of the mixing chamber V_dead, µL. Default 0 (no chamber).
+    pub v_dead_ul: f64,
+    /// Command each composition change V_dead ahead so it reaches the nozzle exit where
+    /// the path starts. Default true (no effect when `v_dead_ul` is 0).
+    pub mixing_lead: bool,
+    /// Seam placement of closed loops. Default `aligned`.
+    pub seam: SeamMode,
+    /// Seam direction (aligned; start of staggered), degrees from +x. Default 90 (rear).
+    pub seam_angle_deg: f64,
+    /// Turn at a vertex that makes it a concave corner for seams, degrees. Default 30.
+    pub seam_corner_min_deg: f64,
+    /// Order of sub-regions. Default inner to outer.
+    pub sub_region_order: SubRegionOrder,
+    /// Syringes on the machine; when set, every composition must have this many
+    /// fractions. Default unset (taken from the plan).
+    pub syringes: Option<usize>,
+}
+
+impl Default for ProcessSettings {
+    fn default() -> Self {
+        ProcessSettings {
+            nozzle_mm: 0.4,
+            road_width_mm: None,
+            print_feed_mm_s: 10.0,
+            travel_feed_mm_s: 40.0,
+            retract_nl: 200,
+            retract_ms: 150,
+            prime_ms: 150,
+            dwell_ms: 100,
+            retract_min_travel_mm: 0.0,
+            max_flow_factor: 1.5,
+            flow_raise: true,
+            gap_fill: true,
+            gap_fill_min_factor: 0.25,
+            v_dead_ul: 0.0,
+            mixing_lead: true,
+            seam: SeamMode::Aligned,
+            seam_angle_deg: 90.0,
+            seam_corner_min_deg: 30.0,
+            sub_region_order: SubRegionOrder::InnerToOuter,
+            syringes: None,
+        }
+    }
+}
+
+/// Why a layer could not be turned into moves; names the layer, field or point.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PipelineError {
+    /// A setting is out of range.
+    #[error("process setting {field}: {message}")]
+    Setting {
+        field: &'static str,
+        message: String,
+    },
+    /// A TOML settings table that does not parse (message has line and column).
+    #[error("process settings {source_name}: {message}")]
+    Toml {
+        source_name: String,
+        message: String,
+    },
+    /// Compositions of the wrong length for the machine.
+    #[error("layer {layer}: a path has {got} material fractions but the machine has {expected} syringes")]
+    Syringes {
+        layer: usize,
+        expected: usize,
+        got: usize,
+    },
+    /// A point outside the machine's fixed-point range (±2147 m).
+    #[error("layer {layer}: point ({x_mm}, {y_mm}, {z_mm}) mm is outside the machine's coordinate range")]
+    OutOfRange {
+        layer: usize,
+        x_mm: f64,
+        y_mm: f64,
+        z_mm: f64,
+    },
+    /// Move indices would pass u32::MAX.
+    #[error("layer {layer}: move index overflow (more than 4294967295 moves in the job)")]
+    IndexOverflow { layer: usize },
+}
+
+impl ProcessSettings {
+    /// The defaults for a nozzle of `nozzle_mm`.
+    pub fn for_nozzle(nozzle_mm: f64) -> Self {
+        ProcessSettings {
+            nozzle_mm,
+            ..Default::default()
+        }
+    }
+
+    /// Parse a `[toolpath]` table's text (unknown keys refused) and validate it.
+    pub fn from_toml(text: &str, source_name: &str) -> Result<Self, PipelineError> {
+        let s: ProcessSettings = toml::from_str(text).map_err(|e| PipelineError::Toml {
+            source_name: source_name.to_string(),
+            message: e.to_string().trim_end().to_string(),
+        })?;
+        s.validate()?;
+        Ok(s)
+    }
+
+    /// The nominal road width, mm.
+    pub fn road_width(&self) -> f64 {
+        self.road_width_mm.unwrap_or(self.nozzle_mm)
+    }
+
+    /// Check every field's range.
+    pub fn validate(&self) -> Result<(), PipelineError> {
+        let positive = |v: f64, field: &'static str| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(PipelineError::Setting {
+                    field,
+                    message: format!("must be a positive number, got {v}"),
+                })
+            }
+        };
+        let non_negative = |v: f64, field: &'static str| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(PipelineError::Setting {
+                    field,
+                    message: format!("must be 0 or more, got {v}"),
+                })
+            }
+        };
+        positive(self.nozzle_mm, "nozzle_mm")?;
+        positive(self.road_width(), "road_width_mm")?;
+        positive(self.print_feed_mm_s, "print_feed_mm_s")?;
+        positive(self.travel_feed_mm_s, "travel_feed_mm_s")?;
+        non_negative(self.retract_min_travel_mm, "retract_min_travel_mm")?;
+        non_negative(self.v_dead_ul, "v_dead_ul")?;
+        if !(self.max_flow_factor.is_finite() && self.max_flow_factor >= 1.0) {
+            return Err(PipelineError::Setting {
+                field: "max_flow_factor",
+                message: format!("must be 1 or more, got {}", self.max_flow_factor),
+            });
+        }
+        if !(self.gap_fill_min_factor.is_finite()
+            && self.gap_fill_min_factor > 0.0
+            && self.gap_fill_min_factor <= 1.0)
+        {
+            return Err(PipelineError::Setting {
+                field: "gap_fill_min_factor",
+                message: format!("must be in (0, 1], got {}", self.gap_fill_min_factor),
+            });
+        }
+        if !self.seam_angle_deg.is_finite() {
+            return Err(PipelineError::Setting {
+                field: "seam_angle_deg",
+                message: "must be finite".into(),
+            });
+        }
+        if !(0.0..180.0).contains(&self.seam_corner_min_deg) {
+            return Err(PipelineError::Setting {
+                field: "seam_corner_min_deg",
+                message: format!("must be in [0, 180), got {}", self.seam_corner_min_deg),
+            });
+        }
+        if let Some(n) = self.syringes {
+            if n == 0 || n > MAX_SYRINGES {
+                return Err(PipelineError::Setting {
+                    field: "syringes",
+                    message: format!("must be 1 to {MAX_SYRINGES}, got {n}"),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// The toolpath module's share of the settings.
+    pub fn order_settings(&self) -> OrderSettings {
+        OrderSettings {
+            seam: self.seam,
+            seam_angle_deg: self.seam_angle_deg,
+            seam_corner_min_deg: self.seam_corner_min_deg,
+            sub_region_order: self.sub_region_order,
+        }
+    }
+}
+
+/// What carries over between layers of one job. Create with [`StreamState::new`], pass to
+/// every [`layer_moves`] call in layer order; never share between jobs.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StreamState {
+    /// Nozzle position, mm; `None` before the first move.
+    position: Option<DVec3>,
+    /// Volumes retracted and not yet primed back, per syringe (nl); empty when pressurised.
+    retracted_nl: Vec<u32>,
+    /// Exact planned extrusion per syringe so far (nl).
+    planned_nl: Vec<f64>,
+    /// Commanded extrusion per syringe so far (nl): `planned_nl` rounded.
+    commanded_nl: Vec<u64>,
+    /// Layers done.
+    layers: u32,
+}
+
+impl StreamState {
+    /// A fresh job: nozzle position unknown, syringes pressurised, nothing extruded.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Nozzle position after the last move, mm.
+    pub fn position_mm(&self) -> Option<DVec3> {
+        self.position
+    }
+
+    /// Exact planned extrusion per syringe over the layers so far, nl.
+    pub fn planned_nl(&self) -> &[f64] {
+        &self.planned_nl
+    }
+
+    /// Commanded extrusion per syringe over the layers so far (the sum of the Extrude
+    /// moves' volumes), nl.
+    pub fn commanded_nl(&self) -> &[u64] {
+        &self.commanded_nl
+    }
+
+    /// Whether the syringes are retracted (extrusion ceased).
+    pub fn is_retracted(&self) -> bool {
+        !self.retracted_nl.is_empty()
+    }
+
+    /// Layers processed.
+    pub fn layers(&self) -> u32 {
+        self.layers
+    }
+}
+
+/// Per-layer figures.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LayerStats {
+    pub layer: usize,
+    pub paths: usize,
+    pub moves: usize,
+    pub extrude_moves: usize,
+    pub travels: usize,
+    pub retracts: usize,
+    /// Length of road built, mm.
+    pub extruded_mm: f64,
+    /// Travel length, mm.
+    pub travel_mm: f64,
+    /// Closed loops whose seam sits at a concave corner.
+    pub seams_at_corners: usize,
+    pub closed_loops: usize,
+    /// Exact planned volume per syringe in this layer, nl.
+    pub planned_nl: Vec<f64>,
+    /// Commanded volume per syringe in this layer (sum of Extrude moves), nl.
+    pub commanded_nl: Vec<u64>,
+    /// Largest width factor used.
+    pub max_width_factor: f64,
+}
+
+/// One layer's moves, stats, and the paths they build (for previews and checks).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerMoves {
+    pub moves: Vec<Move>,
+    pub stats: LayerStats,
+    pub paths: Vec<ToolPath>,
+    /// Index of the next move (`first_index + moves.len()`).
+    pub next_index: u32,
+}
+
+/// The ordered, flow-adjusted paths of a layer (steps 1–4 of [`crate::toolpath`]).
+pub fn layer_paths(
+    layer: &LayerPlan,
+    settings: &ProcessSettings,
+    state: &StreamState,
+) -> Vec<ToolPath> {
+    let start = state.position.map(|p| p.truncate());
+    toolpath::fill_order(layer, &settings.order_settings(), start).paths
+}
+
+/// Turn one planned layer into machine moves numbered from `first_index`, continuing
+/// from `state` (see the module doc).
+pub fn layer_moves(
+    layer: &LayerPlan,
+    settings: &ProcessSettings,
+    job_id: u32,
+    first_index: u32,
+    state: &mut StreamState,
+) -> Result<LayerMoves, PipelineError> {
+    settings.validate()?;
+    let paths = layer_paths(layer, settings, state);
+    moves_for_paths(layer, paths, settings, job_id, first_index, state)
+}
+
+/// Moves for already ordered paths (what [`layer_moves`] does after ordering).
+pub fn moves_for_paths(
+    layer: &LayerPlan,
+    paths: Vec<ToolPath>,
+    settings: &ProcessSettings,
+    job_id: u32,
+    first_index: u32,
+    state: &mut StreamState,
+) -> Result<LayerMoves, PipelineError> {
+    let syringes = match (settings.syringes, paths.first()) {
+        (Some(n), _) => n,
+        (None, Some(p)) => p.composition.len(),
+        (None, None) => state.planned_nl.len().max(1),
+    };
+    for p in &paths {
+        if p.composition.len() != syringes {
+            return Err(PipelineError::Syringes {
+                layer: layer.index,
+                expected: syringes,
+                got: p.composition.len(),
+            });
+        }
+    }
+    if state.planned_nl.len() < syringes {
+        state.planned_nl.resize(syringes, 0.0);
+        state.commanded_nl.resize(syringes, 0);
+    }
+    let planned_before = state.planned_nl.clone();
+    let commanded_before = state.commanded_nl.clone();
+    let mut b = Builder {
+        layer: layer.index,
+        job_id,
+        next: first_index,
+        moves: Vec::new(),
+        stats: LayerStats {
+            layer: layer.index,
+            max_width_factor: 0.0,
+            ..Default::default()
+        },
+        state,
+        settings,
+        z_mm: layer.z_mm,
+        section_mm2: settings.road_width() * layer.thickness_mm,
+    };
+    b.push(MoveKind::LayerMark {
+        layer: layer.index as u32,
+        z_um: to_um(layer.z_mm),
+    })?;
+    for p in &paths {
+        b.path(p)?;
+    }
+    b.stats.paths = paths.len();
+    b.stats.moves = b.moves.len();
+    b.stats.planned_nl = b
+        .state
+        .planned_nl
+        .iter()
+        .zip(&planned_before)
+        .map(|(a, c)| a - c)
+        .collect();
+    b.stats.commanded_nl = b
+        .state
+        .commanded_nl
+        .iter()
+        .zip(&commanded_before)
+        .map(|(a, c)| a - c)
+        .collect();
+    b.state.layers += 1;
+    let next_index = b.next;
+    Ok(LayerMoves {
+        moves: b.moves,
+        stats: b.stats,
+        paths,
+        next_index,
+    })
+}
+
+fn to_um(mm: f64) -> i32 {
+    (mm * 1000.0).round() as i32
+}
+
+/// Points beyond this (mm) do not fit the wire's i32 micrometres.
+const MAX_COORD_MM: f64 = 2.0e6;
+
+struct Builder<'a> {
+    layer: usize,
+    job_id: u32,
+    next: u32,
+    moves: Vec<Move>,
+    stats: LayerStats,
+    state: &'a mut StreamState,
+    settings: &'a ProcessSettings,
+    z_mm: f64,
+    /// Road cross-section at nominal width, mm².
+    section_mm2: f64,
+}
+
+impl Builder<'_> {
+    fn push(&mut self, kind: MoveKind) -> Result<(), PipelineError> {
+        let index = self.next;
+        self.next = self
+            .next
+            .checked_add(1)
+            .ok_or(PipelineError::IndexOverflow { layer: self.layer })?;
+        self.moves.push(Move {
+            job_id: self.job_id,
+            index,
+            kind,
+        });
+        Ok(())
+    }
+
+    fn position(&self, p: DVec2) -> Result<PositionUm, PipelineError> {
+        let ok = |v: f64| v.is_finite() && v.abs() < MAX_COORD_MM;
+        if !(ok(p.x) && ok(p.y) && ok(self.z_mm)) {
+            return Err(PipelineError::OutOfRange {
+                layer: self.layer,
+                x_mm: p.x,
+                y_mm: p.y,
+                z_mm: self.z_mm,
+            });
+        }
+        Ok(PositionUm {
+            x_um: to_um(p.x),
+            y_um: to_um(p.y),
+            z_um: to_um(self.z_mm),
+        })
+    }
+
+    fn feed(mm_s: f64) -> u32 {
+        (mm_s * 1000.0).round().clamp(1.0, u32::MAX as f64) as u32
+    }
+
+    /// Extrusion cessation and travel to `to` (nothing when already there).
+    fn travel_to(&mut self, to: DVec2, composition: &[f64]) -> Result<(), PipelineError> {
+        let target = DVec3::new(to.x, to.y, self.z_mm);
+        let here = self.state.position;
+        if let Some(h) = here {
+            if h.distance(target) <= 1e-4 {
+                return Ok(());
+            }
+        }
+        let distance = here.map_or(0.0, |h| h.truncate().distance(to));
+        let s = self.settings;
+        let cease = here.is_some() && distance >= s.retract_min_travel_mm && s.retract_nl > 0;
+        if cease && !self.state.is_retracted() {
+            let ratios = crate::machine::ratios_from_fractions(composition).unwrap_or_default();
+            let volumes = crate::machine::split_volume_nl(s.retract_nl, &ratios);
+            self.push(MoveKind::Retract {
+                volumes_nl: volumes.clone(),
+                duration_ms: s.retract_ms,
+            })?;
+            self.state.retracted_nl = volumes;
+            self.stats.retracts += 1;
+        }
+        let pos = self.position(to)?;
+        self.push(MoveKind::Travel {
+            to: pos,
+            feed_um_s: Self::feed(s.travel_feed_mm_s),
+        })?;
+        self.stats.travels += 1;
+        self.stats.travel_mm += distance;
+        self.state.position = Some(target);
+        Ok(())
+    }
+
+    /// Re-prime (and dwell) after a cessation, before extruding.
+    fn pressurise(&mut self) -> Result<(), PipelineError> {
+        if self.state.is_retracted() {
+            let volumes = std::mem::take(&mut self.state.retracted_nl);
+            self.push(MoveKind::Prime {
+                volumes_nl: volumes,
+                duration_ms: self.settings.prime_ms,
+            })?;
+            if self.settings.dwell_ms > 0 {
+                self.push(MoveKind::Dwell {
+                    duration_ms: self.settings.dwell_ms,
+                })?;
+            }
+        }
+        Ok(())
+    }
+
+    fn path(&mut self, p: &ToolPath) -> Result<(), PipelineError> {
+        if p.points.len() < 2 {
+            return Ok(());
+        }
+        self.travel_to(p.points[0], &p.composition)?;
+        self.pressurise()?;
+        let n = p.points.len();
+        let edges = if p.closed { n } else { n - 1 };
+        for k in 0..edges {
+            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
+            let f = 0.5 * (p.width_factors[k] + p.width_factors[(k + 1) % n]);
+            self.extrude(a, b, f, &p.composition)?;
+        }
+        if p.closed {
+            self.stats.closed_loops += 1;
+            if p.seam_at_corner {
+                self.stats.seams_at_corners += 1;
+            }
+        }
+        Ok(())
+    }
+
+    fn extrude(
+        &mut self,
+        a: DVec2,
+        b: DVec2,
+        factor: f64,
+        composition: &[f64],
+    ) -> Result<(), PipelineError> {
+        let len = a.distance(b);
+        if len <= 0.0 {
+            return Ok(());
+        }
+        let volume_nl = len * self.section_mm2 * factor * 1000.0;
+        let mut volumes = Vec::with_capacity(composition.len());
+        for (k, f) in composition.iter().enumerate() {
+            self.state.planned_nl[k] += volume_nl * f.max(0.0);
+            let target = self.state.planned_nl[k].round().max(0.0) as u64;
+            let v = target.saturating_sub(self.state.commanded_nl[k]);
+            self.state.commanded_nl[k] += v;
+            volumes.push(v.min(u64::from(u32::MAX)) as u32);
+        }
+        let to = self.position(b)?;
+        self.push(MoveKind::Extrude {
+            to,
+            feed_um_s: Self::feed(self.settings.print_feed_mm_s),
+            volumes_nl: volumes,
+            width_factor_ppt: (factor * f64::from(FACTOR_NOMINAL_PPT))
+                .round()
+                .clamp(0.0, f64::from(u16::MAX)) as u16,
+        })?;
+        self.stats.extrude_moves += 1;
+        self.stats.extruded_mm += len;
+        self.stats.max_width_factor = self.stats.max_width_factor.max(factor);
+        self.state.position = Some(DVec3::new(b.x, b.y, self.z_mm));
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn settings_parse_and_refuse_unknown_keys() {
+        let s = ProcessSettings::from_toml("nozzle_mm = 0.5\nseam = \"staggered\"\n", "t").unwrap();
+        assert_eq!(s.road_width(), 0.5);
+        assert_eq!(s.seam, SeamMode::Staggered);
+        assert!(matches!(
+            ProcessSettings::from_toml("nozle_mm = 0.5\n", "t"),
+            Err(PipelineError::Toml { .. })
+        ));
+        assert!(matches!(
+            ProcessSettings::from_toml("max_flow_factor = 0.5\n", "t"),
+            Err(PipelineError::Setting {
+                field: "max_flow_factor",
+                ..
+            })
+        ));
+    }
+}

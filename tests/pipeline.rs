@@ -1,0 +1,116 @@
+//! The pipeline on the example jobs: planned layers become a valid, contiguous move stream
+//! whose per-syringe volumes equal the plan's.
+
+use edo::edo::plan_layers;
+use edo::job::Job;
+use edo::machine::MoveKind;
+use edo::pipeline::{layer_moves, ProcessSettings, StreamState};
+
+fn job(name: &str) -> Job {
+    let path = format!("{}/config/examples/{name}.toml", env!("CARGO_MANIFEST_DIR"));
+    let text = std::fs::read_to_string(&path).unwrap();
+    Job::from_toml(&text, &path).unwrap()
+}
+
+#[test]
+fn example_jobs_become_exact_move_streams() {
+    for name in ["paper-annulus", "tooth-crown", "fibers", "non-star"] {
+        let job = job(name);
+        let slices = job.layer_slices();
+        let layers = plan_layers(&slices[..slices.len().min(2)], &job.design, &job.plan).unwrap();
+        let settings = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        let mut state = StreamState::new();
+        let mut index = 0;
+        let n = job.materials.len();
+        let mut sums = vec![0u64; n];
+        let mut marks = 0;
+        for layer in &layers {
+            let out = layer_moves(layer, &settings, 7, index, &mut state).unwrap();
+            assert!(out.stats.paths > 0, "{name}");
+            for m in &out.moves {
+                assert_eq!(m.index, index, "{name}: indices contiguous");
+                assert_eq!(m.job_id, 7);
+                m.validate(n).unwrap();
+                index += 1;
+                match &m.kind {
+                    MoveKind::Extrude { volumes_nl, .. } => {
+                        assert_eq!(volumes_nl.len(), n);
+                        for (s, v) in sums.iter_mut().zip(volumes_nl) {
+                            *s += u64::from(*v);
+                        }
+                    }
+                    MoveKind::LayerMark { .. } => marks += 1,
+                    _ => {}
+                }
+            }
+            assert_eq!(out.next_index, index);
+            // Every retract is primed back before the next extrusion.
+            let mut retracted = false;
+            for m in &out.moves {
+                match &m.kind {
+                    MoveKind::Retract { .. } => {
+                        assert!(!retracted);
+                        retracted = true
+                    }
+                    MoveKind::Prime { .. } => retracted = false,
+                    MoveKind::Extrude { .. } => {
+                        assert!(!retracted, "{name}: extrude while retracted")
+                    }
+                    _ => {}
+                }
+            }
+        }
+        assert_eq!(marks, layers.len());
+        assert_eq!(sums, state.commanded_nl(), "{name}");
+        for (c, p) in state.commanded_nl().iter().zip(state.planned_nl()) {
+            assert!((*c as f64 - p).abs() <= 0.5 + 1e-6, "{name}: {c} vs {p}");
+        }
+        let total: f64 = state.planned_nl().iter().sum();
+        assert!(total > 0.0);
+    }
+}
+
+/// The sum of each drive's E over the file equals the plan's per-syringe volume divided by
+/// the barrel area, for both flavours.
+#[test]
+fn gcode_drive_sums_equal_plan_volumes() {
+    use edo::machine::gcode::{summed_drive_e, Flavor, GcodeSettings};
+    let job = job("paper-annulus");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices, &job.design, &job.plan).unwrap();
+    let process = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let dir = tempfile::tempdir().unwrap();
+    for (flavor, direct) in [
+        (Flavor::Rrf, false),
+        (Flavor::Marlin, false),
+        (Flavor::Marlin, true),
+    ] {
+        let settings = GcodeSettings {
+            flavor,
+            barrel_area_mm2: 165.0,
+            marlin_direct_mixing: direct,
+        };
+        let path = dir.path().join(format!("{flavor:?}-{direct}.gcode"));
+        let summary = edo::cli::gcode::write(&job, &layers, &process, &settings, &path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let sums = summed_drive_e(&text, 2, flavor);
+        for (d, (e, v)) in sums.iter().zip(&summary.commanded_nl).enumerate() {
+            let want = *v as f64 / 1000.0 / 165.0;
+            assert!(
+                (e - want).abs() <= 2e-5,
+                "{flavor:?} drive {d}: E sum {e} against {want}"
+            );
+            assert!((summary.gcode.extrude_e_mm[d] - want).abs() <= 1e-5);
+        }
+        assert!(want_nonzero(&summary.commanded_nl));
+        match flavor {
+            Flavor::Rrf => assert!(text.contains("M563 P0 D0:1")),
+            Flavor::Marlin if direct => assert!(text.contains(" A") && !text.contains("M163")),
+            Flavor::Marlin => assert!(text.contains("M163 S1") && text.contains("M164 S0")),
+        }
+    }
+}
+
+fn want_nonzero(v: &[u64]) -> bool {
+    v.iter().all(|&x| x > 0)
+}
