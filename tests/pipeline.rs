@@ -16,8 +16,9 @@ fn job(name: &str) -> Job {
 fn example_jobs_become_exact_move_streams() {
     for name in ["paper-annulus", "tooth-crown", "fibers", "non-star"] {
         let job = job(name);
-        let slices = job.layer_slices();
-        let layers = plan_layers(&slices[..slices.len().min(2)], &job.design, &job.plan).unwrap();
+        let stack = job.extruded_layers().unwrap();
+        let slices = job.layer_slices(0, stack.into_iter().take(2).collect());
+        let layers = plan_layers(&slices, &job.plan, None).unwrap();
         let settings = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
         let mut state = StreamState::new();
         let mut index = 0;
@@ -76,8 +77,8 @@ fn example_jobs_become_exact_move_streams() {
 fn gcode_drive_sums_equal_plan_volumes() {
     use edo::machine::gcode::{summed_drive_e, Flavor, GcodeSettings};
     let job = job("paper-annulus");
-    let slices = job.layer_slices();
-    let layers = plan_layers(&slices, &job.design, &job.plan).unwrap();
+    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
+    let layers = plan_layers(&slices, &job.plan, None).unwrap();
     let process = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
     let dir = tempfile::tempdir().unwrap();
     for (flavor, direct) in [
