@@ -33,6 +33,8 @@ pub struct PlanArgs {
     /// No progress bar even on a terminal.
     #[arg(long)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub gcode: crate::cli::gcode::GcodeArgs,
 }
 
 /// Parse `A..B` (half-open) or a single index `A`.
@@ -227,6 +229,15 @@ pub fn run(args: &PlanArgs) -> Result<()> {
                 .with_context(|| format!("cannot write {}", file.display()))?;
         }
     }
+    let gcode = match &args.gcode.gcode {
+        Some(path) => {
+            let process = crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+            let summary =
+                crate::cli::gcode::write(&job, &layers, &process, &args.gcode.settings(), path)?;
+            Some((path, summary))
+        }
+        None => None,
+    };
     let t = &report.totals;
     writeln!(
         human,
@@ -267,6 +278,21 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     )?;
     if let Some(dir) = &args.svg {
         writeln!(human, "  previews: {}", dir.join("layer-*.svg").display())?;
+    }
+    if let Some((path, g)) = gcode {
+        let ul: Vec<String> = g
+            .commanded_nl
+            .iter()
+            .map(|nl| format!("{:.1}", *nl as f64 / 1000.0))
+            .collect();
+        writeln!(
+            human,
+            "  G-code ({:?}): {} moves, syringes [{}] µL -> {}",
+            args.gcode.flavor,
+            g.moves,
+            ul.join(", "),
+            path.display()
+        )?;
     }
     Ok(())
 }
