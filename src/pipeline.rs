@@ -75,10 +75,9 @@ pub struct ProcessSettings {
     /// Raise the flow where a gap needs a non-integer number of roads (§4, Fig. 4(a)
     /// (i)–(iii)). Default true.
     pub flow_raise: bool,
-    /// Fill what a raised road still leaves with thin gap-fill roads. Default true.
-    pub gap_fill: bool,
-    /// Narrowest gap-fill road, as a fraction of the road width. Default 0.25.
-    pub gap_fill_min_factor: f64,
+    /// Gaps between bead edges narrower than this fraction of the road width are not
+    /// raised for (noise, the beads' own spread). Default 0.02.
+    pub flow_min_gap_fraction: f64,
     /// Dead volume of the mixing chamber V_dead, µL. Default 0 (no chamber).
     pub v_dead_ul: f64,
     /// Command each composition change V_dead ahead so it reaches the nozzle exit where
@@ -111,8 +110,7 @@ impl Default for ProcessSettings {
             retract_min_travel_mm: 0.0,
             max_flow_factor: 1.5,
             flow_raise: true,
-            gap_fill: true,
-            gap_fill_min_factor: 0.25,
+            flow_min_gap_fraction: 0.02,
             v_dead_ul: 0.0,
             mixing_lead: true,
             seam: SeamMode::Aligned,
@@ -217,13 +215,10 @@ impl ProcessSettings {
                 message: format!("must be 1 or more, got {}", self.max_flow_factor),
             });
         }
-        if !(self.gap_fill_min_factor.is_finite()
-            && self.gap_fill_min_factor > 0.0
-            && self.gap_fill_min_factor <= 1.0)
-        {
+        if !(self.flow_min_gap_fraction.is_finite() && self.flow_min_gap_fraction >= 0.0) {
             return Err(PipelineError::Setting {
-                field: "gap_fill_min_factor",
-                message: format!("must be in (0, 1], got {}", self.gap_fill_min_factor),
+                field: "flow_min_gap_fraction",
+                message: format!("must be 0 or more, got {}", self.flow_min_gap_fraction),
             });
         }
         if !self.seam_angle_deg.is_finite() {
@@ -350,7 +345,18 @@ pub fn layer_paths(
     state: &StreamState,
 ) -> Vec<ToolPath> {
     let start = state.position.map(|p| p.truncate());
-    toolpath::fill_order(layer, &settings.order_settings(), start).paths
+    let mut paths = toolpath::fill_order(layer, &settings.order_settings(), start).paths;
+    if settings.flow_raise {
+        toolpath::flow::raise(
+            &mut paths,
+            &toolpath::flow::FlowSettings {
+                road_width_mm: settings.road_width(),
+                max_flow_factor: settings.max_flow_factor,
+                min_gap_fraction: settings.flow_min_gap_fraction,
+            },
+        );
+    }
+    paths
 }
 
 /// Turn one planned layer into machine moves numbered from `first_index`, continuing

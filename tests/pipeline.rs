@@ -114,3 +114,67 @@ fn gcode_drive_sums_equal_plan_volumes() {
 fn want_nonzero(v: &[u64]) -> bool {
     v.iter().all(|&x| x > 0)
 }
+
+/// The paper's annulus: the roads cover the part (void and outside at most 0.5 %), the
+/// flow raise never makes voids worse, and seams sit where asked.
+#[test]
+fn annulus_coverage_meets_targets() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure;
+    let job = job("paper-annulus");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let mut plain = s.clone();
+    plain.flow_raise = false;
+    let st = StreamState::new();
+    let raised = measure(
+        &slices[0].islands,
+        &layer_paths(&layers[0], &s, &st),
+        0.5,
+        0.05,
+    );
+    let flat = measure(
+        &slices[0].islands,
+        &layer_paths(&layers[0], &plain, &st),
+        0.5,
+        0.05,
+    );
+    assert!(raised.void_fraction() <= 0.005, "{raised:?}");
+    assert!(raised.outside_fraction() <= 0.005, "{raised:?}");
+    assert!(raised.overlap_fraction() <= 0.05, "{raised:?}");
+    assert!(raised.void_fraction() <= flat.void_fraction() + 1e-9);
+}
+
+/// The tooth crown has narrow sub-areas: the flow raise closes most of their voids and
+/// never passes max_flow_factor.
+#[test]
+fn flow_raise_closes_crown_voids_within_the_cap() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure;
+    let job = job("tooth-crown");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let mut plain = s.clone();
+    plain.flow_raise = false;
+    let st = StreamState::new();
+    let paths = layer_paths(&layers[0], &s, &st);
+    let w = s.road_width();
+    let raised = measure(&slices[0].islands, &paths, w, 0.05);
+    let flat = measure(
+        &slices[0].islands,
+        &layer_paths(&layers[0], &plain, &st),
+        w,
+        0.05,
+    );
+    assert!(
+        raised.void_fraction() < 0.5 * flat.void_fraction(),
+        "{raised:?} {flat:?}"
+    );
+    let max = paths
+        .iter()
+        .flat_map(|p| p.width_factors.iter())
+        .fold(0.0f64, |a, &b| a.max(b));
+    assert!(max > 1.0 && max <= s.max_flow_factor + 1e-12, "{max}");
+}

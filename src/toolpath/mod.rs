@@ -23,6 +23,9 @@
 //! Travel between paths (with extrusion cessation) and the machine moves are made by
 //! [`crate::pipeline`]; the coverage measure is [`coverage`].
 
+pub mod coverage;
+pub mod flow;
+
 use crate::edo::shapes::Path;
 use crate::edo::{offset_composition_eq6, LayerPlan};
 use crate::material::OffsetDirection;
