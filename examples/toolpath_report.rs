@@ -57,6 +57,26 @@ fn main() -> anyhow::Result<()> {
         let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
         let (a, b) = coverage_pair(&slices[0].islands, &layers[0], &s, cell);
         line(name, &a, &b);
+        for lead in [false, true] {
+            let mut s2 = s.clone();
+            s2.v_dead_ul = 2.0;
+            s2.mixing_lead = lead;
+            let mut st = StreamState::new();
+            let mut idx = 0;
+            let (mut mean, mut max, mut n) = (0.0, 0.0f64, 0.0);
+            for l in &plan_layers(&slices[..slices.len().min(3)], &job.design, &job.plan)? {
+                let out = edo::pipeline::layer_moves(l, &s2, 1, idx, &mut st)?;
+                idx = out.next_index;
+                mean += out.stats.composition_error_mean;
+                max = max.max(out.stats.composition_error_max);
+                n += 1.0;
+            }
+            println!(
+                "  V_dead 2 uL, lead {lead}: composition error mean {:.4}, max {:.4}",
+                mean / n,
+                max
+            );
+        }
     }
     let design = GradientDesign {
         pattern: Pattern::GrowthRings,
