@@ -206,3 +206,30 @@ fn mixing_lead_cuts_delivered_composition_error() {
     assert!(without.0 > 0.001, "{without:?}");
     assert!(with.0 < 0.25 * without.0, "{with:?} vs {without:?}");
 }
+
+/// The road preview draws roads, travel, seams and voids.
+#[test]
+fn roads_preview_draws_everything() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure_with_voids;
+    let job = job("tooth-crown");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let paths = layer_paths(&layers[0], &s, &StreamState::new());
+    let (_, voids) = measure_with_voids(&slices[0].islands, &paths, s.road_width(), 0.05, 5000);
+    let svg = edo::svg::roads_svg(
+        &paths,
+        &edo::svg::RoadsInput {
+            title: "crown",
+            islands: &slices[0].islands,
+            road_width_mm: s.road_width(),
+            voids: &voids,
+            void_cell_mm: 0.05,
+        },
+    );
+    assert!(svg.starts_with("<svg") && svg.ends_with("</svg>\n"));
+    assert!(svg.contains("stroke-dasharray"));
+    assert!(svg.contains("<circle"));
+    assert!(svg.contains("#ff0000"));
+}
