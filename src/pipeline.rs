@@ -27,6 +27,18 @@
 //! retracted), `Dwell` — then one `Extrude` per centreline edge at constant scanning
 //! speed (`print_feed_mm_s`).
 //!
+//! # Mixing chamber
+//!
+//! The syringes feed a chamber of dead volume V_dead (`v_dead_ul`); under plug flow a
+//! composition commanded now leaves the nozzle V_dead of extrusion later. With
+//! `mixing_lead` each extrusion segment is commanded the composition designed V_dead
+//! further along the layer's stream, so the designed composition leaves the nozzle where
+//! each path starts (within a layer; past the layer's last road the last composition is
+//! held). [`StreamState`] carries the chamber's content across layers, and
+//! [`LayerStats`] reports the designed-versus-delivered error (largest per-material
+//! difference, volume-weighted mean and maximum). With the lead, the per-syringe volumes
+//! are those of the commanded compositions.
+//!
 //! # Volumes
 //!
 //! A road of width w (the nozzle, times the vertex width factor) on a layer of thickness h
@@ -75,10 +87,9 @@ pub struct ProcessSettings {
     /// Raise the flow where a gap needs a non-integer number of roads (§4, Fig. 4(a)
     /// (i)–(iii)). Default true.
     pub flow_raise: bool,
-    /// Fill what a raised road still leaves with thin gap-fill roads. Default true.
-    pub gap_fill: bool,
-    /// Narrowest gap-fill road, as a fraction of the road width. Default 0.25.
-    pub gap_fill_min_factor: f64,
+    /// Gaps between bead edges narrower than this fraction of the road width are not
+    /// raised for (noise, the beads' own spread). Default 0.02.
+    pub flow_min_gap_fraction: f64,
     /// Dead volume of the mixing chamber V_dead, µL. Default 0 (no chamber).
     pub v_dead_ul: f64,
     /// Command each composition change V_dead ahead so it reaches the nozzle exit where
@@ -111,8 +122,7 @@ impl Default for ProcessSettings {
             retract_min_travel_mm: 0.0,
             max_flow_factor: 1.5,
             flow_raise: true,
-            gap_fill: true,
-            gap_fill_min_factor: 0.25,
+            flow_min_gap_fraction: 0.02,
             v_dead_ul: 0.0,
             mixing_lead: true,
             seam: SeamMode::Aligned,
@@ -217,13 +227,10 @@ impl ProcessSettings {
                 message: format!("must be 1 or more, got {}", self.max_flow_factor),
             });
         }
-        if !(self.gap_fill_min_factor.is_finite()
-            && self.gap_fill_min_factor > 0.0
-            && self.gap_fill_min_factor <= 1.0)
-        {
+        if !(self.flow_min_gap_fraction.is_finite() && self.flow_min_gap_fraction >= 0.0) {
             return Err(PipelineError::Setting {
-                field: "gap_fill_min_factor",
-                message: format!("must be in (0, 1], got {}", self.gap_fill_min_factor),
+                field: "flow_min_gap_fraction",
+                message: format!("must be 0 or more, got {}", self.flow_min_gap_fraction),
             });
         }
         if !self.seam_angle_deg.is_finite() {
@@ -274,6 +281,8 @@ pub struct StreamState {
     commanded_nl: Vec<u64>,
     /// Layers done.
     layers: u32,
+    /// Mixing chamber content from nozzle exit (front) to inlet: (volume nl, composition).
+    chamber: std::collections::VecDeque<(f64, Vec<f64>)>,
 }
 
 impl StreamState {
@@ -331,6 +340,10 @@ pub struct LayerStats {
     pub commanded_nl: Vec<u64>,
     /// Largest width factor used.
     pub max_width_factor: f64,
+    /// Designed-versus-delivered composition under plug flow through V_dead: volume-
+    /// weighted mean of the largest per-material difference, and its maximum over moves.
+    pub composition_error_mean: f64,
+    pub composition_error_max: f64,
 }
 
 /// One layer's moves, stats, and the paths they build (for previews and checks).
@@ -350,7 +363,18 @@ pub fn layer_paths(
     state: &StreamState,
 ) -> Vec<ToolPath> {
     let start = state.position.map(|p| p.truncate());
-    toolpath::fill_order(layer, &settings.order_settings(), start).paths
+    let mut paths = toolpath::fill_order(layer, &settings.order_settings(), start).paths;
+    if settings.flow_raise {
+        toolpath::flow::raise(
+            &mut paths,
+            &toolpath::flow::FlowSettings {
+                road_width_mm: settings.road_width(),
+                max_flow_factor: settings.max_flow_factor,
+                min_gap_fraction: settings.flow_min_gap_fraction,
+            },
+        );
+    }
+    paths
 }
 
 /// Turn one planned layer into machine moves numbered from `first_index`, continuing
@@ -410,7 +434,11 @@ pub fn moves_for_paths(
         settings,
         z_mm: layer.z_mm,
         section_mm2: settings.road_width() * layer.thickness_mm,
+        commanded: Vec::new(),
+        segment: 0,
+        error_volume_nl: 0.0,
     };
+    b.commanded = commanded_compositions(&paths, settings, layer.thickness_mm);
     b.push(MoveKind::LayerMark {
         layer: layer.index as u32,
         z_um: to_um(layer.z_mm),
@@ -434,6 +462,9 @@ pub fn moves_for_paths(
         .zip(&commanded_before)
         .map(|(a, c)| a - c)
         .collect();
+    if b.error_volume_nl > 0.0 {
+        b.stats.composition_error_mean /= b.error_volume_nl;
+    }
     b.state.layers += 1;
     let next_index = b.next;
     Ok(LayerMoves {
@@ -462,6 +493,76 @@ struct Builder<'a> {
     z_mm: f64,
     /// Road cross-section at nominal width, mm².
     section_mm2: f64,
+    /// Commanded composition per extrusion segment of the layer, in order.
+    commanded: Vec<Vec<f64>>,
+    segment: usize,
+    error_volume_nl: f64,
+}
+
+/// The composition to command on each extrusion segment of a layer: with the mixing lead,
+/// the designed composition V_dead of extrusion later (volume-weighted over the segment's
+/// window), so it reaches the nozzle exit where designed; past the layer's last road the
+/// last designed composition (the next layer is not known here). Without the lead, the
+/// designed composition.
+fn commanded_compositions(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<Vec<f64>> {
+    let section = s.road_width() * h_mm * 1000.0;
+    let mut segs: Vec<(f64, &[f64])> = Vec::new();
+    for p in paths {
+        let n = p.points.len();
+        if n < 2 {
+            continue;
+        }
+        let edges = if p.closed { n } else { n - 1 };
+        for k in 0..edges {
+            let len = p.points[k].distance(p.points[(k + 1) % n]);
+            if len <= 0.0 {
+                continue;
+            }
+            let f = 0.5 * (p.width_factors[k] + p.width_factors[(k + 1) % n]);
+            segs.push((len * section * f, &p.composition));
+        }
+    }
+    let lead = s.v_dead_ul * 1000.0;
+    if !(s.mixing_lead && lead > 0.0) {
+        return segs.iter().map(|(_, c)| c.to_vec()).collect();
+    }
+    let mut out = Vec::with_capacity(segs.len());
+    // Window [start + lead, start + lead + v) over the designed stream.
+    let mut start = 0.0;
+    let mut j = 0usize; // first segment that may overlap the window
+    let mut j_start = 0.0; // cumulative volume before segment j
+    for (v, c) in &segs {
+        let (w0, w1) = (start + lead, start + lead + v);
+        while j < segs.len() && j_start + segs[j].0 <= w0 {
+            j_start += segs[j].0;
+            j += 1;
+        }
+        let mut acc = vec![0.0; c.len()];
+        let mut got = 0.0;
+        let (mut q, mut q_start) = (j, j_start);
+        while q < segs.len() && q_start < w1 {
+            let a = q_start.max(w0);
+            let b = (q_start + segs[q].0).min(w1);
+            if b > a {
+                for (x, y) in acc.iter_mut().zip(segs[q].1) {
+                    *x += (b - a) * y;
+                }
+                got += b - a;
+            }
+            q_start += segs[q].0;
+            q += 1;
+        }
+        let rest = v - got;
+        if rest > 0.0 {
+            let last = segs.last().map(|s| s.1).unwrap_or(c);
+            for (x, y) in acc.iter_mut().zip(last) {
+                *x += rest * y;
+            }
+        }
+        out.push(acc.iter().map(|x| x / v).collect());
+        start += v;
+    }
+    out
 }
 
 impl Builder<'_> {
@@ -572,6 +673,45 @@ impl Builder<'_> {
         Ok(())
     }
 
+    /// Push `volume_nl` of `commanded` through the chamber; compare what leaves the
+    /// nozzle with `designed`.
+    fn plug_flow(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
+        let dead = self.settings.v_dead_ul * 1000.0;
+        let delivered: Vec<f64> = if dead <= 0.0 {
+            commanded.to_vec()
+        } else {
+            let ch = &mut self.state.chamber;
+            if ch.is_empty() {
+                // A fresh chamber is full of the first designed composition (primed).
+                ch.push_back((dead, designed.to_vec()));
+            }
+            ch.push_back((volume_nl, commanded.to_vec()));
+            let mut need = volume_nl;
+            let mut out = vec![0.0; commanded.len()];
+            while need > 1e-12 {
+                let Some(front) = ch.front_mut() else { break };
+                let take = front.0.min(need);
+                for (o, c) in out.iter_mut().zip(&front.1) {
+                    *o += take * c;
+                }
+                front.0 -= take;
+                need -= take;
+                if front.0 <= 1e-12 {
+                    ch.pop_front();
+                }
+            }
+            out.iter().map(|x| x / volume_nl).collect()
+        };
+        let err = delivered
+            .iter()
+            .zip(designed)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        self.stats.composition_error_mean += err * volume_nl;
+        self.error_volume_nl += volume_nl;
+        self.stats.composition_error_max = self.stats.composition_error_max.max(err);
+    }
+
     fn extrude(
         &mut self,
         a: DVec2,
@@ -584,6 +724,14 @@ impl Builder<'_> {
             return Ok(());
         }
         let volume_nl = len * self.section_mm2 * factor * 1000.0;
+        let commanded = self
+            .commanded
+            .get(self.segment)
+            .cloned()
+            .unwrap_or_else(|| composition.to_vec());
+        self.segment += 1;
+        self.plug_flow(volume_nl, &commanded, composition);
+        let composition = commanded.as_slice();
         let mut volumes = Vec::with_capacity(composition.len());
         for (k, f) in composition.iter().enumerate() {
             self.state.planned_nl[k] += volume_nl * f.max(0.0);

@@ -243,3 +243,131 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
     let _ = writeln!(out, "</g>\n</svg>");
     out
 }
+
+/// What a road preview draws besides the roads.
+pub struct RoadsInput<'a> {
+    pub title: &'a str,
+    /// The part (outlines in grey).
+    pub islands: &'a [Region],
+    /// Nominal road width, mm (times each vertex's width factor).
+    pub road_width_mm: f64,
+    /// Centres of void cells (from `toolpath::coverage::measure_with_voids`), drawn red.
+    pub voids: &'a [DVec2],
+    /// Size of a void cell, mm.
+    pub void_cell_mm: f64,
+}
+
+/// A layer's built roads (issue 4 preview): each road at its real width (per edge: the
+/// mean of its vertices' width factors) in its composition colour, travel moves between
+/// paths as thin dashed lines, seams as black dots (hollow where not at a concave corner),
+/// voids highlighted in red. Pure: returns the SVG text.
+pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> String {
+    let mut lo = DVec2::splat(f64::INFINITY);
+    let mut hi = DVec2::splat(f64::NEG_INFINITY);
+    for r in input.islands {
+        let (a, b) = r.bounds();
+        lo = lo.min(a);
+        hi = hi.max(b);
+    }
+    for p in paths {
+        for q in &p.points {
+            lo = lo.min(*q);
+            hi = hi.max(*q);
+        }
+    }
+    if !lo.is_finite() || !hi.is_finite() {
+        lo = DVec2::ZERO;
+        hi = DVec2::ONE;
+    }
+    let margin = input.road_width_mm + 0.02 * (hi - lo).max_element();
+    let f = Frame {
+        lo: lo - DVec2::splat(margin),
+        hi: hi + DVec2::splat(margin),
+    };
+    let size = f.hi - f.lo;
+    let px = 1000.0 / size.x.max(size.y).max(1e-9);
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {:.3} {:.3}" width="{:.0}" height="{:.0}">"#,
+        size.x,
+        size.y,
+        size.x * px,
+        size.y * px
+    );
+    let _ = writeln!(out, "<title>{}</title>", escape(input.title));
+    let thin = input.road_width_mm * 0.1;
+    for r in input.islands {
+        for l in r.loops() {
+            let _ = writeln!(
+                out,
+                r##"<polygon points="{}" fill="none" stroke="#999999" stroke-width="{thin:.3}"/>"##,
+                f.points(l)
+            );
+        }
+    }
+    // Roads, edge by edge so widths can vary.
+    for p in paths {
+        let colour = mix_colour(&p.composition);
+        let n = p.points.len();
+        let edges = if p.closed { n } else { n.saturating_sub(1) };
+        let mut k = 0;
+        while k < edges {
+            // Merge runs of equal width into one polyline.
+            let w = 0.5 * (p.width_factors[k] + p.width_factors[(k + 1) % n]);
+            let mut run = vec![p.points[k]];
+            while k < edges
+                && (0.5 * (p.width_factors[k] + p.width_factors[(k + 1) % n]) - w).abs() < 0.01
+            {
+                run.push(p.points[(k + 1) % n]);
+                k += 1;
+            }
+            path_element(
+                &mut out,
+                &f,
+                &Path {
+                    points: run,
+                    closed: false,
+                },
+                &colour,
+                input.road_width_mm * w,
+                r#" stroke-opacity="0.85""#,
+            );
+        }
+    }
+    // Travel and seams.
+    for w in paths.windows(2) {
+        let (a, b) = (f.xy(w[0].end()), f.xy(w[1].points[0]));
+        let _ = writeln!(
+            out,
+            r##"<line x1="{:.3}" y1="{:.3}" x2="{:.3}" y2="{:.3}" stroke="#333333" stroke-width="{thin:.3}" stroke-dasharray="{:.3}"/>"##,
+            a.0,
+            a.1,
+            b.0,
+            b.1,
+            thin * 4.0
+        );
+    }
+    for p in paths.iter().filter(|p| p.closed) {
+        let (x, y) = f.xy(p.points[0]);
+        let fill = if p.seam_at_corner { "#000000" } else { "none" };
+        let _ = writeln!(
+            out,
+            r##"<circle cx="{x:.3}" cy="{y:.3}" r="{:.3}" fill="{fill}" stroke="#000000" stroke-width="{:.3}"/>"##,
+            input.road_width_mm * 0.3,
+            thin * 0.5
+        );
+    }
+    for v in input.voids {
+        let (x, y) = f.xy(*v);
+        let c = input.void_cell_mm;
+        let _ = writeln!(
+            out,
+            r##"<rect x="{:.3}" y="{:.3}" width="{c:.3}" height="{c:.3}" fill="#ff0000"/>"##,
+            x - 0.5 * c,
+            y - 0.5 * c
+        );
+    }
+    out.push_str("</svg>\n");
+    out
+}

@@ -115,3 +115,149 @@ fn gcode_drive_sums_equal_plan_volumes() {
 fn want_nonzero(v: &[u64]) -> bool {
     v.iter().all(|&x| x > 0)
 }
+
+/// The paper's annulus: the roads cover the part (void and outside at most 0.5 %), the
+/// flow raise never makes voids worse, and seams sit where asked.
+#[test]
+fn annulus_coverage_meets_targets() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure;
+    let job = job("paper-annulus");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let mut plain = s.clone();
+    plain.flow_raise = false;
+    let st = StreamState::new();
+    let raised = measure(
+        &slices[0].islands,
+        &layer_paths(&layers[0], &s, &st),
+        0.5,
+        0.05,
+    );
+    let flat = measure(
+        &slices[0].islands,
+        &layer_paths(&layers[0], &plain, &st),
+        0.5,
+        0.05,
+    );
+    assert!(raised.void_fraction() <= 0.005, "{raised:?}");
+    assert!(raised.outside_fraction() <= 0.005, "{raised:?}");
+    assert!(raised.overlap_fraction() <= 0.05, "{raised:?}");
+    assert!(raised.void_fraction() <= flat.void_fraction() + 1e-9);
+}
+
+/// The tooth crown has narrow sub-areas: the flow raise closes most of their voids and
+/// never passes max_flow_factor.
+#[test]
+fn flow_raise_closes_crown_voids_within_the_cap() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure;
+    let job = job("tooth-crown");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let mut plain = s.clone();
+    plain.flow_raise = false;
+    let st = StreamState::new();
+    let paths = layer_paths(&layers[0], &s, &st);
+    let w = s.road_width();
+    let raised = measure(&slices[0].islands, &paths, w, 0.05);
+    let flat = measure(
+        &slices[0].islands,
+        &layer_paths(&layers[0], &plain, &st),
+        w,
+        0.05,
+    );
+    assert!(
+        raised.void_fraction() < 0.5 * flat.void_fraction(),
+        "{raised:?} {flat:?}"
+    );
+    let max = paths
+        .iter()
+        .flat_map(|p| p.width_factors.iter())
+        .fold(0.0f64, |a, &b| a.max(b));
+    assert!(max > 1.0 && max <= s.max_flow_factor + 1e-12, "{max}");
+}
+
+/// Mixing-chamber lead: commanding each composition change V_dead ahead cuts the
+/// designed-versus-delivered error under plug flow.
+#[test]
+fn mixing_lead_cuts_delivered_composition_error() {
+    let job = job("paper-annulus");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let mut errors = Vec::new();
+    for lead in [false, true] {
+        let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        s.v_dead_ul = 2.0;
+        s.mixing_lead = lead;
+        let mut state = StreamState::new();
+        let out = layer_moves(&layers[0], &s, 1, 0, &mut state).unwrap();
+        errors.push((
+            out.stats.composition_error_mean,
+            out.stats.composition_error_max,
+        ));
+        // Volumes stay exact either way.
+        for (c, p) in state.commanded_nl().iter().zip(state.planned_nl()) {
+            assert!((*c as f64 - p).abs() <= 0.5 + 1e-6);
+        }
+    }
+    let (without, with) = (errors[0], errors[1]);
+    assert!(without.0 > 0.001, "{without:?}");
+    assert!(with.0 < 0.25 * without.0, "{with:?} vs {without:?}");
+}
+
+/// The road preview draws roads, travel, seams and voids.
+#[test]
+fn roads_preview_draws_everything() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure_with_voids;
+    let job = job("tooth-crown");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..1], &job.design, &job.plan).unwrap();
+    let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    let paths = layer_paths(&layers[0], &s, &StreamState::new());
+    let (_, voids) = measure_with_voids(&slices[0].islands, &paths, s.road_width(), 0.05, 5000);
+    let svg = edo::svg::roads_svg(
+        &paths,
+        &edo::svg::RoadsInput {
+            title: "crown",
+            islands: &slices[0].islands,
+            road_width_mm: s.road_width(),
+            voids: &voids,
+            void_cell_mm: 0.05,
+        },
+    );
+    assert!(svg.starts_with("<svg") && svg.ends_with("</svg>\n"));
+    assert!(svg.contains("stroke-dasharray"));
+    assert!(svg.contains("<circle"));
+    assert!(svg.contains("#ff0000"));
+}
+
+/// Alternating sub-region order keeps the composition continuous across layer changes:
+/// with the lead, the worst delivered error over two layers drops.
+#[test]
+fn alternating_order_removes_the_layer_change_jump() {
+    use edo::toolpath::SubRegionOrder;
+    let job = job("paper-annulus");
+    let slices = job.layer_slices();
+    let layers = plan_layers(&slices[..2], &job.design, &job.plan).unwrap();
+    let mut worst = Vec::new();
+    for order in [SubRegionOrder::InnerToOuter, SubRegionOrder::Alternating] {
+        let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        s.v_dead_ul = 2.0;
+        s.sub_region_order = order;
+        let mut state = StreamState::new();
+        let mut idx = 0;
+        let mut max = 0.0f64;
+        for l in &layers {
+            let out = layer_moves(l, &s, 1, idx, &mut state).unwrap();
+            idx = out.next_index;
+            max = max.max(out.stats.composition_error_max);
+        }
+        worst.push(max);
+    }
+    eprintln!("worst delivered composition error (inner-to-outer, alternating): {worst:?}");
+    assert!(worst[1] < 0.5 * worst[0], "{worst:?}");
+}

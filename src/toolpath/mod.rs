@@ -23,6 +23,9 @@
 //! Travel between paths (with extrusion cessation) and the machine moves are made by
 //! [`crate::pipeline`]; the coverage measure is [`coverage`].
 
+pub mod coverage;
+pub mod flow;
+
 use crate::edo::shapes::Path;
 use crate::edo::{offset_composition_eq6, LayerPlan};
 use crate::material::OffsetDirection;
@@ -53,6 +56,10 @@ pub enum SubRegionOrder {
     InnerToOuter,
     /// From Cm+1 (Ce) in to C1 (Ci).
     OuterToInner,
+    /// Inner to outer on even layers, outer to inner on odd ones: each layer starts with
+    /// the composition the previous one ended with, so the mixing chamber needs no purge
+    /// at layer changes.
+    Alternating,
 }
 
 /// What a path builds.
@@ -124,6 +131,11 @@ struct Group {
 
 /// Step 1: the composition groups of a layer in Fig. 4(a) order.
 fn groups(layer: &LayerPlan, order: SubRegionOrder) -> Vec<Group> {
+    let order = match order {
+        SubRegionOrder::Alternating if layer.index % 2 == 1 => SubRegionOrder::OuterToInner,
+        SubRegionOrder::Alternating => SubRegionOrder::InnerToOuter,
+        o => o,
+    };
     let mut out = Vec::new();
     for region in &layer.regions {
         let island = region.island as u32;
@@ -155,9 +167,9 @@ fn groups(layer: &LayerPlan, order: SubRegionOrder) -> Vec<Group> {
             let (first, second) = if sub.n == 0 {
                 (1, 1)
             } else {
-                match (sub.direction, order) {
-                    (OffsetDirection::Inward, _) => (sub.n, sub.n + 1),
-                    (OffsetDirection::Outward, _) => (sub.n + 1, sub.n),
+                match sub.direction {
+                    OffsetDirection::Inward => (sub.n, sub.n + 1),
+                    OffsetDirection::Outward => (sub.n + 1, sub.n),
                 }
             };
             contour(first, &mut out);

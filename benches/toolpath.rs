@@ -1,0 +1,57 @@
+//! Whole-part process planning speed (issue 4): 3DBenchy.stl sliced at 0.3 mm, every layer
+//! planned (nozzle 0.4, r_mach 1.6, growth rings), ordered, flow-raised and turned into
+//! moves. Target: at most 10 s on 2 cores. Layers the planner refuses (too thin for
+//! r_mach) are skipped, as a print would have to.
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use edo::edo::{plan_layer, GradientDesign, Pattern, PlanOptions};
+use edo::material::{Composition, GradientFunction};
+use edo::pipeline::{layer_paths, moves_for_paths, ProcessSettings, StreamState};
+use rayon::prelude::*;
+use std::time::Duration;
+
+fn benchy_to_moves(mesh: &edo::mesh::Mesh) -> u32 {
+    let design = GradientDesign {
+        pattern: Pattern::GrowthRings,
+        inner: Composition::new(vec![1.0, 0.0], 1e-9).unwrap(),
+        outer: Composition::new(vec![0.0, 1.0], 1e-9).unwrap(),
+        function: GradientFunction::LINEAR,
+    };
+    let opts = PlanOptions::new(1.6, 0.4);
+    let s = ProcessSettings::for_nozzle(0.4);
+    let (layers, _) =
+        edo::slice::slice_mesh(mesh, &edo::slice::SliceOptions::uniform(0.3), None).unwrap();
+    let plans: Vec<_> = layers
+        .par_iter()
+        .enumerate()
+        .filter_map(|(k, l)| plan_layer(k, l.z_mm, l.thickness_mm, &l.islands, &design, &opts).ok())
+        .collect();
+    let mut state = StreamState::new();
+    let mut index = 0;
+    for l in &plans {
+        let paths = layer_paths(l, &s, &state);
+        index = moves_for_paths(l, paths, &s, 1, index, &mut state)
+            .unwrap()
+            .next_index;
+    }
+    index
+}
+
+fn bench(c: &mut Criterion) {
+    let path = std::path::Path::new("/work/shared/meshes/3DBenchy.stl");
+    let Ok((mesh, _)) = edo::mesh::path::load_path(path, &Default::default(), &Default::default())
+    else {
+        eprintln!("{} not found: skipping", path.display());
+        return;
+    };
+    eprintln!("3DBenchy to moves: {} moves", benchy_to_moves(&mesh));
+    let mut g = c.benchmark_group("toolpath");
+    g.sample_size(10).measurement_time(Duration::from_secs(20));
+    g.bench_function("benchy_0.3mm_to_moves", |b| {
+        b.iter(|| benchy_to_moves(&mesh))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
