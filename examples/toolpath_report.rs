@@ -52,10 +52,10 @@ fn main() -> anyhow::Result<()> {
         let job = edo::cli::plan::load_job(std::path::Path::new(&format!(
             "{root}/config/examples/{name}.toml"
         )))?;
-        let slices = job.layer_slices();
-        let layers = plan_layers(&slices[..1], &job.design, &job.plan)?;
+        let slices = job.layer_slices(0, job.extruded_layers().unwrap_or_default());
+        let layers = plan_layers(&slices[..1], &job.plan, None)?;
         let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
-        let (a, b) = coverage_pair(&slices[0].islands, &layers[0], &s, cell);
+        let (a, b) = coverage_pair(&slices[0].layer.islands, &layers[0], &s, cell);
         line(name, &a, &b);
         for lead in [false, true] {
             let mut s2 = s.clone();
@@ -64,7 +64,7 @@ fn main() -> anyhow::Result<()> {
             let mut st = StreamState::new();
             let mut idx = 0;
             let (mut mean, mut max, mut n) = (0.0, 0.0f64, 0.0);
-            for l in &plan_layers(&slices[..slices.len().min(3)], &job.design, &job.plan)? {
+            for l in &plan_layers(&slices[..slices.len().min(3)], &job.plan, None)? {
                 let out = edo::pipeline::layer_moves(l, &s2, 1, idx, &mut st)?;
                 idx = out.next_index;
                 mean += out.stats.composition_error_mean;

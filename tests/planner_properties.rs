@@ -13,7 +13,7 @@ use edo::edo::{
     offset_composition_eq6, plan_region, GradientDesign, Pattern, PlanOptions, RegionPlan,
     Subdivision,
 };
-use edo::geom::{point_segment_distance, segments_intersect, signed_area, Region};
+use edo::geom::{point_segment_distance, signed_area, Region};
 use edo::material::{Composition, GradientFunction};
 use glam::DVec2;
 use proptest::prelude::*;
@@ -124,6 +124,24 @@ fn segments(p: &Path) -> Vec<(DVec2, DVec2)> {
     s
 }
 
+/// Do the two segments properly cross (each strictly separates the other's ends by more
+/// than `tol`)? Touching, as a contour that stops on another's road does, is no crossing.
+fn properly_cross(p1: DVec2, p2: DVec2, q1: DVec2, q2: DVec2, tol: f64) -> bool {
+    let side = |a: DVec2, b: DVec2, c: DVec2| {
+        let ab = b - a;
+        let len = ab.length();
+        if len == 0.0 {
+            0.0
+        } else {
+            ab.perp_dot(c - a) / len
+        }
+    };
+    let (d1, d2) = (side(q1, q2, p1), side(q1, q2, p2));
+    let (d3, d4) = (side(p1, p2, q1), side(p1, p2, q2));
+    ((d1 > tol && d2 < -tol) || (d1 < -tol && d2 > tol))
+        && ((d3 > tol && d4 < -tol) || (d3 < -tol && d4 > tol))
+}
+
 fn roads_cross(a: &[Path], b: &[Path]) -> Option<(DVec2, DVec2)> {
     let sa: Vec<_> = a.iter().flat_map(segments).collect();
     let sb: Vec<_> = b.iter().flat_map(segments).collect();
@@ -133,7 +151,7 @@ fn roads_cross(a: &[Path], b: &[Path]) -> Option<(DVec2, DVec2)> {
             if q1.max(*q2).cmplt(lo).any() || q1.min(*q2).cmpgt(hi).any() {
                 continue;
             }
-            if segments_intersect(*p1, *p2, *q1, *q2) {
+            if properly_cross(*p1, *p2, *q1, *q2, 1e-6) {
                 return Some((*p1, *q1));
             }
         }
@@ -229,7 +247,13 @@ fn check_plan(
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
+    // A fixed seed keeps CI deterministic; set PROPTEST_RNG_SEED / PROPTEST_CASES by
+    // hand to explore further (the cases found that way are kept in the tests below).
+    #![proptest_config(ProptestConfig {
+        cases: 48,
+        rng_seed: proptest::test_runner::RngSeed::Fixed(0xED0_2026),
+        ..ProptestConfig::default()
+    })]
 
     #[test]
     fn planner_invariants(

@@ -443,9 +443,16 @@ pub fn plan_region(
     let last = levels.len() - 1;
     levels[last] = levels[last].offset(-b, chord);
     let level_shapes: Vec<Shapes> = levels.iter().map(Level::to_shapes).collect();
-    // Roads on the interior's own boundary (C1 and Cm+1) must survive clipping whole:
-    // clip against the interior grown by a hair.
-    let clip_to = shapes::offset(&interior, opts.tolerances.clip_margin_mm, chord);
+    // Roads of C1 and Cm+1 where they are part surfaces: the interior's own boundary,
+    // split into the runs nearer the holes (C1) and nearer the outer loop (Cm+1). Taken
+    // from the same loops, they can meet but never cross, even where a wall is thinner
+    // than two roads.
+    let parallel = pre.method == SubdivisionMethod::Parallel;
+    let (hole_runs, outer_runs) = if parallel {
+        (Vec::new(), Vec::new())
+    } else {
+        split_boundary_runs(&interior, &region)
+    };
 
     // Step 3: contours and their compositions, eq (2) and (4).
     let compositions: Vec<Composition> = (1..=m + 1)
@@ -463,7 +470,16 @@ pub fn plan_region(
             j,
             d: contour_distance(j, m),
             composition: compositions[(j - 1) as usize].clone(),
-            roads: levels[(j - 1) as usize].roads(&clip_to, true, eps),
+            // Inner contours are clipped strictly to the interior: where one would run
+            // closer to a boundary than the boundary offset it stops, rather than cross
+            // that boundary's road. Fiber lines C1 and Cm+1 lie inside the interior.
+            roads: if j == m + 1 && !parallel {
+                outer_runs.clone()
+            } else if j == 1 && pre.inner_is_boundary && !parallel {
+                hole_runs.clone()
+            } else {
+                levels[(j - 1) as usize].roads(&interior, parallel && (j == 1 || j == m + 1), eps)
+            },
         })
         .collect();
 
@@ -558,6 +574,63 @@ pub fn plan_region(
             )
         }),
     })
+}
+
+/// Split the loops of the interior (the region shrunk by the boundary offset) into
+/// runs nearer a hole and runs nearer the outer loop. A loop wholly on one side stays
+/// one closed path; otherwise each run ends on the first vertex of the next, so the
+/// runs share end points and together trace the whole loop.
+fn split_boundary_runs(interior: &Shapes, region: &Region) -> (Vec<Path>, Vec<Path>) {
+    let to_outer = SegmentIndex::new(&[region.outer.as_slice()], &[]);
+    let holes: Vec<&[DVec2]> = region.holes.iter().map(|h| h.as_slice()).collect();
+    let to_holes = SegmentIndex::new(&holes, &[]);
+    let (mut hole_runs, mut outer_runs) = (Vec::new(), Vec::new());
+    for l in shapes::loops(interior) {
+        let n = l.len();
+        if n < 2 {
+            continue;
+        }
+        let near_outer: Vec<bool> = l
+            .iter()
+            .map(|p| to_outer.distance(*p) <= to_holes.distance(*p))
+            .collect();
+        let Some(start) = (0..n).find(|&k| near_outer[k] != near_outer[(k + n - 1) % n]) else {
+            let path = Path {
+                points: l.clone(),
+                closed: true,
+            };
+            if near_outer[0] {
+                outer_runs.push(path);
+            } else {
+                hole_runs.push(path);
+            }
+            continue;
+        };
+        let mut k = start;
+        let mut walked = 0;
+        while walked < n {
+            let class = near_outer[k];
+            let mut points = vec![l[k]];
+            loop {
+                k = (k + 1) % n;
+                walked += 1;
+                points.push(l[k]);
+                if near_outer[k] != class || walked >= n {
+                    break;
+                }
+            }
+            let path = Path {
+                points,
+                closed: false,
+            };
+            if class {
+                outer_runs.push(path);
+            } else {
+                hole_runs.push(path);
+            }
+        }
+    }
+    (hole_runs, outer_runs)
 }
 
 /// Plan every island of a layer.
@@ -867,11 +940,13 @@ fn crown_core(
         return None;
     }
     let mut offsets = Vec::new();
-    let a1_grown = shapes::offset(a1, opts.tolerances.clip_margin_mm, chord);
+    // The walls lie on the core's boundary: clip them against the core grown by a
+    // hair, so they stay whole along the core and stop within that hair of it.
+    let core_grown = shapes::offset(&core, opts.tolerances.clip_margin_mm, chord);
     let walls: Vec<Path> = interior
         .iter()
         .flat_map(|shape| shape.iter().skip(1))
-        .flat_map(|hole| shapes::clip_loop(hole, &a1_grown, true, eps))
+        .flat_map(|hole| shapes::clip_loop(hole, &core_grown, true, eps))
         .collect();
     if !walls.is_empty() {
         offsets.push(walls);

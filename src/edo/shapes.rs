@@ -81,8 +81,9 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
     for shape in &mut out {
         for l in shape.iter_mut() {
             // Round joins leave runs of micro-edges; later booleans and offsets slow
-            // down badly on them, and they carry no shape beyond the chord tolerance.
-            *l = crate::geom::simplify_loop(l, chord_mm);
+            // down badly on them. Simplify well inside the chord tolerance, so offsets
+            // stay within a few µm of exact (clip margins rely on that).
+            *l = crate::geom::simplify_loop(l, chord_mm / 20.0);
             remove_spikes(l);
         }
         shape.retain(|l| l.len() >= 3);
