@@ -24,10 +24,12 @@
 //!   type host, link and simulator share.
 //! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
 //!
-//! Around the core: [`cli`] and [`linktest`] do the command-line tools' I/O; only they
-//! and the binaries touch files, sockets and clocks.
+//! Around the core: [`cli`] and [`linktest`] do the command-line tools' I/O, and
+//! [`daemon`] is edod's tokio shell (socket API, job store, planner workers, streamer,
+//! supervision); only they and the binaries touch files, sockets and clocks.
 
 pub mod cli;
+pub mod daemon;
 pub mod edo;
 pub mod geom;
 pub mod job;

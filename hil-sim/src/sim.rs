@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use edo::link::testkit::SimRng;
-use edo::link::{FaultKind, MachineLink, MachineLinkConfig, Micros};
+use edo::link::{FaultKind, MachineEvent, MachineLink, MachineLinkConfig, Micros, PriorityCmd};
 use edo::machine::{Move, MoveKind};
 
 use crate::faults::Faults;
@@ -399,7 +399,10 @@ pub fn run(
                     Command::Reset => do_reset = true,
                     Command::Unplug => do_unplug = true,
                     Command::Stall(ms) => stall_until = now_us + ms * 1000,
-                    Command::EStop => link.fault(FaultKind::EStopPressed),
+                    Command::EStop => {
+                        link.fault(FaultKind::EStopPressed);
+                        executing = None;
+                    }
                     Command::Empty(n) => {
                         if let Some(s) = model.syringes.get_mut(usize::from(n)) {
                             s.remaining_nl = 0;
@@ -495,7 +498,13 @@ pub fn run(
         while let Some(b) = to_machine.pop_due(now_us) {
             link.handle_bytes(&b, now);
         }
-        while link.poll_event().is_some() {}
+        while let Some(e) = link.poll_event() {
+            // An emergency stop aborts the move being executed: it is not reported
+            // executed, so a host resuming after the stop sends it again.
+            if e == MachineEvent::Priority(PriorityCmd::EmergencyStop) {
+                executing = None;
+            }
+        }
 
         // Execute moves on simulated machine time.
         sim_time_us += dt as f64 * cfg.speed;

@@ -14,6 +14,12 @@ use clap::{Parser, Subcommand};
     about = "Plan and run graded-material (EDO) prints"
 )]
 struct Cli {
+    /// edod's socket.
+    #[arg(long, global = true, value_name = "PATH", default_value = edo::cli::client::DEFAULT_SOCKET)]
+    socket: PathBuf,
+    /// Print the daemon's JSON instead of a human summary.
+    #[arg(long, global = true)]
+    json: bool,
     #[command(subcommand)]
     command: Commands,
 }
@@ -34,10 +40,153 @@ enum Commands {
         /// Line speed (also the basis of the utilisation figure).
         #[arg(long, default_value_t = 250_000, value_name = "B")]
         baud: u32,
-        /// Print one JSON object instead of a table.
-        #[arg(long)]
-        json: bool,
     },
+    /// Submit a job file (and its mesh) to edod.
+    Submit {
+        /// The job file (TOML, see docs/job-format.md).
+        #[arg(required_unless_present = "dry_run_moves")]
+        job: Option<PathBuf>,
+        /// Instead of a job file: a dry run of N moves that extrude nothing.
+        #[arg(long, value_name = "N", conflicts_with = "job")]
+        dry_run_moves: Option<u32>,
+        /// Show a progress bar until the job ends.
+        #[arg(long)]
+        watch: bool,
+    },
+    /// List edod's jobs.
+    Jobs,
+    /// Show the machine's state and the active job.
+    Status,
+    /// Follow a job with a progress bar (layer, moves, composition, ETA).
+    Watch {
+        /// Job id.
+        id: u64,
+    },
+    /// Hold a printing job at the next move boundary.
+    Pause {
+        /// Job id.
+        id: u64,
+    },
+    /// Continue a paused or interrupted job.
+    Resume {
+        /// Job id.
+        id: u64,
+    },
+    /// Cancel a job (a printing one stops, retracts and parks).
+    Cancel {
+        /// Job id.
+        id: u64,
+    },
+    /// Emergency stop: goes out ahead of everything queued.
+    Estop,
+    /// The syringes were refilled: clear the fault and continue.
+    Refill,
+}
+
+fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
+    use edo::cli::client::{job_line, submit_params, watch, Client};
+    use serde_json::json;
+    let mut c = Client::connect(&cli.socket)?;
+    let print = |v: &serde_json::Value, human: String| {
+        if cli.json {
+            println!("{v}");
+        } else {
+            println!("{human}");
+        }
+    };
+    let ended_well = |j: &serde_json::Value| j["state"] == json!("done");
+    match &cli.command {
+        Commands::Submit {
+            job,
+            dry_run_moves,
+            watch: w,
+        } => {
+            let params = match (job, dry_run_moves) {
+                (Some(job), _) => submit_params(job)?,
+                (None, n) => json!({"dry_run_moves": n}),
+            };
+            let r = c.call("job.submit", params)?;
+            let id = r["id"].as_u64().unwrap_or(0);
+            if *w {
+                let j = watch(&mut c, id, cli.json)?;
+                print(&j, job_line(&j));
+                return Ok(if ended_well(&j) {
+                    ExitCode::SUCCESS
+                } else {
+                    ExitCode::FAILURE
+                });
+            }
+            print(&r, format!("job {id} queued"));
+        }
+        Commands::Jobs => {
+            let r = c.call("job.list", json!({}))?;
+            let lines: Vec<String> = r
+                .as_array()
+                .map(|a| a.iter().map(job_line).collect())
+                .unwrap_or_default();
+            print(&r, lines.join("\n"));
+        }
+        Commands::Status => {
+            let m = c.call("machine.status", json!({}))?;
+            let mut human = format!(
+                "machine on {}: {}, {}",
+                m["port"].as_str().unwrap_or("?"),
+                if m["connected"] == json!(true) {
+                    "connected"
+                } else {
+                    "not connected"
+                },
+                m["state"].as_str().unwrap_or("unknown state")
+            );
+            if let Some(p) = m["progress"].as_object() {
+                human.push_str(&format!(
+                    "\njob {}: {}/{} moves executed, layer {}",
+                    p["job_id"], p["executed"], p["total"], p["layer"]
+                ));
+            }
+            print(&m, human);
+        }
+        Commands::Watch { id } => {
+            let j = watch(&mut c, *id, cli.json)?;
+            print(&j, job_line(&j));
+            return Ok(if ended_well(&j) {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            });
+        }
+        Commands::Pause { id } => {
+            let r = c.call("job.pause", json!({"id": id}))?;
+            print(&r, format!("job {id} paused"));
+        }
+        Commands::Resume { id } => {
+            let r = c.call("job.resume", json!({"id": id}))?;
+            print(&r, format!("job {id} resumed"));
+        }
+        Commands::Cancel { id } => {
+            let r = c.call("job.cancel", json!({"id": id}))?;
+            print(&r, format!("job {id} cancelled"));
+        }
+        Commands::Estop => {
+            let r = c.call("machine.estop", json!({}))?;
+            print(
+                &r,
+                format!(
+                    "e-stop sent after {} µs, acknowledged after {}",
+                    r["written_after_us"],
+                    r["acked_after_us"]
+                        .as_u64()
+                        .map_or("(no ack within 1 s)".to_string(), |a| format!("{a} µs"))
+                ),
+            );
+        }
+        Commands::Refill => {
+            let r = c.call("machine.refill", json!({}))?;
+            print(&r, "refill noted; the paused job continues".to_string());
+        }
+        Commands::Plan(_) | Commands::LinkTest { .. } => {}
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn link_test(port: PathBuf, moves: u32, baud: u32, json: bool) -> anyhow::Result<ExitCode> {
@@ -65,14 +214,12 @@ fn link_test(port: PathBuf, moves: u32, baud: u32, json: bool) -> anyhow::Result
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let result = match cli.command {
-        Commands::Plan(args) => edo::cli::plan::run(&args).map(|()| ExitCode::SUCCESS),
-        Commands::LinkTest {
-            port,
-            moves,
-            baud,
-            json,
-        } => link_test(port, moves, baud, json),
+    let result = match &cli.command {
+        Commands::Plan(args) => edo::cli::plan::run(args).map(|()| ExitCode::SUCCESS),
+        Commands::LinkTest { port, moves, baud } => {
+            link_test(port.clone(), *moves, *baud, cli.json)
+        }
+        _ => daemon(&cli),
     };
     match result {
         Ok(code) => code,

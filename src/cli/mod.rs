@@ -1,5 +1,6 @@
 //! The command-line front ends' work, kept in the library so the binaries stay thin.
 //! These functions do I/O (files, terminal) and so sit outside the pure core.
 
+pub mod client;
 pub mod gcode;
 pub mod plan;

@@ -1,0 +1,76 @@
+//! edod: the edo printer-host daemon. A thin skin over [`edo::daemon`].
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::Parser;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "edod",
+    version,
+    about = "edo printer-host daemon: jobs over a local socket, streamed to the machine"
+)]
+struct Cli {
+    /// Configuration file (see config/edod.toml).
+    #[arg(long, value_name = "FILE", default_value = "/etc/edo/edod.toml")]
+    config: PathBuf,
+    /// Check a configuration file and exit (0 when it is valid).
+    #[arg(long, value_name = "FILE", conflicts_with = "config")]
+    check_config: Option<PathBuf>,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    if let Some(path) = cli.check_config {
+        return match edo::daemon::Config::load(&path) {
+            Ok(_) => {
+                println!("{}: ok", path.display());
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("edod: {e}");
+                ExitCode::FAILURE
+            }
+        };
+    }
+    // Under systemd the journal adds its own timestamps; keep lines plain there.
+    let journal = std::env::var_os("JOURNAL_STREAM").is_some();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(!journal && std::io::IsTerminal::is_terminal(&std::io::stderr()));
+    if journal {
+        builder.without_time().init();
+    } else {
+        builder.init();
+    }
+    let cfg = match edo::daemon::Config::load(&cli.config) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("edod: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let rt = match tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("edod: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match rt.block_on(edo::daemon::run(cfg)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!("{e:#}");
+            eprintln!("edod: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

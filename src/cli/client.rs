@@ -1,0 +1,208 @@
+//! edoctl's daemon subcommands (`submit`, `jobs`, `status`, `watch`, `pause`, `resume`,
+//! `cancel`, `estop`, `refill`): a blocking JSON-RPC client of edod's socket
+//! (`docs/api.md`). Output is a short human line, or the daemon's JSON with `--json`.
+
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use serde_json::{json, Value};
+
+/// Default socket of an installed edod.
+pub const DEFAULT_SOCKET: &str = "/run/edo/edod.sock";
+
+/// A connection to edod.
+pub struct Client {
+    socket: PathBuf,
+    reader: BufReader<UnixStream>,
+    writer: UnixStream,
+    next_id: u64,
+}
+
+/// An error edod returned, shown as the daemon wrote it.
+#[derive(Debug, thiserror::Error)]
+#[error("edod: {message}")]
+pub struct DaemonError {
+    /// JSON-RPC code.
+    pub code: i64,
+    /// Message.
+    pub message: String,
+}
+
+impl Client {
+    /// Connect to `socket`.
+    pub fn connect(socket: &Path) -> Result<Client> {
+        let s = UnixStream::connect(socket).with_context(|| {
+            format!(
+                "cannot connect to edod at {} (is edod running? pick another one with --socket)",
+                socket.display()
+            )
+        })?;
+        s.set_read_timeout(Some(Duration::from_secs(60)))?;
+        Ok(Client {
+            socket: socket.to_path_buf(),
+            reader: BufReader::new(s.try_clone()?),
+            writer: s,
+            next_id: 1,
+        })
+    }
+
+    /// Next line from the daemon.
+    pub fn read_line(&mut self) -> Result<Value> {
+        let mut l = String::new();
+        if self.reader.read_line(&mut l)? == 0 {
+            bail!("edod at {} closed the connection", self.socket.display());
+        }
+        serde_json::from_str(&l).with_context(|| format!("edod sent a line that is not JSON: {l}"))
+    }
+
+    /// Call `method`; notifications arriving meanwhile go to `on_note`.
+    pub fn call_with(
+        &mut self,
+        method: &str,
+        params: Value,
+        on_note: &mut dyn FnMut(&Value),
+    ) -> Result<Value> {
+        let id = self.next_id;
+        self.next_id += 1;
+        let line = json!({"jsonrpc": "2.0", "id": id, "method": method, "params": params});
+        self.writer.write_all(format!("{line}\n").as_bytes())?;
+        loop {
+            let v = self.read_line()?;
+            if v.get("id").is_none() {
+                on_note(&v);
+                continue;
+            }
+            if let Some(e) = v.get("error") {
+                return Err(DaemonError {
+                    code: e["code"].as_i64().unwrap_or(0),
+                    message: e["message"].as_str().unwrap_or("unknown error").to_string(),
+                }
+                .into());
+            }
+            return Ok(v["result"].clone());
+        }
+    }
+
+    /// Call `method`.
+    pub fn call(&mut self, method: &str, params: Value) -> Result<Value> {
+        self.call_with(method, params, &mut |_| {})
+    }
+}
+
+/// The params of `job.submit` for a job file: its text, and its mesh (`[geometry] mesh`,
+/// relative to the job file) as base64.
+pub fn submit_params(job: &Path) -> Result<Value> {
+    let meta = std::fs::metadata(job)
+        .with_context(|| format!("cannot read job file {}", job.display()))?;
+    if meta.len() > super::plan::MAX_JOB_BYTES {
+        bail!(
+            "job file {} is over {} bytes",
+            job.display(),
+            super::plan::MAX_JOB_BYTES
+        );
+    }
+    let text = std::fs::read_to_string(job)
+        .with_context(|| format!("cannot read job file {}", job.display()))?;
+    let mut params = json!({"job": text});
+    let parsed: toml::Table =
+        toml::from_str(&text).with_context(|| format!("{} is not TOML", job.display()))?;
+    if let Some(mesh) = parsed
+        .get("geometry")
+        .and_then(|g| g.get("mesh"))
+        .and_then(|m| m.as_str())
+    {
+        let path = job.parent().unwrap_or(Path::new(".")).join(mesh);
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("cannot read mesh {}", path.display()))?;
+        params["mesh_base64"] = json!(crate::daemon::api::base64_encode(&bytes));
+    }
+    Ok(params)
+}
+
+/// One line about a job.
+pub fn job_line(j: &Value) -> String {
+    let total = j["total_moves"]
+        .as_u64()
+        .map_or("?".to_string(), |t| t.to_string());
+    let mut s = format!(
+        "{:>4}  {:<11}  {:>7}/{:<7}  {}",
+        j["id"],
+        j["state"].as_str().unwrap_or("?"),
+        j["checkpoint"]["next_index"],
+        total,
+        j["name"].as_str().unwrap_or("")
+    );
+    if let Some(r) = j["reason"].as_str() {
+        s.push_str(&format!("  ({r})"));
+    }
+    s
+}
+
+/// Watch job `id` with a progress bar until it is done, failed or cancelled; returns its
+/// final state.
+pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
+    use indicatif::{ProgressBar, ProgressStyle};
+    let mut job = client.call("job.get", json!({"id": id}))?;
+    client.call("subscribe", json!({}))?;
+    let bar = ProgressBar::new(job["total_moves"].as_u64().unwrap_or(0));
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} job {prefix} [{bar:30}] {pos}/{len} moves {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    if json_out {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    bar.set_prefix(id.to_string());
+    bar.set_position(job["checkpoint"]["next_index"].as_u64().unwrap_or(0));
+    let done = |s: &Value| matches!(s.as_str(), Some("done" | "failed" | "cancelled"));
+    while !done(&job["state"]) {
+        let v = client.read_line()?;
+        let p = &v["params"];
+        if p["job_id"].as_u64() != Some(id) {
+            continue;
+        }
+        match v["method"].as_str() {
+            Some("notify_job_progress") => {
+                if let Some(t) = p["total"].as_u64() {
+                    bar.set_length(t);
+                }
+                bar.set_position(p["executed"].as_u64().unwrap_or(0));
+                let comp = p["composition"]
+                    .as_array()
+                    .map(|c| {
+                        c.iter()
+                            .map(|x| format!("{:.2}", x.as_f64().unwrap_or(0.0)))
+                            .collect::<Vec<_>>()
+                            .join("/")
+                    })
+                    .unwrap_or_default();
+                let eta = p["eta_s"]
+                    .as_f64()
+                    .map_or(String::new(), |e| format!(" ETA {e:.0} s"));
+                bar.set_message(format!(
+                    "layer {} comp {comp}{eta}",
+                    p["layer"].as_u64().map_or("-".into(), |l| l.to_string())
+                ));
+            }
+            Some("notify_job_state") => {
+                job["state"] = p["state"].clone();
+                if !done(&job["state"]) {
+                    bar.println(format!(
+                        "job {id}: {}{}",
+                        p["state"].as_str().unwrap_or("?"),
+                        p["reason"]
+                            .as_str()
+                            .map_or(String::new(), |r| format!(" ({r})"))
+                    ));
+                }
+            }
+            _ => {}
+        }
+    }
+    bar.finish_and_clear();
+    client.call("job.get", json!({"id": id}))
+}

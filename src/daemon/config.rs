@@ -1,0 +1,510 @@
+//! `edod.toml`: the daemon's configuration (serial port, simulated machine, machine
+//! description, API socket, state directory, planner and streaming bounds).
+//!
+//! Unknown keys are refused and every error names the file, line and column, so a typo
+//! never silently falls back to a default. Every field has a documented default;
+//! `config/edod.toml` is the annotated reference.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+/// The literal `port` value that starts the built-in simulated machine.
+pub const SIM_PORT: &str = "sim";
+
+/// The whole configuration.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// Serial line to the machine.
+    #[serde(default)]
+    pub serial: SerialConfig,
+    /// Options of the simulated machine (`serial.port = "sim"` only).
+    #[serde(default)]
+    pub sim: SimOptions,
+    /// What the machine is.
+    #[serde(default)]
+    pub machine: MachineConfig,
+    /// The Unix-socket API.
+    #[serde(default)]
+    pub api: ApiConfig,
+    /// Where the job database lives.
+    #[serde(default)]
+    pub state: StateConfig,
+    /// Planner and streaming bounds.
+    #[serde(default)]
+    pub planner: PlannerConfig,
+}
+
+/// `[serial]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SerialConfig {
+    /// Device path (`/dev/ttyACM0`, a hil-sim link) or `"sim"` (default).
+    #[serde(default = "default_port")]
+    pub port: String,
+    /// Line speed (default 250 000).
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+}
+
+fn default_port() -> String {
+    SIM_PORT.to_string()
+}
+fn default_baud() -> u32 {
+    250_000
+}
+
+impl Default for SerialConfig {
+    fn default() -> Self {
+        Self {
+            port: default_port(),
+            baud: default_baud(),
+        }
+    }
+}
+
+/// `[sim]`: passed to the `hil-sim` binary that edod starts on a pty.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimOptions {
+    /// Machine time runs this many times faster than wall time (default 20).
+    #[serde(default = "default_speed")]
+    pub speed: f64,
+    /// `--faults` list, e.g. `"drop=0.01"` (default none).
+    #[serde(default)]
+    pub faults: String,
+    /// Seed of the simulator (default 1).
+    #[serde(default = "default_seed")]
+    pub seed: u64,
+    /// Record executed moves (JSON lines) to this file.
+    #[serde(default)]
+    pub record: Option<PathBuf>,
+    /// The `hil-sim` executable (default: next to `edod`, then `PATH`).
+    #[serde(default)]
+    pub binary: Option<PathBuf>,
+}
+
+fn default_speed() -> f64 {
+    20.0
+}
+fn default_seed() -> u64 {
+    1
+}
+
+impl Default for SimOptions {
+    fn default() -> Self {
+        Self {
+            speed: default_speed(),
+            faults: String::new(),
+            seed: default_seed(),
+            record: None,
+            binary: None,
+        }
+    }
+}
+
+/// One syringe (primary material).
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct SyringeConfig {
+    /// Material name (matches the job's `materials`).
+    pub name: String,
+    /// Barrel bore (mm).
+    pub barrel_diameter_mm: f64,
+    /// Capacity (ml).
+    pub capacity_ml: f64,
+}
+
+/// `[machine]`.
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MachineConfig {
+    /// Syringes in order (default: two 10 ml syringes, 10 mm bore, "A" and "B").
+    #[serde(default = "default_syringes")]
+    pub syringes: Vec<SyringeConfig>,
+    /// Nozzle diameter (mm, default 0.4).
+    #[serde(default = "default_nozzle")]
+    pub nozzle_mm: f64,
+    /// Machine resolution R_mach (mm, default 0.2).
+    #[serde(default = "default_r_mach")]
+    pub r_mach_mm: f64,
+    /// Build volume X, Y, Z (mm, default 200 × 200 × 150).
+    #[serde(default = "default_build_volume")]
+    pub build_volume_mm: [f64; 3],
+    /// Highest feed rate (mm/s, default 50).
+    #[serde(default = "default_max_feed")]
+    pub max_feed_mm_s: f64,
+    /// Highest flow/width factor in narrow areas (default 1.5).
+    #[serde(default = "default_max_flow_factor")]
+    pub max_flow_factor: f64,
+    /// Mixing-chamber dead volume V_dead (nl, default 20 000).
+    #[serde(default = "default_dead_volume")]
+    pub dead_volume_nl: u64,
+    /// Volume pushed through the nozzle when (re)priming (nl, default 2 000).
+    #[serde(default = "default_prime")]
+    pub prime_nl: u32,
+    /// Where a cancelled job parks the nozzle (mm, default 0, 0, 50).
+    #[serde(default = "default_park")]
+    pub park_mm: [f64; 3],
+    /// Lift above the resume point before travelling to it (mm, default 2).
+    #[serde(default = "default_lift")]
+    pub resume_lift_mm: f64,
+}
+
+fn default_syringes() -> Vec<SyringeConfig> {
+    ["A", "B"]
+        .iter()
+        .map(|n| SyringeConfig {
+            name: (*n).to_string(),
+            barrel_diameter_mm: 10.0,
+            capacity_ml: 10.0,
+        })
+        .collect()
+}
+fn default_nozzle() -> f64 {
+    0.4
+}
+fn default_r_mach() -> f64 {
+    0.2
+}
+fn default_build_volume() -> [f64; 3] {
+    [200.0, 200.0, 150.0]
+}
+fn default_max_feed() -> f64 {
+    50.0
+}
+fn default_max_flow_factor() -> f64 {
+    1.5
+}
+fn default_dead_volume() -> u64 {
+    20_000
+}
+fn default_prime() -> u32 {
+    2_000
+}
+fn default_park() -> [f64; 3] {
+    [0.0, 0.0, 50.0]
+}
+fn default_lift() -> f64 {
+    2.0
+}
+
+impl Default for MachineConfig {
+    fn default() -> Self {
+        Self {
+            syringes: default_syringes(),
+            nozzle_mm: default_nozzle(),
+            r_mach_mm: default_r_mach(),
+            build_volume_mm: default_build_volume(),
+            max_feed_mm_s: default_max_feed(),
+            max_flow_factor: default_max_flow_factor(),
+            dead_volume_nl: default_dead_volume(),
+            prime_nl: default_prime(),
+            park_mm: default_park(),
+            resume_lift_mm: default_lift(),
+        }
+    }
+}
+
+/// `[api]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ApiConfig {
+    /// Socket path (default `/run/edo/edod.sock`).
+    #[serde(default = "default_socket")]
+    pub socket: PathBuf,
+    /// Socket permission bits as an octal string (default `"0660"`).
+    #[serde(default = "default_mode")]
+    pub mode: String,
+    /// Group owning the socket (default: edod's own group).
+    #[serde(default)]
+    pub group: Option<String>,
+    /// Largest request line in bytes, mesh included (default 64 MiB).
+    #[serde(default = "default_max_request")]
+    pub max_request_bytes: usize,
+    /// Most clients connected at once (default 256).
+    #[serde(default = "default_max_clients")]
+    pub max_clients: usize,
+    /// Replies and notifications queued per client before it is cut off as too slow
+    /// (default 1024).
+    #[serde(default = "default_client_queue")]
+    pub client_queue: usize,
+}
+
+fn default_socket() -> PathBuf {
+    PathBuf::from("/run/edo/edod.sock")
+}
+fn default_mode() -> String {
+    "0660".to_string()
+}
+fn default_max_request() -> usize {
+    64 << 20
+}
+fn default_max_clients() -> usize {
+    256
+}
+fn default_client_queue() -> usize {
+    1024
+}
+
+impl Default for ApiConfig {
+    fn default() -> Self {
+        Self {
+            socket: default_socket(),
+            mode: default_mode(),
+            group: None,
+            max_request_bytes: default_max_request(),
+            max_clients: default_max_clients(),
+            client_queue: default_client_queue(),
+        }
+    }
+}
+
+/// `[state]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StateConfig {
+    /// Directory of the job database (default `/var/lib/edo`).
+    #[serde(default = "default_state_dir")]
+    pub dir: PathBuf,
+}
+
+fn default_state_dir() -> PathBuf {
+    PathBuf::from("/var/lib/edo")
+}
+
+impl Default for StateConfig {
+    fn default() -> Self {
+        Self {
+            dir: default_state_dir(),
+        }
+    }
+}
+
+/// `[planner]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlannerConfig {
+    /// Layers planned ahead of the streamer (bounded channel; default 4).
+    #[serde(default = "default_layers_ahead")]
+    pub layers_ahead: usize,
+    /// Moves handed to the link ahead of the machine's queue (default 256).
+    #[serde(default = "default_moves_ahead")]
+    pub moves_ahead: usize,
+    /// Moves per layer of a dry-run job (default 200).
+    #[serde(default = "default_dry_run_layer")]
+    pub dry_run_moves_per_layer: u32,
+}
+
+fn default_layers_ahead() -> usize {
+    4
+}
+fn default_moves_ahead() -> usize {
+    256
+}
+fn default_dry_run_layer() -> u32 {
+    200
+}
+
+impl Default for PlannerConfig {
+    fn default() -> Self {
+        Self {
+            layers_ahead: default_layers_ahead(),
+            moves_ahead: default_moves_ahead(),
+            dry_run_moves_per_layer: default_dry_run_layer(),
+        }
+    }
+}
+
+/// A configuration that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file cannot be read.
+    #[error("cannot read {path}: {source}")]
+    Read {
+        /// File.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// TOML syntax, unknown key or wrong type.
+    #[error("{path}:{line}:{column}: {message}")]
+    Syntax {
+        /// File.
+        path: String,
+        /// 1-based line.
+        line: usize,
+        /// 1-based column.
+        column: usize,
+        /// What is wrong.
+        message: String,
+    },
+    /// A value out of range.
+    #[error("{path}: {key}: {message}")]
+    Invalid {
+        /// File.
+        path: String,
+        /// Dotted key.
+        key: String,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// 1-based line and column of byte `offset` in `text`.
+pub fn line_col(text: &str, offset: usize) -> (usize, usize) {
+    let before = &text[..offset.min(text.len())];
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+    (line, column)
+}
+
+impl Config {
+    /// Parse and check a configuration; `path` names it in errors.
+    pub fn from_toml(text: &str, path: &str) -> Result<Config, ConfigError> {
+        let cfg: Config = toml::from_str(text).map_err(|e| {
+            let (line, column) = e.span().map_or((0, 0), |s| line_col(text, s.start));
+            ConfigError::Syntax {
+                path: path.to_string(),
+                line,
+                column,
+                message: e.message().trim_end().to_string(),
+            }
+        })?;
+        cfg.check(path)?;
+        Ok(cfg)
+    }
+
+    /// Read, parse and check a configuration file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let name = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: name.clone(),
+            source,
+        })?;
+        Config::from_toml(&text, &name)
+    }
+
+    fn check(&self, path: &str) -> Result<(), ConfigError> {
+        let bad = |key: &str, message: String| ConfigError::Invalid {
+            path: path.to_string(),
+            key: key.to_string(),
+            message,
+        };
+        if self.serial.port.is_empty() {
+            return Err(bad("serial.port", "empty; use \"sim\" or a device".into()));
+        }
+        if self.serial.baud == 0 {
+            return Err(bad("serial.baud", "must be positive".into()));
+        }
+        if !(self.sim.speed.is_finite() && self.sim.speed > 0.0 && self.sim.speed <= 10_000.0) {
+            return Err(bad(
+                "sim.speed",
+                format!("{} is not in (0, 10000]", self.sim.speed),
+            ));
+        }
+        let n = self.machine.syringes.len();
+        if n == 0 || n > crate::machine::MAX_SYRINGES {
+            return Err(bad(
+                "machine.syringes",
+                format!(
+                    "{n} syringes; 1 to {} allowed",
+                    crate::machine::MAX_SYRINGES
+                ),
+            ));
+        }
+        for (i, s) in self.machine.syringes.iter().enumerate() {
+            if !(s.barrel_diameter_mm > 0.0 && s.barrel_diameter_mm.is_finite()) {
+                return Err(bad(
+                    &format!("machine.syringes[{i}].barrel_diameter_mm"),
+                    "must be positive".into(),
+                ));
+            }
+            if !(s.capacity_ml > 0.0 && s.capacity_ml.is_finite()) {
+                return Err(bad(
+                    &format!("machine.syringes[{i}].capacity_ml"),
+                    "must be positive".into(),
+                ));
+            }
+        }
+        for (key, v) in [
+            ("machine.nozzle_mm", self.machine.nozzle_mm),
+            ("machine.r_mach_mm", self.machine.r_mach_mm),
+            ("machine.max_feed_mm_s", self.machine.max_feed_mm_s),
+            ("machine.max_flow_factor", self.machine.max_flow_factor),
+        ] {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(bad(key, format!("{v} must be positive")));
+            }
+        }
+        if u32::from_str_radix(self.api.mode.trim_start_matches("0o"), 8)
+            .ok()
+            .filter(|m| *m <= 0o777)
+            .is_none()
+        {
+            return Err(bad(
+                "api.mode",
+                format!("{:?} is not an octal mode like \"0660\"", self.api.mode),
+            ));
+        }
+        if self.api.max_request_bytes < 1024 {
+            return Err(bad("api.max_request_bytes", "at least 1024".into()));
+        }
+        if self.api.max_clients == 0 || self.api.client_queue == 0 {
+            return Err(bad(
+                "api",
+                "max_clients and client_queue must be positive".into(),
+            ));
+        }
+        if self.planner.layers_ahead == 0
+            || self.planner.moves_ahead == 0
+            || self.planner.dry_run_moves_per_layer == 0
+        {
+            return Err(bad("planner", "bounds must be positive".into()));
+        }
+        Ok(())
+    }
+
+    /// Socket permission bits.
+    pub fn socket_mode(&self) -> u32 {
+        u32::from_str_radix(self.api.mode.trim_start_matches("0o"), 8).unwrap_or(0o660)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_config_is_all_defaults() {
+        let c = Config::from_toml("", "x.toml").unwrap();
+        assert_eq!(c.serial.port, "sim");
+        assert_eq!(c.machine.syringes.len(), 2);
+        assert_eq!(c.socket_mode(), 0o660);
+    }
+
+    #[test]
+    fn unknown_key_is_refused_with_line_and_column() {
+        let e = Config::from_toml("[serial]\nport = \"sim\"\n  bauds = 3\n", "e.toml").unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.starts_with("e.toml:3:3: "), "{msg}");
+        assert!(msg.contains("bauds"), "{msg}");
+    }
+
+    #[test]
+    fn bad_values_name_their_key() {
+        let e = Config::from_toml("[api]\nmode = \"rw\"\n", "m.toml").unwrap_err();
+        assert!(e.to_string().contains("api.mode"), "{e}");
+        let e = Config::from_toml("[machine]\nsyringes = []\n", "m.toml").unwrap_err();
+        assert!(e.to_string().contains("machine.syringes"), "{e}");
+    }
+
+    #[test]
+    fn shipped_configs_parse() {
+        for f in ["config/edod.toml", "config/edod-hardware.toml"] {
+            let p = Path::new(env!("CARGO_MANIFEST_DIR")).join(f);
+            Config::load(&p).unwrap_or_else(|e| panic!("{e}"));
+        }
+    }
+}

@@ -1,0 +1,317 @@
+//! The planner stage: a blocking worker turns a job into moves layer by layer, ahead of
+//! the streamer, through a bounded channel (`planner.layers_ahead` layers), so the first
+//! layer streams while later ones are still being planned and memory stays bounded
+//! however large the part.
+//!
+//! What produces the moves is a [`LayerSource`]: [`DryRunSource`] (zero-volume moves, to
+//! qualify a machine through the whole daemon) and [`JobSource`] (a job file through the
+//! EDO planner and the toolpath pipeline). Tests feed synthetic sources.
+
+use tokio::sync::mpsc;
+
+use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT};
+
+/// Produces a job's moves one layer at a time, indices counting from 0 without gaps.
+pub trait LayerSource: Send {
+    /// The next layer's moves, `None` after the last layer.
+    fn next_layer(&mut self) -> Option<Result<Vec<Move>, String>>;
+}
+
+/// What the planner worker sends the streamer.
+#[derive(Debug)]
+pub enum PlannerMsg {
+    /// Where the job stands at the resume index: the last position, layer mark and
+    /// extrusion volumes among the skipped moves (sent once, first, when resuming).
+    ResumeAt {
+        /// End position of the last skipped move that moves the nozzle.
+        position: Option<PositionUm>,
+        /// Last skipped layer mark.
+        layer_mark: Option<(u32, i32)>,
+        /// Volumes of the last skipped extrusion.
+        volumes_nl: Option<Vec<u32>>,
+    },
+    /// Moves to stream (in order).
+    Moves(Vec<Move>),
+    /// Planning finished: the job has this many moves.
+    Done {
+        /// Total moves.
+        total: u32,
+    },
+    /// Planning failed.
+    Failed(String),
+}
+
+/// Start a planner worker for job `job_id` that skips moves before `start_index`.
+/// Dropping the receiver stops the worker at its next layer.
+pub fn spawn(
+    mut source: Box<dyn LayerSource>,
+    job_id: u32,
+    start_index: u32,
+    layers_ahead: usize,
+) -> mpsc::Receiver<PlannerMsg> {
+    let (tx, rx) = mpsc::channel(layers_ahead.max(1));
+    tokio::task::spawn_blocking(move || {
+        let mut expected: u32 = 0;
+        let mut position = None;
+        let mut layer_mark = None;
+        let mut volumes = None;
+        let mut resume_sent = start_index == 0;
+        while let Some(layer) = source.next_layer() {
+            let moves = match layer {
+                Ok(m) => m,
+                Err(e) => {
+                    let _ = tx.blocking_send(PlannerMsg::Failed(e));
+                    return;
+                }
+            };
+            let mut out = Vec::new();
+            for mut mv in moves {
+                if mv.index != expected {
+                    let _ = tx.blocking_send(PlannerMsg::Failed(format!(
+                        "planner produced move index {} where {expected} was due",
+                        mv.index
+                    )));
+                    return;
+                }
+                expected += 1;
+                mv.job_id = job_id;
+                if mv.index < start_index {
+                    match &mv.kind {
+                        MoveKind::Travel { to, .. } => position = Some(*to),
+                        MoveKind::Extrude { to, volumes_nl, .. } => {
+                            position = Some(*to);
+                            volumes = Some(volumes_nl.clone());
+                        }
+                        MoveKind::LayerMark { layer, z_um } => layer_mark = Some((*layer, *z_um)),
+                        _ => {}
+                    }
+                    continue;
+                }
+                if !resume_sent {
+                    resume_sent = true;
+                    let msg = PlannerMsg::ResumeAt {
+                        position,
+                        layer_mark,
+                        volumes_nl: volumes.clone(),
+                    };
+                    if tx.blocking_send(msg).is_err() {
+                        return;
+                    }
+                }
+                out.push(mv);
+            }
+            if !out.is_empty() && tx.blocking_send(PlannerMsg::Moves(out)).is_err() {
+                return;
+            }
+        }
+        if !resume_sent {
+            let _ = tx.blocking_send(PlannerMsg::ResumeAt {
+                position,
+                layer_mark,
+                volumes_nl: volumes,
+            });
+        }
+        let _ = tx.blocking_send(PlannerMsg::Done { total: expected });
+    });
+    rx
+}
+
+/// A dry-run job: `moves` zero-volume extrusion moves zig-zagging 1 mm along X at
+/// 10 mm/s (100 ms of machine time each, so the machine, not the line, sets the pace),
+/// with a layer mark opening every layer of `per_layer` moves.
+pub struct DryRunSource {
+    moves: u32,
+    per_layer: u32,
+    next: u32,
+    layer: u32,
+    syringes: usize,
+}
+
+impl DryRunSource {
+    /// A dry run of `moves` moves (layer marks included) for `syringes` syringes.
+    pub fn new(moves: u32, per_layer: u32, syringes: usize) -> Self {
+        Self {
+            moves,
+            per_layer: per_layer.max(2),
+            next: 0,
+            layer: 0,
+            syringes,
+        }
+    }
+}
+
+impl LayerSource for DryRunSource {
+    fn next_layer(&mut self) -> Option<Result<Vec<Move>, String>> {
+        if self.next >= self.moves {
+            return None;
+        }
+        let end = (self.next + self.per_layer).min(self.moves);
+        let mut out = Vec::with_capacity((end - self.next) as usize);
+        for index in self.next..end {
+            let kind = if index == self.next {
+                MoveKind::LayerMark {
+                    layer: self.layer,
+                    z_um: 200 * (self.layer as i32 + 1),
+                }
+            } else {
+                MoveKind::Extrude {
+                    to: PositionUm {
+                        x_um: (index % 2) as i32 * 1000,
+                        y_um: 0,
+                        z_um: 200 * (self.layer as i32 + 1),
+                    },
+                    feed_um_s: 10_000,
+                    volumes_nl: vec![0; self.syringes],
+                    width_factor_ppt: FACTOR_NOMINAL_PPT,
+                }
+            };
+            out.push(Move {
+                job_id: 0,
+                index,
+                kind,
+            });
+        }
+        self.next = end;
+        self.layer += 1;
+        Some(Ok(out))
+    }
+}
+
+/// A job file planned layer by layer: the EDO plan of each layer (`edo::plan_layer`),
+/// then the toolpath pipeline (`pipeline::layer_moves`) turns it into moves, carrying
+/// its stream state (position, pressure, volumes, mixing chamber) from layer to layer.
+pub struct JobSource {
+    job: crate::job::Job,
+    slices: Vec<crate::job::LayerSlice>,
+    next_layer: usize,
+    settings: crate::pipeline::ProcessSettings,
+    state: crate::pipeline::StreamState,
+    next_index: u32,
+}
+
+impl JobSource {
+    /// Parse and validate a job file (`source_name` names it in errors) for a machine
+    /// (`[machine]` of edod.toml: syringes, max flow factor, V_dead).
+    pub fn new(
+        toml: &str,
+        source_name: &str,
+        machine: &super::config::MachineConfig,
+    ) -> Result<Self, String> {
+        let job = crate::job::Job::from_toml(toml, source_name).map_err(|e| e.to_string())?;
+        if job.materials.len() != machine.syringes.len() {
+            return Err(format!(
+                "{source_name}: {} materials but the machine has {} syringes",
+                job.materials.len(),
+                machine.syringes.len()
+            ));
+        }
+        let mut settings = crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        settings.syringes = Some(machine.syringes.len());
+        settings.max_flow_factor = machine.max_flow_factor;
+        settings.v_dead_ul = machine.dead_volume_nl as f64 / 1000.0;
+        settings
+            .validate()
+            .map_err(|e| format!("{source_name}: {e}"))?;
+        let Some(stack) = job.extruded_layers() else {
+            return Err(format!(
+                "{source_name}: geometry.mesh: edod does not stream mesh jobs yet; plan them offline with `edoctl plan` (polygon jobs stream)"
+            ));
+        };
+        let slices = job.layer_slices(0, stack);
+        Ok(Self {
+            job,
+            slices,
+            next_layer: 0,
+            settings,
+            state: crate::pipeline::StreamState::new(),
+            next_index: 0,
+        })
+    }
+
+    /// Job name.
+    pub fn name(&self) -> &str {
+        &self.job.name
+    }
+}
+
+impl LayerSource for JobSource {
+    fn next_layer(&mut self) -> Option<Result<Vec<Move>, String>> {
+        let s = self.slices.get(self.next_layer)?;
+        self.next_layer += 1;
+        let l = &s.layer;
+        let plan = crate::edo::plan_layer(
+            s.index,
+            l.z_mm,
+            l.thickness_mm,
+            &l.islands,
+            &s.design,
+            &self.job.plan,
+        )
+        .map_err(|e| format!("layer {} (z = {:.3} mm): {e}", s.index, l.z_mm));
+        Some(plan.and_then(|plan| {
+            let lm = crate::pipeline::layer_moves(
+                &plan,
+                &self.settings,
+                0,
+                self.next_index,
+                &mut self.state,
+            )
+            .map_err(|e| format!("layer {}: {e}", s.index))?;
+            self.next_index = lm.next_index;
+            Ok(lm.moves)
+        }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_job_file_becomes_moves_layer_by_layer() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/examples/paper-annulus.toml"
+        );
+        let text = std::fs::read_to_string(path).unwrap();
+        let machine = super::super::config::MachineConfig::default();
+        let mut src = JobSource::new(&text, "annulus", &machine).unwrap();
+        let first = src.next_layer().unwrap().unwrap();
+        assert!(matches!(
+            first[0].kind,
+            MoveKind::LayerMark { layer: 0, .. }
+        ));
+        assert!(first.iter().enumerate().all(|(i, m)| m.index == i as u32));
+        let second = src.next_layer().unwrap().unwrap();
+        assert_eq!(second[0].index as usize, first.len());
+        assert!(second
+            .iter()
+            .any(|m| matches!(m.kind, MoveKind::Extrude { .. })));
+    }
+
+    #[tokio::test]
+    async fn resume_skips_executed_moves_and_reports_where_it_stands() {
+        let mut rx = spawn(Box::new(DryRunSource::new(25, 10, 2)), 7, 13, 2);
+        let mut got = Vec::new();
+        let mut resume = None;
+        let mut total = None;
+        while let Some(m) = rx.recv().await {
+            match m {
+                PlannerMsg::ResumeAt {
+                    position,
+                    layer_mark,
+                    ..
+                } => resume = Some((position, layer_mark)),
+                PlannerMsg::Moves(v) => got.extend(v),
+                PlannerMsg::Done { total: t } => total = Some(t),
+                PlannerMsg::Failed(e) => panic!("{e}"),
+            }
+        }
+        assert_eq!(total, Some(25));
+        assert_eq!(got.first().map(|m| (m.job_id, m.index)), Some((7, 13)));
+        assert_eq!(got.len(), 12);
+        let (pos, mark) = resume.unwrap();
+        assert_eq!(mark, Some((1, 400)));
+        assert_eq!(pos.map(|p| p.x_um), Some(0));
+    }
+}

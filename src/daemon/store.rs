@@ -1,0 +1,409 @@
+//! The job store: every accepted job, its state, what is needed to plan it again, and its
+//! checkpoint, in an embedded SQLite database (`edod.db` in the state directory).
+//!
+//! Crash safety: WAL journal with `synchronous = FULL`, so a `job.submit` answered with an
+//! id has been written through to disk, and a checkpoint committed is never lost even on
+//! power loss. Plans are not stored move by move: planning is deterministic, so the job
+//! TOML (and its mesh) regenerates the exact move stream, and a checkpoint (first move not
+//! executed, layer, composition, syringe volumes) says where to continue.
+//!
+//! The store is synchronous (rusqlite); callers hold it for one short statement at a time.
+
+use std::path::Path;
+
+use rusqlite::{params, Connection, OptionalExtension};
+use serde::{Deserialize, Serialize};
+
+/// Wire job id reserved for the daemon's own service moves (home, prime, park).
+pub const SERVICE_JOB_ID: u32 = 0;
+
+/// Where a job is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    /// Accepted, waiting for the machine.
+    Queued,
+    /// Its first layer is being planned.
+    Planning,
+    /// Moves are streaming.
+    Printing,
+    /// Held at a move boundary (by an operator or a syringe running empty).
+    Paused,
+    /// Stopped by a fault (reset, lost link, e-stop, edod restart); resumable.
+    Interrupted,
+    /// Every move executed.
+    Done,
+    /// Cannot be planned or streamed.
+    Failed,
+    /// Cancelled by an operator.
+    Cancelled,
+}
+
+impl JobState {
+    /// Name as stored and shown.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Planning => "planning",
+            JobState::Printing => "printing",
+            JobState::Paused => "paused",
+            JobState::Interrupted => "interrupted",
+            JobState::Done => "done",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    fn parse(s: &str) -> JobState {
+        match s {
+            "queued" => JobState::Queued,
+            "planning" => JobState::Planning,
+            "printing" => JobState::Printing,
+            "paused" => JobState::Paused,
+            "interrupted" => JobState::Interrupted,
+            "done" => JobState::Done,
+            "cancelled" => JobState::Cancelled,
+            _ => JobState::Failed,
+        }
+    }
+
+    /// Done, failed or cancelled: nothing more will happen.
+    pub fn is_final(self) -> bool {
+        matches!(
+            self,
+            JobState::Done | JobState::Failed | JobState::Cancelled
+        )
+    }
+}
+
+/// Where to continue a job: the first move not executed and the state there.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// Index of the first move the machine has not executed.
+    pub next_index: u32,
+    /// Layer of the last executed layer mark.
+    pub layer: Option<u32>,
+    /// Composition of the last executed extrusion (fractions per syringe).
+    pub composition: Option<Vec<f64>>,
+    /// Syringe volumes left after the last executed move (nl).
+    pub remaining_nl: Vec<u32>,
+}
+
+/// How a job's moves are produced.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobSpec {
+    /// A job file (TOML) and its optional mesh.
+    Toml {
+        /// The job file text.
+        toml: String,
+        /// Mesh bytes (STL/3MF) sent with it.
+        #[serde(skip)]
+        mesh: Option<Vec<u8>>,
+    },
+    /// A dry-run job of this many zero-volume moves (qualifies the machine and the link
+    /// the way `edoctl link-test` does, but through the whole daemon).
+    DryRun {
+        /// Moves.
+        moves: u32,
+    },
+}
+
+/// A job as stored.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct JobRecord {
+    /// Job id (also the wire job id of its moves).
+    pub id: u32,
+    /// Name.
+    pub name: String,
+    /// State.
+    pub state: JobState,
+    /// Why it is paused, interrupted or failed.
+    pub reason: Option<String>,
+    /// Moves planned in total, once planning has finished.
+    pub total_moves: Option<u32>,
+    /// Where to continue.
+    pub checkpoint: Checkpoint,
+    /// Submission time (ms since the Unix epoch).
+    pub submitted_ms: i64,
+    /// Last change (ms since the Unix epoch).
+    pub updated_ms: i64,
+    /// How its moves are produced (not serialised in listings).
+    #[serde(skip)]
+    pub spec: JobSpec,
+}
+
+/// Store errors.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// SQLite failed.
+    #[error("job store: {0}")]
+    Sql(#[from] rusqlite::Error),
+    /// Directory problems.
+    #[error("job store {path}: {source}")]
+    Io {
+        /// Path.
+        path: String,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// No such job.
+    #[error("no job {0}")]
+    NotFound(u32),
+}
+
+/// Milliseconds since the Unix epoch.
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as i64)
+}
+
+/// The job database.
+pub struct Store {
+    conn: Connection,
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS jobs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    name TEXT NOT NULL,
+    state TEXT NOT NULL,
+    reason TEXT,
+    spec TEXT NOT NULL,
+    mesh BLOB,
+    total_moves INTEGER,
+    next_index INTEGER NOT NULL DEFAULT 0,
+    layer INTEGER,
+    composition TEXT,
+    remaining_nl TEXT NOT NULL DEFAULT '[]',
+    submitted_ms INTEGER NOT NULL,
+    updated_ms INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+";
+
+impl Store {
+    /// Open (or create) `edod.db` in `dir`.
+    pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
+            path: dir.display().to_string(),
+            source,
+        })?;
+        let conn = Connection::open(dir.join("edod.db"))?;
+        conn.pragma_update(None, "journal_mode", "WAL")?;
+        conn.pragma_update(None, "synchronous", "FULL")?;
+        conn.busy_timeout(std::time::Duration::from_secs(5))?;
+        conn.execute_batch(SCHEMA)?;
+        Ok(Store { conn })
+    }
+
+    /// Store a new job (queued) and return its id.
+    pub fn insert(&self, name: &str, spec: &JobSpec) -> Result<u32, StoreError> {
+        let (spec_json, mesh) = match spec {
+            JobSpec::Toml { mesh, .. } => (
+                serde_json::to_string(spec).unwrap_or_default(),
+                mesh.clone(),
+            ),
+            JobSpec::DryRun { .. } => (serde_json::to_string(spec).unwrap_or_default(), None),
+        };
+        let t = now_ms();
+        self.conn.execute(
+            "INSERT INTO jobs (name, state, spec, mesh, submitted_ms, updated_ms)
+             VALUES (?1, 'queued', ?2, ?3, ?4, ?4)",
+            params![name, spec_json, mesh, t],
+        )?;
+        Ok(self.conn.last_insert_rowid() as u32)
+    }
+
+    fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<JobRecord> {
+        let spec_json: String = r.get("spec")?;
+        let mesh: Option<Vec<u8>> = r.get("mesh")?;
+        let mut spec: JobSpec =
+            serde_json::from_str(&spec_json).unwrap_or(JobSpec::DryRun { moves: 0 });
+        if let JobSpec::Toml { mesh: m, .. } = &mut spec {
+            *m = mesh;
+        }
+        let composition: Option<String> = r.get("composition")?;
+        let remaining: String = r.get("remaining_nl")?;
+        Ok(JobRecord {
+            id: r.get::<_, i64>("id")? as u32,
+            name: r.get("name")?,
+            state: JobState::parse(&r.get::<_, String>("state")?),
+            reason: r.get("reason")?,
+            total_moves: r.get::<_, Option<i64>>("total_moves")?.map(|v| v as u32),
+            checkpoint: Checkpoint {
+                next_index: r.get::<_, i64>("next_index")? as u32,
+                layer: r.get::<_, Option<i64>>("layer")?.map(|v| v as u32),
+                composition: composition.and_then(|c| serde_json::from_str(&c).ok()),
+                remaining_nl: serde_json::from_str(&remaining).unwrap_or_default(),
+            },
+            submitted_ms: r.get("submitted_ms")?,
+            updated_ms: r.get("updated_ms")?,
+            spec,
+        })
+    }
+
+    /// One job.
+    pub fn get(&self, id: u32) -> Result<JobRecord, StoreError> {
+        self.conn
+            .query_row("SELECT * FROM jobs WHERE id = ?1", [id], Store::row)
+            .optional()?
+            .ok_or(StoreError::NotFound(id))
+    }
+
+    /// Every job, oldest first (without meshes' bytes mattering to callers).
+    pub fn list(&self) -> Result<Vec<JobRecord>, StoreError> {
+        let mut st = self.conn.prepare("SELECT * FROM jobs ORDER BY id")?;
+        let rows = st.query_map([], Store::row)?;
+        Ok(rows.collect::<Result<_, _>>()?)
+    }
+
+    /// The oldest queued job.
+    pub fn next_queued(&self) -> Result<Option<JobRecord>, StoreError> {
+        Ok(self
+            .conn
+            .query_row(
+                "SELECT * FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1",
+                [],
+                Store::row,
+            )
+            .optional()?)
+    }
+
+    /// Change a job's state (and reason).
+    pub fn set_state(
+        &self,
+        id: u32,
+        state: JobState,
+        reason: Option<&str>,
+    ) -> Result<(), StoreError> {
+        let n = self.conn.execute(
+            "UPDATE jobs SET state = ?2, reason = ?3, updated_ms = ?4 WHERE id = ?1",
+            params![id, state.as_str(), reason, now_ms()],
+        )?;
+        if n == 0 {
+            return Err(StoreError::NotFound(id));
+        }
+        Ok(())
+    }
+
+    /// Record the total move count once planning finished.
+    pub fn set_total(&self, id: u32, total: u32) -> Result<(), StoreError> {
+        self.conn.execute(
+            "UPDATE jobs SET total_moves = ?2 WHERE id = ?1",
+            params![id, total],
+        )?;
+        Ok(())
+    }
+
+    /// Write a checkpoint.
+    pub fn checkpoint(&self, id: u32, c: &Checkpoint) -> Result<(), StoreError> {
+        self.conn.execute(
+            "UPDATE jobs SET next_index = ?2, layer = ?3, composition = ?4, remaining_nl = ?5,
+             updated_ms = ?6 WHERE id = ?1",
+            params![
+                id,
+                c.next_index,
+                c.layer,
+                c.composition
+                    .as_ref()
+                    .and_then(|v| serde_json::to_string(v).ok()),
+                serde_json::to_string(&c.remaining_nl).unwrap_or_else(|_| "[]".into()),
+                now_ms()
+            ],
+        )?;
+        Ok(())
+    }
+
+    /// At start-up: jobs that were planning, printing or paused when edod stopped are
+    /// interrupted (they resume from their checkpoint). Returns their ids.
+    pub fn interrupt_unfinished(&self, reason: &str) -> Result<Vec<u32>, StoreError> {
+        let ids: Vec<u32> = {
+            let mut st = self.conn.prepare(
+                "SELECT id FROM jobs WHERE state IN ('planning', 'printing', 'paused') ORDER BY id",
+            )?;
+            let rows = st.query_map([], |r| r.get::<_, i64>(0))?;
+            rows.collect::<Result<Vec<_>, _>>()?
+                .into_iter()
+                .map(|v| v as u32)
+                .collect()
+        };
+        for &id in &ids {
+            self.set_state(id, JobState::Interrupted, Some(reason))?;
+        }
+        Ok(ids)
+    }
+
+    /// Next index of the daemon's service moves (persisted, so the machine's order check
+    /// of job 0 never sees an index twice across restarts).
+    pub fn next_service_index(&self) -> Result<u32, StoreError> {
+        let tx = self.conn.unchecked_transaction()?;
+        let v: Option<i64> = tx
+            .query_row(
+                "SELECT value FROM meta WHERE key = 'service_index'",
+                [],
+                |r| r.get(0),
+            )
+            .optional()?;
+        let v = v.unwrap_or(0);
+        tx.execute(
+            "INSERT INTO meta (key, value) VALUES ('service_index', ?1)
+             ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+            [v + 1],
+        )?;
+        tx.commit()?;
+        Ok(v as u32)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn jobs_survive_reopen_and_unfinished_ones_are_interrupted() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let s = Store::open(dir.path()).unwrap();
+            let a = s.insert("a", &JobSpec::DryRun { moves: 10 }).unwrap();
+            let b = s
+                .insert(
+                    "b",
+                    &JobSpec::Toml {
+                        toml: "name = 'b'".into(),
+                        mesh: Some(vec![0, 1, 2, 255]),
+                    },
+                )
+                .unwrap();
+            assert_eq!((a, b), (1, 2));
+            s.set_state(a, JobState::Printing, None).unwrap();
+            let c = Checkpoint {
+                next_index: 7,
+                layer: Some(1),
+                composition: Some(vec![0.25, 0.75]),
+                remaining_nl: vec![5, 6],
+            };
+            s.checkpoint(a, &c).unwrap();
+            assert_eq!(s.next_service_index().unwrap(), 0);
+            assert_eq!(s.next_service_index().unwrap(), 1);
+        }
+        let s = Store::open(dir.path()).unwrap();
+        assert_eq!(s.interrupt_unfinished("restart").unwrap(), vec![1]);
+        let a = s.get(1).unwrap();
+        assert_eq!(a.state, JobState::Interrupted);
+        assert_eq!(a.checkpoint.next_index, 7);
+        assert_eq!(a.checkpoint.composition, Some(vec![0.25, 0.75]));
+        let b = s.get(2).unwrap();
+        assert_eq!(
+            b.spec,
+            JobSpec::Toml {
+                toml: "name = 'b'".into(),
+                mesh: Some(vec![0, 1, 2, 255])
+            }
+        );
+        assert_eq!(s.next_queued().unwrap().map(|j| j.id), Some(2));
+        assert_eq!(s.next_service_index().unwrap(), 2);
+        assert!(matches!(s.get(9), Err(StoreError::NotFound(9))));
+    }
+}

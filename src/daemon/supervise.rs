@@ -1,0 +1,269 @@
+//! Supervision: start everything in order, tell systemd (READY, STATUS with job progress,
+//! WATCHDOG at half of `WatchdogSec` while the streamer is alive), and stop cleanly on
+//! SIGTERM/SIGINT (hold, checkpoint, exit).
+//!
+//! With `serial.port = "sim"` edod starts the `hil-sim` binary on a pty in the state
+//! directory and stops it on exit.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use tokio::io::AsyncBufReadExt;
+use tokio::net::UnixListener;
+use tokio::sync::{broadcast, mpsc, oneshot, watch};
+use tracing::{info, warn};
+
+use super::config::{Config, SIM_PORT};
+use super::store::Store;
+use super::streamer::Streamer;
+use super::{api, Control, Shared};
+
+fn hil_sim_binary(cfg: &Config) -> PathBuf {
+    if let Some(b) = &cfg.sim.binary {
+        return b.clone();
+    }
+    if let Some(dir) = std::env::current_exe()
+        .ok()
+        .and_then(|p| p.parent().map(Path::to_path_buf))
+    {
+        for d in [dir.clone(), dir.join("..")] {
+            let c = d.join("hil-sim");
+            if c.is_file() {
+                return c;
+            }
+        }
+    }
+    PathBuf::from("hil-sim")
+}
+
+/// Start hil-sim on a pty linked at `state/ttyEDO`; returns the child and the link.
+async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
+    let link = cfg.state.dir.join("ttyEDO");
+    let bin = hil_sim_binary(cfg);
+    let mut cmd = tokio::process::Command::new(&bin);
+    cmd.arg("--link")
+        .arg(&link)
+        .arg("--baud")
+        .arg(cfg.serial.baud.to_string())
+        .arg("--speed")
+        .arg(cfg.sim.speed.to_string())
+        .arg("--seed")
+        .arg(cfg.sim.seed.to_string())
+        .arg("--syringes")
+        .arg(cfg.machine.syringes.len().to_string())
+        .arg("--no-stdin")
+        .stdout(std::process::Stdio::piped())
+        .stdin(std::process::Stdio::null())
+        .kill_on_drop(true);
+    if !cfg.sim.faults.is_empty() {
+        cmd.arg("--faults").arg(&cfg.sim.faults);
+    }
+    if let Some(r) = &cfg.sim.record {
+        cmd.arg("--record").arg(r);
+    }
+    let mut child = cmd
+        .spawn()
+        .with_context(|| format!("cannot start the simulated machine {}", bin.display()))?;
+    let Some(out) = child.stdout.take() else {
+        bail!("hil-sim has no stdout");
+    };
+    let mut lines = tokio::io::BufReader::new(out).lines();
+    let ready = tokio::time::timeout(Duration::from_secs(10), async {
+        while let Ok(Some(l)) = lines.next_line().await {
+            if l.starts_with("hil-sim ready") {
+                return true;
+            }
+        }
+        false
+    })
+    .await
+    .unwrap_or(false);
+    if !ready {
+        bail!("hil-sim ({}) did not report ready", bin.display());
+    }
+    tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
+    info!(link = %link.display(), "simulated machine started");
+    Ok((child, link))
+}
+
+fn bind(cfg: &Config) -> Result<UnixListener> {
+    let path = &cfg.api.socket;
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    if let Ok(meta) = std::fs::symlink_metadata(path) {
+        use std::os::unix::fs::FileTypeExt;
+        if !meta.file_type().is_socket() {
+            bail!(
+                "{} exists and is not a socket; refusing to replace it",
+                path.display()
+            );
+        }
+        if std::os::unix::net::UnixStream::connect(path).is_ok() {
+            bail!("another edod is listening on {}", path.display());
+        }
+        std::fs::remove_file(path).with_context(|| format!("cannot remove {}", path.display()))?;
+    }
+    let l = UnixListener::bind(path).with_context(|| format!("cannot bind {}", path.display()))?;
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(cfg.socket_mode()))
+        .with_context(|| format!("cannot set the mode of {}", path.display()))?;
+    if let Some(g) = &cfg.api.group {
+        let gid = nix::unistd::Group::from_name(g)
+            .ok()
+            .flatten()
+            .with_context(|| format!("api.group: no group {g:?}"))?
+            .gid;
+        std::os::unix::fs::chown(path, None, Some(gid.as_raw()))
+            .with_context(|| format!("cannot give {} to group {g}", path.display()))?;
+    }
+    Ok(l)
+}
+
+/// Messages to systemd, sent from a thread of their own: `sd_notify` blocks when the
+/// manager's queue is full, and the daemon must never wait for it. Messages that do not
+/// fit the small queue are dropped (the next tick sends fresh ones).
+struct Notifier(Option<std::sync::mpsc::SyncSender<String>>);
+
+impl Notifier {
+    fn start() -> Notifier {
+        if std::env::var_os("NOTIFY_SOCKET").is_none() {
+            return Notifier(None);
+        }
+        let (tx, rx) = std::sync::mpsc::sync_channel::<String>(8);
+        let spawned = std::thread::Builder::new()
+            .name("sd-notify".into())
+            .spawn(move || {
+                for m in rx {
+                    let state = match m.as_str() {
+                        "READY=1" => sd_notify::NotifyState::Ready,
+                        "WATCHDOG=1" => sd_notify::NotifyState::Watchdog,
+                        "STOPPING=1" => sd_notify::NotifyState::Stopping,
+                        s => sd_notify::NotifyState::Status(s.trim_start_matches("STATUS=")),
+                    };
+                    let _ = sd_notify::notify(&[state]);
+                }
+            });
+        Notifier(spawned.ok().map(|_| tx))
+    }
+
+    fn send(&self, m: &str) {
+        if let Some(tx) = &self.0 {
+            let _ = tx.try_send(m.to_string());
+        }
+    }
+}
+
+/// Run the daemon until SIGTERM or SIGINT.
+pub async fn run(cfg: Config) -> Result<()> {
+    std::fs::create_dir_all(&cfg.state.dir)
+        .with_context(|| format!("cannot create state dir {}", cfg.state.dir.display()))?;
+    let (sim, port) = if cfg.serial.port == SIM_PORT {
+        let (c, l) = start_sim(&cfg).await?;
+        (Some(c), l)
+    } else {
+        (None, PathBuf::from(&cfg.serial.port))
+    };
+    let store = Store::open(&cfg.state.dir)?;
+    let interrupted = store.interrupt_unfinished("edod restarted")?;
+    if !interrupted.is_empty() {
+        warn!(jobs = ?interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
+    }
+    let listener = bind(&cfg)?;
+    let (control_tx, control_rx) = mpsc::channel(64);
+    let shared = Arc::new(Shared {
+        store: std::sync::Mutex::new(store),
+        notify: broadcast::channel(4096).0,
+        machine: watch::channel(Default::default()).0,
+        progress: watch::channel(None).0,
+        control: control_tx,
+        port,
+        alive: Default::default(),
+        config: cfg,
+    });
+    let streamer = tokio::spawn(Streamer::new(Arc::clone(&shared)).run(control_rx));
+    let api = tokio::spawn(api::serve(listener, Arc::clone(&shared)));
+    info!(socket = %shared.config.api.socket.display(), port = %shared.port.display(), "edod ready");
+    let notifier = Notifier::start();
+    notifier.send("READY=1");
+    let watchdog = sd_notify::watchdog_enabled();
+
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+    let mut int = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())?;
+    let mut status_tick = tokio::time::interval(
+        watchdog
+            .map(|w| w / 2)
+            .unwrap_or(Duration::from_secs(1))
+            .min(Duration::from_secs(1)),
+    );
+    let mut last_alive = u64::MAX;
+    let mut last_status = String::new();
+    loop {
+        tokio::select! {
+            _ = term.recv() => break,
+            _ = int.recv() => break,
+            _ = status_tick.tick() => {
+                if streamer.is_finished() {
+                    warn!("streamer stopped; exiting");
+                    break;
+                }
+                // The streamer publishes at least every tick while alive.
+                let now_alive = shared.alive.load(std::sync::atomic::Ordering::Relaxed);
+                let alive = now_alive != last_alive;
+                last_alive = now_alive;
+                if watchdog.is_some() && alive {
+                    notifier.send("WATCHDOG=1");
+                }
+                let s = status_line(&shared);
+                if s != last_status {
+                    notifier.send(&format!("STATUS={s}"));
+                    last_status = s;
+                }
+            }
+        }
+    }
+    info!("stopping");
+    notifier.send("STOPPING=1");
+    let (tx, rx) = oneshot::channel();
+    if shared.control.send(Control::Shutdown(tx)).await.is_ok() {
+        let _ = tokio::time::timeout(Duration::from_secs(5), rx).await;
+    }
+    api.abort();
+    let _ = std::fs::remove_file(&shared.config.api.socket);
+    if let Some(mut c) = sim {
+        // SIGTERM lets hil-sim remove its link and flush its recording.
+        if let Some(pid) = c.id() {
+            let _ = nix::sys::signal::kill(
+                nix::unistd::Pid::from_raw(pid as i32),
+                nix::sys::signal::Signal::SIGTERM,
+            );
+        }
+        if tokio::time::timeout(Duration::from_secs(3), c.wait())
+            .await
+            .is_err()
+        {
+            let _ = c.start_kill();
+            let _ = c.wait().await;
+        }
+    }
+    info!("stopped");
+    Ok(())
+}
+
+fn status_line(shared: &Shared) -> String {
+    let m = shared.machine.borrow().clone();
+    let p = shared.progress.borrow().clone();
+    match (m.connected, p) {
+        (false, _) => format!("waiting for the machine on {}", m.port),
+        (true, Some(p)) => format!(
+            "job {}: {}/{} moves, layer {}",
+            p.job_id,
+            p.executed,
+            p.total.map_or("?".to_string(), |t| t.to_string()),
+            p.layer.map_or("-".to_string(), |l| l.to_string())
+        ),
+        (true, None) => "idle".to_string(),
+    }
+}

@@ -1,0 +1,515 @@
+//! edod end to end against hil-sim over a pty: whole jobs, pause/resume, e-stop, machine
+//! reset, SIGKILL of edod with the machine still running, bad requests while streaming,
+//! many subscribers. Every test checks the simulator's recorder: each planned move index
+//! of the job executed exactly once, in order.
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::UnixStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+
+struct Daemon {
+    child: Child,
+    socket: PathBuf,
+    config: PathBuf,
+}
+
+impl Daemon {
+    fn start(dir: &Path, port: &Path) -> Daemon {
+        let socket = dir.join("edod.sock");
+        let config = dir.join("edod.toml");
+        std::fs::write(
+            &config,
+            format!(
+                "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = 4096\n\
+                 [state]\ndir = {:?}\n[planner]\ndry_run_moves_per_layer = 100\n",
+                port.display().to_string(),
+                socket.display().to_string(),
+                dir.join("state").display().to_string()
+            ),
+        )
+        .unwrap();
+        Daemon::spawn(socket, config)
+    }
+
+    fn spawn(socket: PathBuf, config: PathBuf) -> Daemon {
+        Daemon::spawn_with(socket, config, None)
+    }
+
+    fn spawn_with(socket: PathBuf, config: PathBuf, notify: Option<&Path>) -> Daemon {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_edod"));
+        if let Some(n) = notify {
+            cmd.env("NOTIFY_SOCKET", n).env("WATCHDOG_USEC", "400000");
+        }
+        let child = cmd
+            .arg("--config")
+            .arg(&config)
+            .env("RUST_LOG", "warn")
+            .stdin(Stdio::null())
+            .spawn()
+            .unwrap();
+        let d = Daemon {
+            child,
+            socket,
+            config,
+        };
+        let t = Instant::now();
+        while UnixStream::connect(&d.socket).is_err() {
+            assert!(t.elapsed() < Duration::from_secs(20), "edod did not start");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        d
+    }
+
+    fn client(&self) -> Client {
+        let s = UnixStream::connect(&self.socket).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+        Client {
+            r: BufReader::new(s.try_clone().unwrap()),
+            w: s,
+            next: 1,
+        }
+    }
+
+    fn sigterm(&mut self) -> std::process::ExitStatus {
+        nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(self.child.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        )
+        .unwrap();
+        self.child.wait().unwrap()
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+struct Client {
+    r: BufReader<UnixStream>,
+    w: UnixStream,
+    next: u64,
+}
+
+impl Client {
+    fn send_raw(&mut self, line: &str) -> Value {
+        self.w.write_all(line.as_bytes()).unwrap();
+        self.w.write_all(b"\n").unwrap();
+        self.read_reply()
+    }
+
+    fn read_reply(&mut self) -> Value {
+        loop {
+            let mut l = String::new();
+            assert!(self.r.read_line(&mut l).unwrap() > 0, "daemon closed");
+            let v: Value = serde_json::from_str(&l).unwrap();
+            if v.get("method").is_none() {
+                return v;
+            }
+        }
+    }
+
+    fn call(&mut self, method: &str, params: Value) -> Result<Value, Value> {
+        let id = self.next;
+        self.next += 1;
+        let v = self.send_raw(
+            &json!({"jsonrpc": "2.0", "id": id, "method": method, "params": params}).to_string(),
+        );
+        assert_eq!(v["id"], json!(id));
+        match v.get("error") {
+            Some(e) => Err(e.clone()),
+            None => Ok(v["result"].clone()),
+        }
+    }
+
+    fn job(&mut self, id: u64) -> Value {
+        self.call("job.get", json!({"id": id})).unwrap()
+    }
+
+    fn wait(&mut self, what: &str, mut f: impl FnMut(&mut Client) -> bool) {
+        let t = Instant::now();
+        while !f(self) {
+            assert!(t.elapsed() < Duration::from_secs(60), "timed out: {what}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn wait_state(&mut self, id: u64, state: &str) -> Value {
+        let mut last = Value::Null;
+        self.wait(&format!("job {id} {state}"), |c| {
+            last = c.job(id);
+            last["state"] == json!(state)
+        });
+        last
+    }
+
+    fn wait_connected(&mut self) {
+        self.wait("machine connected", |c| {
+            c.call("machine.status", json!({})).unwrap()["connected"] == json!(true)
+        });
+    }
+
+    fn executed(&mut self, id: u64) -> u64 {
+        self.job(id)["checkpoint"]["next_index"].as_u64().unwrap()
+    }
+}
+
+fn sim(dir: &Path, seed: u64) -> (hil_sim::SimHandle, PathBuf) {
+    let record = dir.join("run.jsonl");
+    let h = hil_sim::spawn(hil_sim::SimConfig {
+        link: Some(dir.join("tty")),
+        speed: 50.0,
+        seed,
+        record: Some(record.clone()),
+        ..hil_sim::SimConfig::default()
+    })
+    .unwrap();
+    (h, record)
+}
+
+/// After a machine reset the moves it executed but had not yet reported (at most one
+/// status interval of work) are executed again: the reset machine has forgotten them.
+/// Check every index 0..total executed, in order, repeats only in one run right after
+/// one reset. Returns how many were repeated.
+fn assert_all_executed_repeats_only_at_reset(record: &Path, job: u64, total: u64) -> u64 {
+    let text = std::fs::read_to_string(record).unwrap();
+    let idx: Vec<u64> = text
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|v| v["job_id"] == json!(job))
+        .map(|v| v["index"].as_u64().unwrap())
+        .collect();
+    let backs: Vec<usize> = (1..idx.len())
+        .filter(|&k| idx[k] != idx[k - 1] + 1)
+        .collect();
+    assert!(backs.len() <= 1, "more than one jump: {backs:?}");
+    let mut seen = std::collections::BTreeSet::new();
+    seen.extend(idx.iter().copied());
+    assert_eq!(seen.len() as u64, total, "every move executed");
+    assert_eq!(idx.first(), Some(&0));
+    assert_eq!(idx.last(), Some(&(total - 1)));
+    idx.len() as u64 - total
+}
+
+/// Executed indices of `job` from the recorder, checked to be 0..total each exactly once
+/// and in order.
+fn assert_exactly_once(record: &Path, job: u64, total: u64) {
+    let text = std::fs::read_to_string(record).unwrap();
+    let mut seen: BTreeMap<u64, u32> = BTreeMap::new();
+    let mut order = Vec::new();
+    for l in text.lines() {
+        let v: Value = serde_json::from_str(l).unwrap();
+        if v["job_id"] == json!(job) {
+            let i = v["index"].as_u64().unwrap();
+            *seen.entry(i).or_default() += 1;
+            order.push(i);
+        }
+    }
+    let dup: Vec<_> = seen.iter().filter(|(_, &n)| n > 1).collect();
+    assert!(dup.is_empty(), "moves executed twice: {dup:?}");
+    assert_eq!(seen.len() as u64, total, "moves executed");
+    assert!(order.windows(2).all(|w| w[0] + 1 == w[1]), "out of order");
+}
+
+fn submit(c: &mut Client, moves: u32) -> u64 {
+    c.call("job.submit", json!({"dry_run_moves": moves}))
+        .unwrap()["id"]
+        .as_u64()
+        .unwrap()
+}
+
+#[test]
+fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim(dir.path(), 1);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let info = c.call("server.info", json!({})).unwrap();
+    assert_eq!(info["name"], json!("edod"));
+
+    // A whole job: executed == planned.
+    let a = submit(&mut c, 1000);
+    let j = c.wait_state(a, "done");
+    assert_eq!(j["total_moves"], json!(1000));
+    assert_eq!(j["checkpoint"]["next_index"], json!(1000));
+
+    // Second job: bad requests of every kind while it streams, and pause/resume.
+    let b = submit(&mut c, 3000);
+    c.wait("job b streaming", |c| c.executed(b) > 100);
+    let mut bad = d.client();
+    let e = bad.send_raw("{not json");
+    assert_eq!(e["error"]["code"], json!(-32700));
+    let e = bad.send_raw(&"x".repeat(10_000));
+    assert_eq!(e["error"]["code"], json!(-32600));
+    let e = bad.send_raw(r#"{"jsonrpc":"1.0","id":1,"method":"server.info"}"#);
+    assert_eq!(e["error"]["code"], json!(-32600));
+    let e = bad.call("job.frobnicate", json!({})).unwrap_err();
+    assert_eq!(e["code"], json!(-32601));
+    let e = bad.call("job.get", json!({"id": "seven"})).unwrap_err();
+    assert_eq!(e["code"], json!(-32602));
+    let e = bad
+        .call("job.get", json!({"id": 1, "extra": 2}))
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32602));
+    let e = bad.call("job.get", json!({"id": 999})).unwrap_err();
+    assert_eq!(e["code"], json!(-32001));
+    let e = bad
+        .call("job.submit", json!({"job": "name = 3"}))
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    let e = bad.call("job.resume", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32002));
+    // A client that never reads and then vanishes.
+    {
+        let mut s = UnixStream::connect(&d.socket).unwrap();
+        s.write_all(b"{\"jsonrpc\":\"2.0\",\"id\":1,\"method\":\"subscribe\"}\n")
+            .unwrap();
+    }
+
+    c.call("job.pause", json!({"id": b})).unwrap();
+    let j = c.wait_state(b, "paused");
+    std::thread::sleep(Duration::from_millis(300));
+    let held_at = c.executed(b);
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(c.executed(b), held_at, "a paused job does not advance");
+    assert!(j["checkpoint"]["next_index"].as_u64().unwrap() < 3000);
+    c.call("job.resume", json!({"id": b})).unwrap();
+    c.wait_state(b, "done");
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["underruns"], json!(0), "{m}");
+    drop(c);
+    drop(bad);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 1000);
+    assert_exactly_once(&record, b, 3000);
+}
+
+#[test]
+fn estop_and_machine_reset_then_resume_from_first_move_not_executed() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim(dir.path(), 2);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 3000);
+    c.wait("streaming", |c| c.executed(a) > 300);
+    let t = c.call("machine.estop", json!({})).unwrap();
+    assert!(t["written_after_us"].as_u64().is_some(), "{t}");
+    eprintln!("e-stop timing: {t}");
+    let j = c.wait_state(a, "interrupted");
+    assert!(j["reason"].as_str().unwrap().contains("emergency stop"));
+    c.call("job.resume", json!({"id": a})).unwrap();
+    c.wait("streaming again", |c| c.executed(a) > 1500);
+    let before_reset = c.executed(a);
+    sim.command(hil_sim::Command::Reset);
+    let j = c.wait_state(a, "interrupted");
+    assert!(j["reason"].as_str().unwrap().contains("reset"), "{j}");
+    c.wait_connected();
+    c.call("job.resume", json!({"id": a})).unwrap();
+    c.wait_state(a, "done");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    let repeated = assert_all_executed_repeats_only_at_reset(&record, a, 3000);
+    eprintln!("moves repeated after the reset at {before_reset}: {repeated}");
+    assert!(repeated <= 100, "{repeated} moves repeated");
+}
+
+#[test]
+fn sigkill_of_edod_with_the_machine_running_loses_and_repeats_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim(dir.path(), 3);
+    let mut d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 3000);
+    c.wait("streaming", |c| c.executed(a) > 500);
+    d.child.kill().unwrap(); // SIGKILL
+    d.child.wait().unwrap();
+    drop(c);
+    std::thread::sleep(Duration::from_millis(300));
+    // The restarted edod talks to systemd: READY, STATUS, WATCHDOG.
+    let notify_path = dir.path().join("notify.sock");
+    let notify = std::os::unix::net::UnixDatagram::bind(&notify_path).unwrap();
+    notify
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    let mut d2 = Daemon::spawn_with(d.socket.clone(), d.config.clone(), Some(&notify_path));
+    let mut seen = String::new();
+    let mut buf = [0u8; 512];
+    while !(seen.contains("READY=1") && seen.contains("WATCHDOG=1") && seen.contains("STATUS=")) {
+        let n = notify.recv(&mut buf).unwrap();
+        seen.push_str(&String::from_utf8_lossy(&buf[..n]));
+        seen.push('\n');
+    }
+    let mut c = d2.client();
+    c.wait_connected();
+    let j = c.wait_state(a, "interrupted");
+    assert_eq!(j["reason"], json!("edod restarted"));
+    c.call("job.resume", json!({"id": a})).unwrap();
+    c.wait_state(a, "done");
+
+    // 50 subscribers while a job streams; then SIGTERM stops cleanly.
+    let mut subs: Vec<Client> = (0..50).map(|_| d2.client()).collect();
+    for s in &mut subs {
+        s.call("subscribe", json!({})).unwrap();
+    }
+    let b = submit(&mut c, 2000);
+    c.wait_state(b, "done");
+    for s in &mut subs {
+        let mut l = String::new();
+        s.r.read_line(&mut l).unwrap();
+        assert!(l.contains("notify_"), "{l}");
+    }
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["underruns"], json!(0), "{m}");
+    drop(subs);
+    drop(c);
+    assert!(d2.sigterm().success());
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 3000);
+    assert_exactly_once(&record, b, 2000);
+}
+
+#[test]
+fn syringe_empty_pauses_until_refill() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim(dir.path(), 4);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 2000);
+    c.wait("streaming", |c| c.executed(a) > 300);
+    sim.command(hil_sim::Command::Empty(1));
+    let j = c.wait_state(a, "paused");
+    assert!(
+        j["reason"].as_str().unwrap().contains("syringe 1 (B)"),
+        "{j}"
+    );
+    let e = c.call("job.resume", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32002));
+    c.call("machine.refill", json!({})).unwrap();
+    c.wait_state(a, "done");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 2000);
+}
+
+#[test]
+fn check_config_reports_line_and_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("bad.toml");
+    std::fs::write(&f, "[serial]\nport = \"sim\"\nspeed = 3\n").unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_edod"))
+        .arg("--check-config")
+        .arg(&f)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bad.toml:3:1"), "{err}");
+    let ok = Command::new(env!("CARGO_BIN_EXE_edod"))
+        .arg("--check-config")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("config/edod.toml"))
+        .output()
+        .unwrap();
+    assert!(ok.status.success());
+}
+
+#[test]
+fn edoctl_submits_watches_and_shows_daemon_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim(dir.path(), 5);
+    let d = Daemon::start(dir.path(), sim.path());
+    d.client().wait_connected();
+    let edoctl = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_edoctl"))
+            .arg("--socket")
+            .arg(&d.socket)
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let out = edoctl(&["submit", "--dry-run-moves", "300", "--watch", "--json"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(j["state"], json!("done"));
+    assert_eq!(j["checkpoint"]["next_index"], json!(300));
+    let out = edoctl(&["jobs"]);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("done"));
+    let out = edoctl(&["resume", "99"]);
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("edod: no job 99"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = Command::new(env!("CARGO_BIN_EXE_edoctl"))
+        .args(["--socket", "/nonexistent/edod.sock", "status"])
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("is edod running?"));
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, 1, 300);
+}
+
+#[test]
+fn cancel_stops_retracts_and_parks() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim(dir.path(), 6);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 3000);
+    let queued = submit(&mut c, 100);
+    c.call("job.cancel", json!({"id": queued})).unwrap();
+    assert_eq!(c.job(queued)["state"], json!("cancelled"));
+    c.wait("streaming", |c| c.executed(a) > 300);
+    c.call("job.cancel", json!({"id": a})).unwrap();
+    let j = c.wait_state(a, "cancelled");
+    let stopped_at = j["checkpoint"]["next_index"].as_u64().unwrap();
+    assert!(stopped_at < 3000);
+    c.wait("parked", |c| {
+        let m = c.call("machine.status", json!({})).unwrap();
+        m["state"] == json!("Idle") && m["position_mm"] == json!([0.0, 0.0, 50.0])
+    });
+    let e = c.call("job.cancel", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32002));
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    let text = std::fs::read_to_string(&record).unwrap();
+    let lines: Vec<Value> = text
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let idx: Vec<u64> = lines
+        .iter()
+        .filter(|v| v["job_id"] == json!(a))
+        .map(|v| v["index"].as_u64().unwrap())
+        .collect();
+    assert_eq!(idx, (0..stopped_at).collect::<Vec<_>>());
+    assert!(lines.iter().all(|v| v["job_id"] != json!(queued)));
+    let service: Vec<&str> = lines
+        .iter()
+        .filter(|v| v["job_id"] == json!(0))
+        .map(|v| v["kind"].as_str().unwrap())
+        .collect();
+    assert_eq!(service, ["retract", "travel", "travel"]);
+}
