@@ -685,6 +685,103 @@ impl Job {
     }
 }
 
+/// Why a mesh job's part could not be made into layers.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MeshJobError {
+    /// The job builds an extruded polygon, not a mesh.
+    #[error("geometry: the job builds a polygon, not a mesh")]
+    NotAMesh,
+    /// The mesh bytes do not decode or cannot be repaired.
+    #[error("geometry.mesh: {0}")]
+    Mesh(#[from] crate::mesh::MeshError),
+    /// The mesh cannot be sliced soundly (names the layer and the place).
+    #[error("slicing the mesh: {0}")]
+    Slice(#[from] crate::slice::SliceError),
+}
+
+/// A mesh job's part: loaded, repaired, indexed and stacked into layers (adaptive
+/// heights, thinner where a Z gradient needs it). Layers are cut a range at a time with
+/// [`MeshLayers::cut`]: `edoctl plan` cuts them all at once, the daemon as it streams, so
+/// its memory does not grow with the part. Pure: the mesh comes as bytes.
+pub struct MeshLayers {
+    slicer: crate::slice::Slicer<'static>,
+    spans: Vec<crate::slice::LayerSpan>,
+    tolerances: crate::slice::SliceTolerances,
+    /// What was found in the mesh and what was repaired.
+    pub mesh_report: crate::mesh::MeshReport,
+}
+
+impl MeshLayers {
+    /// Layers in the stack.
+    pub fn len(&self) -> usize {
+        self.spans.len()
+    }
+
+    /// Whether the stack is empty (a mesh with no height).
+    pub fn is_empty(&self) -> bool {
+        self.spans.is_empty()
+    }
+
+    /// Bottom and thickness of every layer.
+    pub fn spans(&self) -> &[crate::slice::LayerSpan] {
+        &self.spans
+    }
+
+    /// Cut layers `range` (clamped to the stack) in parallel.
+    pub fn cut(
+        &self,
+        range: std::ops::Range<usize>,
+        progress: Option<crate::slice::Progress>,
+    ) -> Result<(Vec<crate::slice::Layer>, crate::slice::SliceReport), crate::slice::SliceError>
+    {
+        let end = range.end.min(self.spans.len());
+        let start = range.start.min(end);
+        self.slicer
+            .slice(&self.spans[start..end], &self.tolerances, progress)
+    }
+}
+
+impl Job {
+    /// Load, repair, index and stack a mesh job's part from the mesh file's bytes
+    /// (`[process] layer`, `cusp`, `max_gap` and the Z gradient step apply).
+    pub fn mesh_layers(
+        &self,
+        bytes: &[u8],
+        limits: &crate::mesh::MeshLimits,
+    ) -> Result<MeshLayers, MeshJobError> {
+        if !matches!(self.geometry, Geometry::Mesh { .. }) {
+            return Err(MeshJobError::NotAMesh);
+        }
+        let (mesh, mesh_report) =
+            crate::mesh::load_and_repair(bytes, limits, &crate::mesh::RepairOptions::default())?;
+        let limit = |z: f64| self.z_step_limit_mm(z);
+        let tolerances = crate::slice::SliceTolerances {
+            max_gap_mm: self.layers.max_gap_mm,
+            ..crate::slice::SliceTolerances::default()
+        };
+        let opts = crate::slice::SliceOptions {
+            layer_min_mm: self.layers.min_mm,
+            layer_max_mm: self.layers.max_mm,
+            cusp_mm: self.layers.cusp_mm,
+            max_thickness_at: if self.z_stations.is_empty() {
+                None
+            } else {
+                Some(&limit)
+            },
+            tolerances,
+            ..crate::slice::SliceOptions::default()
+        };
+        let slicer = crate::slice::Slicer::new_owned(mesh)?;
+        let spans = slicer.layer_spans(&opts)?;
+        Ok(MeshLayers {
+            slicer,
+            spans,
+            tolerances,
+            mesh_report,
+        })
+    }
+}
+
 /// Default largest fraction change across one layer of a Z-varying gradient.
 pub const DEFAULT_Z_STEP: f64 = 0.02;
 

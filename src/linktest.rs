@@ -147,7 +147,9 @@ pub fn run(cfg: &LinkTestConfig) -> Result<LinkTestReport, LinkTestError> {
         .map_or(0, |d| d.as_nanos() as u64)
         ^ u64::from(std::process::id()) << 32;
     let job_id = (seed % 1_000_000_000) as u32 + 1;
-    let mut host = Host::new(LinkConfig::default(), seed, clock());
+    let link_cfg =
+        LinkConfig::default().with_priority_latency(cfg.baud, crate::link::PRIORITY_LATENCY_US);
+    let mut host = Host::new(link_cfg, seed, clock());
     let mut report = LinkTestReport {
         port: port_name.clone(),
         baud: cfg.baud,

@@ -20,12 +20,16 @@ struct Daemon {
 
 impl Daemon {
     fn start(dir: &Path, port: &Path) -> Daemon {
+        Daemon::start_with_limit(dir, port, 4096)
+    }
+
+    fn start_with_limit(dir: &Path, port: &Path, max_request_bytes: usize) -> Daemon {
         let socket = dir.join("edod.sock");
         let config = dir.join("edod.toml");
         std::fs::write(
             &config,
             format!(
-                "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = 4096\n\
+                "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = {max_request_bytes}\n\
                  [state]\ndir = {:?}\n[planner]\ndry_run_moves_per_layer = 100\n",
                 port.display().to_string(),
                 socket.display().to_string(),
@@ -305,6 +309,9 @@ fn estop_and_machine_reset_then_resume_from_first_move_not_executed() {
     let t = c.call("machine.estop", json!({})).unwrap();
     assert!(t["written_after_us"].as_u64().is_some(), "{t}");
     eprintln!("e-stop timing: {t}");
+    // The machine's acknowledgement bounds when the e-stop reached it: within 50 ms.
+    let acked = t["acked_after_us"].as_u64().expect("e-stop acknowledged");
+    assert!(acked <= 50_000, "e-stop acknowledged after {acked} µs");
     let j = c.wait_state(a, "interrupted");
     assert!(j["reason"].as_str().unwrap().contains("emergency stop"));
     c.call("job.resume", json!({"id": a})).unwrap();
@@ -512,4 +519,124 @@ fn cancel_stops_retracts_and_parks() {
         .map(|v| v["kind"].as_str().unwrap())
         .collect();
     assert_eq!(service, ["retract", "travel", "travel"]);
+}
+
+/// A graded tube (STL) as a mesh job: sent over the socket with its mesh by `edoctl submit`,
+/// sliced and planned by edod as it streams; the machine executes exactly the moves the
+/// same job plans offline, each once and in order. Bad meshes are refused at submission.
+#[test]
+fn mesh_job_streams_exactly_the_planned_moves() {
+    let dir = tempfile::tempdir().unwrap();
+    let tube = edo::mesh::primitives::tube(4.0, 8.0, 0.8, 64);
+    let tris: Vec<stl_io::Triangle> = tube
+        .triangles
+        .iter()
+        .map(|t| {
+            let v = |i: u32| {
+                let p = tube.vertices[i as usize].as_vec3();
+                stl_io::Vertex::new([p.x, p.y, p.z])
+            };
+            stl_io::Triangle {
+                normal: stl_io::Normal::new([0.0, 0.0, 0.0]),
+                vertices: [v(t[0]), v(t[1]), v(t[2])],
+            }
+        })
+        .collect();
+    let mut stl = Vec::new();
+    stl_io::write_stl(&mut stl, tris.iter()).unwrap();
+    std::fs::write(dir.path().join("tube.stl"), &stl).unwrap();
+    let job_toml = r#"name = "graded tube"
+[geometry]
+mesh = "tube.stl"
+[materials]
+names = ["A", "B"]
+[gradient]
+pattern = "growth-rings"
+inner = [1.0, 0.0]
+outer = [0.0, 1.0]
+[process]
+r_mach = 0.8
+nozzle = 0.4
+layer = 0.2
+"#;
+    let job_path = dir.path().join("tube.toml");
+    std::fs::write(&job_path, job_toml).unwrap();
+
+    let (sim, record) = sim(dir.path(), 7);
+    let d = Daemon::start_with_limit(dir.path(), sim.path(), 1 << 20);
+    let mut c = d.client();
+    c.wait_connected();
+    // Refused at submission: a mesh job without its mesh, a mesh that is not one.
+    let e = c.call("job.submit", json!({"job": job_toml})).unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    assert!(
+        e["message"].as_str().unwrap().contains("mesh_base64"),
+        "{e}"
+    );
+    let e = c
+        .call(
+            "job.submit",
+            json!({"job": job_toml, "mesh_base64": "c29saWQgeAplbmRzb2xpZCB4Cg=="}),
+        )
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    assert!(e["message"].as_str().unwrap().contains("tube.stl"), "{e}");
+
+    let out = Command::new(env!("CARGO_BIN_EXE_edoctl"))
+        .arg("--socket")
+        .arg(&d.socket)
+        .args(["submit", "--watch", "--json"])
+        .arg(&job_path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(j["state"], json!("done"), "{j}");
+    let id = j["id"].as_u64().unwrap();
+    let total = j["total_moves"].as_u64().unwrap();
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+
+    // The same job planned offline, for the machine edod was configured with.
+    let machine = edo::daemon::config::MachineConfig::default();
+    let mut src =
+        edo::daemon::planner::JobSource::new(job_toml, Some(&stl), "tube", &machine).unwrap();
+    let mut planned = Vec::new();
+    while let Some(layer) = edo::daemon::planner::LayerSource::next_layer(&mut src) {
+        planned.extend(layer.unwrap());
+    }
+    assert_eq!(planned.len() as u64, total);
+    assert!(planned.len() > 100, "{} moves", planned.len());
+    assert_exactly_once(&record, id, total);
+    let text = std::fs::read_to_string(&record).unwrap();
+    let executed: Vec<Value> = text
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|v| v["job_id"] == json!(id))
+        .collect();
+    let mut extrusions = 0;
+    for (m, e) in planned.iter().zip(&executed) {
+        assert_eq!(e["index"], json!(m.index));
+        if let edo::machine::MoveKind::Extrude { to, volumes_nl, .. } = &m.kind {
+            extrusions += 1;
+            assert_eq!(e["kind"], json!("extrude"), "move {}", m.index);
+            assert_eq!(e["volumes_nl"], json!(volumes_nl), "move {}", m.index);
+            let at = [to.x_um, to.y_um, to.z_um].map(|v| v as f64 / 1000.0);
+            for k in 0..3 {
+                let got = e["to_mm"][k].as_f64().unwrap();
+                assert!(
+                    (got - at[k]).abs() < 1e-6,
+                    "move {}: {got} vs {}",
+                    m.index,
+                    at[k]
+                );
+            }
+        }
+    }
+    assert!(extrusions > 50, "{extrusions} extrusions");
 }

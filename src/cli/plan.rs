@@ -4,9 +4,8 @@
 
 use crate::edo::{plan_layers, LayerPlan};
 use crate::job::{Geometry, Job, LayerSlice};
-use crate::mesh::{MeshLimits, RepairOptions};
+use crate::mesh::MeshLimits;
 use crate::report::MeshNotes;
-use crate::slice::{SliceOptions, Slicer};
 use anyhow::{Context, Result};
 use std::io::{IsTerminal, Write};
 use std::ops::Range;
@@ -122,39 +121,23 @@ pub fn job_layers(
             let limits = MeshLimits::default();
             let bytes = crate::mesh::path::read_limited(&mesh_path, &limits)
                 .with_context(|| format!("geometry.mesh: cannot load {}", mesh_path.display()))?;
-            let (mesh, mesh_report) =
-                crate::mesh::load_and_repair(&bytes, &limits, &RepairOptions::default())
-                    .with_context(|| format!("geometry.mesh: {}", mesh_path.display()))?;
-            let limit = |z: f64| job.z_step_limit_mm(z);
-            let opts = SliceOptions {
-                layer_min_mm: job.layers.min_mm,
-                layer_max_mm: job.layers.max_mm,
-                cusp_mm: job.layers.cusp_mm,
-                max_thickness_at: if job.z_stations.is_empty() {
-                    None
-                } else {
-                    Some(&limit)
-                },
-                ..SliceOptions::default()
-            };
-            let slicer =
-                Slicer::new(&mesh).with_context(|| format!("slicing {}", mesh_path.display()))?;
-            let spans = slicer
-                .layer_spans(&opts)
-                .with_context(|| format!("slicing {}", mesh_path.display()))?;
-            let r = pick(spans.len())?;
+            let part = job
+                .mesh_layers(&bytes, &limits)
+                .with_context(|| mesh_path.display().to_string())?;
+            let r = pick(part.len())?;
             let b = bar(r.len() as u64, "slicing", quiet);
             let progress = |done: usize, _total: usize| {
                 if let Some(b) = &b {
                     b.set_position(done as u64);
                 }
             };
-            let (layers, slice_report) = slicer
-                .slice(&spans[r.clone()], &opts.tolerances, Some(&progress))
+            let (layers, slice_report) = part
+                .cut(r.clone(), Some(&progress))
                 .with_context(|| format!("slicing {}", mesh_path.display()))?;
             if let Some(b) = b {
                 b.finish_and_clear();
             }
+            let mesh_report = part.mesh_report;
             Ok((
                 job.layer_slices(r.start, layers),
                 MeshNotes {

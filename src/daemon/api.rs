@@ -188,6 +188,41 @@ struct Submit {
     name: Option<String>,
 }
 
+/// A mesh job needs its mesh, and the mesh must load and stack into layers: checked
+/// here (on a blocking worker) so a bad part is refused at submission, naming the
+/// problem, instead of failing when it starts. A polygon job must not carry a mesh.
+async fn check_mesh(
+    job: &crate::job::Job,
+    mesh: Option<Vec<u8>>,
+) -> Result<Option<Vec<u8>>, ApiError> {
+    let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
+    match (&job.geometry, mesh) {
+        (crate::job::Geometry::Extruded { .. }, None) => Ok(None),
+        (crate::job::Geometry::Extruded { .. }, Some(_)) => Err(bad(
+            "mesh_base64: the job builds a polygon ([geometry] polygon/regions), not a mesh"
+                .into(),
+        )),
+        (crate::job::Geometry::Mesh { path }, None) => Err(bad(format!(
+            "geometry.mesh = {path:?}: send the mesh's bytes with the job (mesh_base64); edod reads no files on a client's behalf"
+        ))),
+        (crate::job::Geometry::Mesh { path }, Some(bytes)) => {
+            let job = job.clone();
+            let path = path.clone();
+            tokio::task::spawn_blocking(move || {
+                match job.mesh_layers(&bytes, &crate::mesh::MeshLimits::default()) {
+                    Ok(part) if part.is_empty() => {
+                        Err(bad(format!("{path}: the mesh has no height to slice")))
+                    }
+                    Ok(_) => Ok(Some(bytes)),
+                    Err(e) => Err(bad(format!("{path}: {e}"))),
+                }
+            })
+            .await
+            .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("mesh check failed: {e}")))?
+        }
+    }
+}
+
 /// Handle one request line: the reply line (none for a notification) and whether the
 /// client subscribed.
 pub async fn handle(line: &[u8], shared: &Shared) -> (Option<String>, bool) {
@@ -289,14 +324,15 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
                         .mesh_base64
                         .as_deref()
                         .map(|b| {
-                            base64_decode(b).map_err(|at| {
+                            base64_decode(b).map_err(|e| {
                                 ApiError::new(
                                     ApiError::INVALID_PARAMS,
-                                    format!("mesh_base64: not base64 at byte {at}"),
+                                    format!("mesh_base64: not base64: {e}"),
                                 )
                             })
                         })
                         .transpose()?;
+                    let mesh = check_mesh(&job, mesh).await?;
                     (JobSpec::Toml { toml, mesh }, s.name.unwrap_or(job.name))
                 }
                 (None, Some(moves)) if moves > 0 => (
@@ -384,48 +420,21 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
     }
 }
 
-/// Standard base64 (RFC 4648, padding optional). Error: byte offset of the first bad
-/// character.
-pub fn base64_decode(s: &str) -> Result<Vec<u8>, usize> {
-    let mut out = Vec::with_capacity(s.len() / 4 * 3);
-    let (mut acc, mut bits) = (0u32, 0u32);
-    for (i, c) in s.bytes().enumerate() {
-        let v = match c {
-            b'A'..=b'Z' => c - b'A',
-            b'a'..=b'z' => c - b'a' + 26,
-            b'0'..=b'9' => c - b'0' + 52,
-            b'+' => 62,
-            b'/' => 63,
-            b'=' => continue,
-            _ => return Err(i),
-        };
-        acc = (acc << 6) | u32::from(v);
-        bits += 6;
-        if bits >= 8 {
-            bits -= 8;
-            out.push((acc >> bits) as u8);
-        }
-    }
-    Ok(out)
+/// Decode standard base64 (RFC 4648, padding optional).
+pub fn base64_decode(s: &str) -> Result<Vec<u8>, base64::DecodeError> {
+    use base64::Engine;
+    base64::engine::general_purpose::GeneralPurpose::new(
+        &base64::alphabet::STANDARD,
+        base64::engine::GeneralPurposeConfig::new()
+            .with_decode_padding_mode(base64::engine::DecodePaddingMode::Indifferent),
+    )
+    .decode(s)
 }
 
-/// Standard base64 with padding.
+/// Encode standard base64 with padding.
 pub fn base64_encode(b: &[u8]) -> String {
-    const T: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut s = String::with_capacity(b.len().div_ceil(3) * 4);
-    for c in b.chunks(3) {
-        let n = (u32::from(c[0]) << 16)
-            | (u32::from(*c.get(1).unwrap_or(&0)) << 8)
-            | u32::from(*c.get(2).unwrap_or(&0));
-        for k in 0..4 {
-            if k <= c.len() {
-                s.push(T[((n >> (18 - 6 * k)) & 63) as usize] as char);
-            } else {
-                s.push('=');
-            }
-        }
-    }
-    s
+    use base64::Engine;
+    base64::engine::general_purpose::STANDARD.encode(b)
 }
 
 #[cfg(test)]
@@ -438,7 +447,8 @@ mod tests {
             let v: Vec<u8> = (0..n).map(|i| i.wrapping_mul(37)).collect();
             assert_eq!(base64_decode(&base64_encode(&v)).unwrap(), v);
         }
-        assert_eq!(base64_decode("ab$c"), Err(2));
+        assert!(base64_decode("ab$c").is_err());
+        assert_eq!(base64_decode("AQI").unwrap(), vec![1, 2]);
     }
 
     #[tokio::test]

@@ -180,20 +180,41 @@ impl LayerSource for DryRunSource {
 /// A job file planned layer by layer: the EDO plan of each layer (`edo::plan_layer`),
 /// then the toolpath pipeline (`pipeline::layer_moves`) turns it into moves, carrying
 /// its stream state (position, pressure, volumes, mixing chamber) from layer to layer.
+///
+/// An extruded polygon's layers are known at once. A mesh job's part is loaded, repaired
+/// and stacked on the planner worker (the first call of `next_layer`, never on the
+/// streamer's task), then cut [`MESH_LAYERS_PER_CUT`] layers at a time, so memory holds
+/// the mesh and a few layers however tall the part.
 pub struct JobSource {
     job: crate::job::Job,
-    slices: Vec<crate::job::LayerSlice>,
+    layers: Layers,
     next_layer: usize,
     settings: crate::pipeline::ProcessSettings,
     state: crate::pipeline::StreamState,
     next_index: u32,
 }
 
+/// Mesh layers cut (in parallel) per batch.
+pub const MESH_LAYERS_PER_CUT: usize = 8;
+
+enum Layers {
+    Extruded(Vec<crate::job::LayerSlice>),
+    /// Mesh bytes not loaded yet.
+    MeshBytes(Vec<u8>),
+    Mesh {
+        part: Box<crate::job::MeshLayers>,
+        /// Cut layers not planned yet, in order.
+        ready: std::collections::VecDeque<crate::job::LayerSlice>,
+    },
+}
+
 impl JobSource {
-    /// Parse and validate a job file (`source_name` names it in errors) for a machine
-    /// (`[machine]` of edod.toml: syringes, max flow factor, V_dead).
+    /// Parse and validate a job file (`source_name` names it in errors) with the mesh
+    /// bytes sent with it (a mesh job), for a machine (`[machine]` of edod.toml:
+    /// syringes, max flow factor, V_dead). Cheap: a mesh is loaded on the worker.
     pub fn new(
         toml: &str,
+        mesh: Option<&[u8]>,
         source_name: &str,
         machine: &super::config::MachineConfig,
     ) -> Result<Self, String> {
@@ -212,15 +233,18 @@ impl JobSource {
         settings
             .validate()
             .map_err(|e| format!("{source_name}: {e}"))?;
-        let Some(stack) = job.extruded_layers() else {
-            return Err(format!(
-                "{source_name}: geometry.mesh: edod does not stream mesh jobs yet; plan them offline with `edoctl plan` (polygon jobs stream)"
-            ));
+        let layers = match (job.extruded_layers(), mesh) {
+            (Some(stack), _) => Layers::Extruded(job.layer_slices(0, stack)),
+            (None, Some(bytes)) => Layers::MeshBytes(bytes.to_vec()),
+            (None, None) => {
+                return Err(format!(
+                    "{source_name}: geometry.mesh: the mesh was not sent with the job (job.submit mesh_base64)"
+                ))
+            }
         };
-        let slices = job.layer_slices(0, stack);
         Ok(Self {
             job,
-            slices,
+            layers,
             next_layer: 0,
             settings,
             state: crate::pipeline::StreamState::new(),
@@ -232,12 +256,54 @@ impl JobSource {
     pub fn name(&self) -> &str {
         &self.job.name
     }
+
+    /// The next layer to plan, loading and cutting the mesh as needed.
+    fn next_slice(&mut self) -> Option<Result<crate::job::LayerSlice, String>> {
+        if let Layers::MeshBytes(bytes) = &self.layers {
+            let part = match self
+                .job
+                .mesh_layers(bytes, &crate::mesh::MeshLimits::default())
+            {
+                Ok(p) => p,
+                Err(e) => return Some(Err(e.to_string())),
+            };
+            self.layers = Layers::Mesh {
+                part: Box::new(part),
+                ready: Default::default(),
+            };
+        }
+        let k = self.next_layer;
+        match &mut self.layers {
+            Layers::Extruded(slices) => {
+                let s = slices.get(k)?.clone();
+                self.next_layer += 1;
+                Some(Ok(s))
+            }
+            Layers::Mesh { part, ready } => {
+                if ready.is_empty() {
+                    if k >= part.len() {
+                        return None;
+                    }
+                    match part.cut(k..k + MESH_LAYERS_PER_CUT, None) {
+                        Ok((layers, _)) => ready.extend(self.job.layer_slices(k, layers)),
+                        Err(e) => return Some(Err(e.to_string())),
+                    }
+                }
+                let s = ready.pop_front()?;
+                self.next_layer += 1;
+                Some(Ok(s))
+            }
+            Layers::MeshBytes(_) => None,
+        }
+    }
 }
 
 impl LayerSource for JobSource {
     fn next_layer(&mut self) -> Option<Result<Vec<Move>, String>> {
-        let s = self.slices.get(self.next_layer)?;
-        self.next_layer += 1;
+        let s = match self.next_slice()? {
+            Ok(s) => s,
+            Err(e) => return Some(Err(e)),
+        };
         let l = &s.layer;
         let plan = crate::edo::plan_layer(
             s.index,
@@ -275,7 +341,7 @@ mod tests {
         );
         let text = std::fs::read_to_string(path).unwrap();
         let machine = super::super::config::MachineConfig::default();
-        let mut src = JobSource::new(&text, "annulus", &machine).unwrap();
+        let mut src = JobSource::new(&text, None, "annulus", &machine).unwrap();
         let first = src.next_layer().unwrap().unwrap();
         assert!(matches!(
             first[0].kind,

@@ -150,13 +150,15 @@ impl Streamer {
     pub fn new(shared: Arc<Shared>) -> Self {
         let seed = session_seed();
         let epoch = Instant::now();
+        let link_cfg = LinkConfig::default()
+            .with_priority_latency(shared.config.serial.baud, crate::link::PRIORITY_LATENCY_US);
         Self {
             port_path: shared.port.clone(),
             baud: shared.config.serial.baud,
             shared,
             port: None,
             reopen_at: epoch,
-            host: Host::new(LinkConfig::default(), seed, Micros(0)),
+            host: Host::new(link_cfg, seed, Micros(0)),
             epoch,
             seed,
             connected: false,
@@ -525,10 +527,13 @@ impl Streamer {
                 self.shared.config.planner.dry_run_moves_per_layer,
                 syringes,
             ))),
-            JobSpec::Toml { toml, .. } => {
-                JobSource::new(toml, &format!("job {id}"), &self.shared.config.machine)
-                    .map(|s| Box::new(s) as Box<dyn LayerSource>)
-            }
+            JobSpec::Toml { toml, mesh } => JobSource::new(
+                toml,
+                mesh.as_deref(),
+                &format!("job {id}"),
+                &self.shared.config.machine,
+            )
+            .map(|s| Box::new(s) as Box<dyn LayerSource>),
         }
     }
 

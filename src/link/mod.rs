@@ -72,6 +72,11 @@ pub struct LinkConfig {
     pub min_frame: usize,
     /// Most unacknowledged Data frames in flight.
     pub max_frames_in_flight: usize,
+    /// This end's own cap on the wire bytes in flight, below the peer's advertised
+    /// receive buffer: it bounds how long a priority frame (e-stop) can wait behind data
+    /// already on the wire. `usize::MAX` leaves only the peer's limit; the daemon sets it
+    /// from the baud rate with [`LinkConfig::with_priority_latency`].
+    pub max_bytes_in_flight: usize,
     /// RTO before the first RTT sample.
     pub initial_rto_us: u64,
     /// Lower bound of the RTO (RFC 6298 says 1 s for the Internet; a serial line is
@@ -97,6 +102,7 @@ impl Default for LinkConfig {
             max_frame: 512,
             min_frame: 128,
             max_frames_in_flight: 32,
+            max_bytes_in_flight: usize::MAX,
             initial_rto_us: 250_000,
             min_rto_us: 25_000,
             max_rto_us: 1_000_000,
@@ -106,6 +112,22 @@ impl Default for LinkConfig {
             link_timeout_us: 1_500_000,
             hello_interval_us: 250_000,
         }
+    }
+}
+
+/// Data that may be ahead of an e-stop on the wire, µs: the daemon and `edoctl
+/// link-test` cap their byte window to it (`docs/protocol.md` §5).
+pub const PRIORITY_LATENCY_US: u64 = 15_000;
+
+impl LinkConfig {
+    /// Cap the bytes in flight so that at most `latency_us` of data (at `baud`, 10 bits a
+    /// byte) can be ahead of a priority frame, but never below `min_frame` (one small
+    /// frame always fits). A serial line's round trip is a few milliseconds, so a window
+    /// of 15 ms still keeps the line full (see `docs/protocol.md` §5).
+    pub fn with_priority_latency(mut self, baud: u32, latency_us: u64) -> Self {
+        let bytes = (u64::from(baud) / 10).saturating_mul(latency_us) / 1_000_000;
+        self.max_bytes_in_flight = (bytes as usize).max(self.min_frame);
+        self
     }
 }
 

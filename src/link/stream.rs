@@ -145,6 +145,8 @@ pub(crate) struct SendStream {
     slot_limit: u64,
     max_frames: usize,
     max_bytes: usize,
+    /// This end's own cap (`LinkConfig::max_bytes_in_flight`).
+    own_max_bytes: usize,
     max_frame: usize,
     dup_ack_threshold: u32,
 }
@@ -171,7 +173,8 @@ impl SendStream {
             slots_acked: 0,
             slot_limit: 0,
             max_frames: cfg.max_frames_in_flight.max(1),
-            max_bytes: usize::MAX,
+            max_bytes: cfg.max_bytes_in_flight.max(1),
+            own_max_bytes: cfg.max_bytes_in_flight.max(1),
             max_frame: cfg.max_frame,
             dup_ack_threshold: cfg.dup_ack_threshold,
         }
@@ -179,7 +182,7 @@ impl SendStream {
 
     /// Set the peer's limits learnt in the handshake.
     pub(crate) fn set_peer_limits(&mut self, rx_buffer_bytes: usize, max_frame: usize) {
-        self.max_bytes = rx_buffer_bytes.max(1);
+        self.max_bytes = rx_buffer_bytes.max(1).min(self.own_max_bytes);
         self.max_frame = self.max_frame.min(max_frame);
         self.frame_budget = self.frame_budget.min(self.max_frame);
         self.min_frame = self.min_frame.min(self.max_frame);

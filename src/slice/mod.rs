@@ -207,7 +207,7 @@ pub type Progress<'a> = &'a (dyn Fn(usize, usize) + Sync);
 
 /// A mesh indexed for slicing. Build once, then ask for layer spans and sections.
 pub struct Slicer<'m> {
-    mesh: &'m Mesh,
+    mesh: std::borrow::Cow<'m, Mesh>,
     /// Undirected edge id of each triangle's edge k (corner k to corner k + 1).
     tri_edges: Vec<[u32; 3]>,
     edge_count: usize,
@@ -219,6 +219,16 @@ pub struct Slicer<'m> {
 impl<'m> Slicer<'m> {
     /// Index `mesh` (its triangles should have gone through [`crate::mesh::repair`]).
     pub fn new(mesh: &'m Mesh) -> Result<Self, SliceError> {
+        Self::index(std::borrow::Cow::Borrowed(mesh))
+    }
+
+    /// Index a mesh the slicer keeps (for a job that cuts its layers over time, as the
+    /// daemon's planner does).
+    pub fn new_owned(mesh: Mesh) -> Result<Slicer<'static>, SliceError> {
+        Slicer::index(std::borrow::Cow::Owned(mesh))
+    }
+
+    fn index(mesh: std::borrow::Cow<'m, Mesh>) -> Result<Self, SliceError> {
         mesh.check_indices_and_coordinates()?;
         let (lo, hi) = mesh.bounds().ok_or(SliceError::Empty)?;
         let uses = crate::mesh::edge_uses(&mesh.triangles);
@@ -270,7 +280,7 @@ impl<'m> Slicer<'m> {
 
     /// The stack of layers from the part's bottom to its top (see `heights`).
     pub fn layer_spans(&self, options: &SliceOptions) -> Result<Vec<LayerSpan>, SliceError> {
-        heights::layer_spans(self.mesh, self.z_range, options)
+        heights::layer_spans(&self.mesh, self.z_range, options)
     }
 
     /// Cut the given layers (any subset of [`Self::layer_spans`], e.g. a `--layers A..B`
@@ -288,14 +298,14 @@ impl<'m> Slicer<'m> {
             .iter()
             .map(|s| self.cut_height_mm(s.mid_z_mm(), tolerances))
             .collect();
-        let buckets = section::Buckets::new(self.mesh, &planes);
+        let buckets = section::Buckets::new(&self.mesh, &planes);
         let results: Vec<Result<(Vec<Region>, section::LayerNotes), SliceError>> = (0..total)
             .into_par_iter()
             .map_init(
                 || section::Scratch::new(self.edge_count),
                 |scratch, i| {
                     let r = section::cut(
-                        self.mesh,
+                        &self.mesh,
                         &self.tri_edges,
                         buckets.triangles(i),
                         planes[i],
