@@ -354,6 +354,9 @@ pub struct LayerMoves {
     pub paths: Vec<ToolPath>,
     /// Index of the next move (`first_index + moves.len()`).
     pub next_index: u32,
+    /// For every extrusion move: its index and the path in `paths` it builds (whose
+    /// composition is the designed one there), to compare with what was built.
+    pub extrusion_paths: Vec<(u32, u32)>,
 }
 
 /// The ordered, flow-adjusted paths of a layer (steps 1–4 of [`crate::toolpath`]).
@@ -437,13 +440,16 @@ pub fn moves_for_paths(
         commanded: Vec::new(),
         segment: 0,
         error_volume_nl: 0.0,
+        path_index: 0,
+        extrusion_paths: Vec::new(),
     };
     b.commanded = commanded_compositions(&paths, settings, layer.thickness_mm);
     b.push(MoveKind::LayerMark {
         layer: layer.index as u32,
         z_um: to_um(layer.z_mm),
     })?;
-    for p in &paths {
+    for (i, p) in paths.iter().enumerate() {
+        b.path_index = i as u32;
         b.path(p)?;
     }
     b.stats.paths = paths.len();
@@ -472,6 +478,7 @@ pub fn moves_for_paths(
         stats: b.stats,
         paths,
         next_index,
+        extrusion_paths: b.extrusion_paths,
     })
 }
 
@@ -497,6 +504,9 @@ struct Builder<'a> {
     commanded: Vec<Vec<f64>>,
     segment: usize,
     error_volume_nl: f64,
+    /// Index in the layer's paths of the path being built.
+    path_index: u32,
+    extrusion_paths: Vec<(u32, u32)>,
 }
 
 /// The composition to command on each extrusion segment of a layer: with the mixing lead,
@@ -749,6 +759,8 @@ impl Builder<'_> {
                 .round()
                 .clamp(0.0, f64::from(u16::MAX)) as u16,
         })?;
+        self.extrusion_paths
+            .push((self.next.saturating_sub(1), self.path_index));
         self.stats.extrude_moves += 1;
         self.stats.extruded_mm += len;
         self.stats.max_width_factor = self.stats.max_width_factor.max(factor);

@@ -61,6 +61,59 @@ struct Frame {
 }
 
 impl Frame {
+    /// The frame around the part and the given points, with a margin of a road width
+    /// plus 2 % (the planned and the as-built drawings of a layer get the same frame).
+    fn around(
+        islands: &[Region],
+        points: impl Iterator<Item = DVec2>,
+        road_width_mm: f64,
+    ) -> Frame {
+        let mut lo = DVec2::splat(f64::INFINITY);
+        let mut hi = DVec2::splat(f64::NEG_INFINITY);
+        for r in islands {
+            let (a, b) = r.bounds();
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+        for q in points {
+            lo = lo.min(q);
+            hi = hi.max(q);
+        }
+        if !lo.is_finite() || !hi.is_finite() {
+            lo = DVec2::ZERO;
+            hi = DVec2::ONE;
+        }
+        let margin = road_width_mm + 0.02 * (hi - lo).max_element();
+        Frame {
+            lo: lo - DVec2::splat(margin),
+            hi: hi + DVec2::splat(margin),
+        }
+    }
+
+    /// The `<svg>` element (1000 px on the long side), its title and the part's outline.
+    fn open(&self, out: &mut String, title: &str, islands: &[Region], thin: f64) {
+        let size = self.hi - self.lo;
+        let px = 1000.0 / size.x.max(size.y).max(1e-9);
+        let _ = writeln!(
+            out,
+            r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {:.3} {:.3}" width="{:.0}" height="{:.0}">"#,
+            size.x,
+            size.y,
+            size.x * px,
+            size.y * px
+        );
+        let _ = writeln!(out, "<title>{}</title>", escape(title));
+        for r in islands {
+            for l in r.loops() {
+                let _ = writeln!(
+                    out,
+                    r##"<polygon points="{}" fill="none" stroke="#999999" stroke-width="{thin:.3}"/>"##,
+                    self.points(l)
+                );
+            }
+        }
+    }
+
     fn xy(&self, p: DVec2) -> (f64, f64) {
         (p.x - self.lo.x, self.hi.y - p.y)
     }
@@ -262,50 +315,14 @@ pub struct RoadsInput<'a> {
 /// paths as thin dashed lines, seams as black dots (hollow where not at a concave corner),
 /// voids highlighted in red. Pure: returns the SVG text.
 pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> String {
-    let mut lo = DVec2::splat(f64::INFINITY);
-    let mut hi = DVec2::splat(f64::NEG_INFINITY);
-    for r in input.islands {
-        let (a, b) = r.bounds();
-        lo = lo.min(a);
-        hi = hi.max(b);
-    }
-    for p in paths {
-        for q in &p.points {
-            lo = lo.min(*q);
-            hi = hi.max(*q);
-        }
-    }
-    if !lo.is_finite() || !hi.is_finite() {
-        lo = DVec2::ZERO;
-        hi = DVec2::ONE;
-    }
-    let margin = input.road_width_mm + 0.02 * (hi - lo).max_element();
-    let f = Frame {
-        lo: lo - DVec2::splat(margin),
-        hi: hi + DVec2::splat(margin),
-    };
-    let size = f.hi - f.lo;
-    let px = 1000.0 / size.x.max(size.y).max(1e-9);
-    let mut out = String::new();
-    let _ = writeln!(
-        out,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {:.3} {:.3}" width="{:.0}" height="{:.0}">"#,
-        size.x,
-        size.y,
-        size.x * px,
-        size.y * px
+    let f = Frame::around(
+        input.islands,
+        paths.iter().flat_map(|p| p.points.iter().copied()),
+        input.road_width_mm,
     );
-    let _ = writeln!(out, "<title>{}</title>", escape(input.title));
+    let mut out = String::new();
     let thin = input.road_width_mm * 0.1;
-    for r in input.islands {
-        for l in r.loops() {
-            let _ = writeln!(
-                out,
-                r##"<polygon points="{}" fill="none" stroke="#999999" stroke-width="{thin:.3}"/>"##,
-                f.points(l)
-            );
-        }
-    }
+    f.open(&mut out, input.title, input.islands, thin);
     // Roads, edge by edge so widths can vary.
     for p in paths {
         let colour = mix_colour(&p.composition);
@@ -367,6 +384,84 @@ pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> Str
             x - 0.5 * c,
             y - 0.5 * c
         );
+    }
+    out.push_str("</svg>\n");
+    out
+}
+
+/// A layer as the machine built it (from its recording, [`crate::machine::record`]):
+/// every extrusion at the width its volume gives, coloured by the composition that left
+/// the nozzle (after the mixing chamber), over the part's outline. Same frame and colours
+/// as [`roads_svg`], so the two compare side by side ([`side_by_side`]).
+pub fn built_svg(
+    roads: &[crate::machine::record::BuiltRoad],
+    islands: &[Region],
+    road_width_mm: f64,
+    title: &str,
+) -> String {
+    let f = Frame::around(
+        islands,
+        roads.iter().flat_map(|r| [r.from, r.to]),
+        road_width_mm,
+    );
+    let mut out = String::new();
+    f.open(&mut out, title, islands, road_width_mm * 0.1);
+    for r in roads {
+        let (a, b) = (f.xy(r.from), f.xy(r.to));
+        let _ = writeln!(
+            out,
+            r#"<line x1="{:.3}" y1="{:.3}" x2="{:.3}" y2="{:.3}" stroke="{}" stroke-width="{:.3}" stroke-linecap="round"/>"#,
+            a.0,
+            a.1,
+            b.0,
+            b.1,
+            mix_colour(&r.composition),
+            // Moves that deposit nothing (dry runs) still show, as hairlines.
+            r.width_mm.max(road_width_mm * 0.1)
+        );
+    }
+    out.push_str("</svg>\n");
+    out
+}
+
+/// Pixel size of a drawing from its root element's `width` and `height` attributes.
+fn drawing_size(svg: &str) -> (f64, f64) {
+    let root = svg.split('>').next().unwrap_or_default();
+    let attr = |name: &str| {
+        root.split(&format!(" {name}=\""))
+            .nth(1)
+            .and_then(|rest| rest.split('"').next())
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap_or(1000.0)
+    };
+    (attr("width"), attr("height"))
+}
+
+/// Drawings next to each other, each under its caption, in one SVG.
+pub fn side_by_side(panels: &[(&str, &str)], title: &str) -> String {
+    let (gap, head) = (20.0, 40.0);
+    let sizes: Vec<(f64, f64)> = panels.iter().map(|(_, s)| drawing_size(s)).collect();
+    let width: f64 =
+        sizes.iter().map(|s| s.0).sum::<f64>() + gap * (panels.len().max(1) - 1) as f64;
+    let height = sizes.iter().map(|s| s.1).fold(0.0, f64::max) + head;
+    let mut out = String::new();
+    let _ = writeln!(
+        out,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width:.0} {height:.0}" width="{width:.0}" height="{height:.0}" font-family="sans-serif">"#
+    );
+    let _ = writeln!(out, "<title>{}</title>", escape(title));
+    let mut x = 0.0;
+    for ((caption, svg), (w, _)) in panels.iter().zip(&sizes) {
+        let _ = writeln!(
+            out,
+            r#"<text x="{:.0}" y="28" font-size="24" text-anchor="middle">{}</text>"#,
+            x + w / 2.0,
+            escape(caption)
+        );
+        let _ = writeln!(out, r#"<g transform="translate({x:.0},{head:.0})">"#);
+        out.push_str(svg.trim_end());
+        out.push_str("\n</g>\n");
+        x += w + gap;
     }
     out.push_str("</svg>\n");
     out

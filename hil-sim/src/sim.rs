@@ -565,6 +565,11 @@ pub fn run(
                 }
             }
             let Some(mv) = link.pop_move() else {
+                // Idle: make the recording complete on disk for whoever reads it now
+                // (a no-op when nothing was written since the last flush).
+                if let Some(w) = recorder.as_mut() {
+                    w.flush()?;
+                }
                 break;
             };
             match model.execute(&mv) {

@@ -26,6 +26,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Commands {
+    /// Print a graded tooth crown on the simulated machine end to end (edod + hil-sim in a
+    /// temporary directory) and write the planned and as-built previews side by side.
+    Demo(edo::cli::demo::DemoArgs),
     /// Plan a job offline: validate it, run the EDO method on every layer, and write
     /// the plan report and SVG previews.
     Plan(edo::cli::plan::PlanArgs),
@@ -184,7 +187,7 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
             let r = c.call("machine.refill", json!({}))?;
             print(&r, "refill noted; the paused job continues".to_string());
         }
-        Commands::Plan(_) | Commands::LinkTest { .. } => {}
+        Commands::Plan(_) | Commands::LinkTest { .. } | Commands::Demo(_) => {}
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -216,6 +219,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match &cli.command {
         Commands::Plan(args) => edo::cli::plan::run(args).map(|()| ExitCode::SUCCESS),
+        Commands::Demo(args) => edo::cli::demo::run(args, cli.json),
         Commands::LinkTest { port, moves, baud } => {
             link_test(port.clone(), *moves, *baud, cli.json)
         }

@@ -2,5 +2,6 @@
 //! These functions do I/O (files, terminal) and so sit outside the pure core.
 
 pub mod client;
+pub mod demo;
 pub mod gcode;
 pub mod plan;

@@ -29,7 +29,7 @@ use serde::Serialize;
 use tokio::sync::{broadcast, mpsc, oneshot, watch};
 
 pub use config::Config;
-pub use supervise::run;
+pub use supervise::{run, run_until};
 
 /// A JSON-RPC error the API returns (code and message; `docs/api.md` lists the codes).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

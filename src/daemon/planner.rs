@@ -194,6 +194,35 @@ pub struct JobSource {
     next_index: u32,
 }
 
+/// The process settings a job streams with on a machine: the job's nozzle, the
+/// machine's syringes, flow limit and mixing-chamber volume. `edoctl demo` plans with
+/// the same settings to compare what was built with what edod planned.
+pub fn process_settings(
+    job: &crate::job::Job,
+    machine: &super::config::MachineConfig,
+    source_name: &str,
+) -> Result<crate::pipeline::ProcessSettings, String> {
+    if job.materials.len() != machine.syringes.len() {
+        return Err(format!(
+            "{source_name}: {} materials but the machine has {} syringes",
+            job.materials.len(),
+            machine.syringes.len()
+        ));
+    }
+    let mut settings = crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    settings.syringes = Some(machine.syringes.len());
+    settings.max_flow_factor = machine.max_flow_factor;
+    settings.v_dead_ul = machine.dead_volume_nl as f64 / 1000.0;
+    // The streamer plans a layer before it knows the next one, so the mixing lead cannot
+    // reach across a layer change: alternate the sub-region order so that every layer
+    // starts with the composition the previous one ended with (no jump to lead for).
+    settings.sub_region_order = crate::toolpath::SubRegionOrder::Alternating;
+    settings
+        .validate()
+        .map_err(|e| format!("{source_name}: {e}"))?;
+    Ok(settings)
+}
+
 /// Mesh layers cut (in parallel) per batch.
 pub const MESH_LAYERS_PER_CUT: usize = 8;
 
@@ -219,20 +248,7 @@ impl JobSource {
         machine: &super::config::MachineConfig,
     ) -> Result<Self, String> {
         let job = crate::job::Job::from_toml(toml, source_name).map_err(|e| e.to_string())?;
-        if job.materials.len() != machine.syringes.len() {
-            return Err(format!(
-                "{source_name}: {} materials but the machine has {} syringes",
-                job.materials.len(),
-                machine.syringes.len()
-            ));
-        }
-        let mut settings = crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm);
-        settings.syringes = Some(machine.syringes.len());
-        settings.max_flow_factor = machine.max_flow_factor;
-        settings.v_dead_ul = machine.dead_volume_nl as f64 / 1000.0;
-        settings
-            .validate()
-            .map_err(|e| format!("{source_name}: {e}"))?;
+        let settings = process_settings(&job, machine, source_name)?;
         let layers = match (job.extruded_layers(), mesh) {
             (Some(stack), _) => Layers::Extruded(job.layer_slices(0, stack)),
             (None, Some(bytes)) => Layers::MeshBytes(bytes.to_vec()),

@@ -53,6 +53,8 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
         .arg(cfg.sim.seed.to_string())
         .arg("--syringes")
         .arg(cfg.machine.syringes.len().to_string())
+        .arg("--dead-volume-nl")
+        .arg(cfg.machine.dead_volume_nl.to_string())
         .arg("--no-stdin")
         .stdout(std::process::Stdio::piped())
         .stdin(std::process::Stdio::null())
@@ -158,6 +160,12 @@ impl Notifier {
 
 /// Run the daemon until SIGTERM or SIGINT.
 pub async fn run(cfg: Config) -> Result<()> {
+    run_until(cfg, std::future::pending()).await
+}
+
+/// Run the daemon until SIGTERM, SIGINT or `stop` completes (`edoctl demo` runs edod in
+/// its own process and stops it this way), then stop cleanly.
+pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>) -> Result<()> {
     std::fs::create_dir_all(&cfg.state.dir)
         .with_context(|| format!("cannot create state dir {}", cfg.state.dir.display()))?;
     let (sim, port) = if cfg.serial.port == SIM_PORT {
@@ -200,8 +208,10 @@ pub async fn run(cfg: Config) -> Result<()> {
     );
     let mut last_alive = u64::MAX;
     let mut last_status = String::new();
+    tokio::pin!(stop);
     loop {
         tokio::select! {
+            _ = &mut stop => break,
             _ = term.recv() => break,
             _ = int.recv() => break,
             _ = status_tick.tick() => {

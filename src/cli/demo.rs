@@ -1,0 +1,545 @@
+//! `edoctl demo`: edo end to end on the simulated machine, in one command.
+//!
+//! It starts edod (in this process, with its own temporary state directory and socket)
+//! on hil-sim (the simulator binary on a pseudo-terminal, with its recorder on), submits
+//! the bundled tooth-crown job (`config/examples/tooth-crown.toml`: enamel graded over a
+//! 3 mm shell into dentin) over the socket exactly as `edoctl submit` does, shows the
+//! progress bar, and when the machine has executed the last move:
+//!
+//! - plans the same job offline with the same settings and checks that the machine
+//!   executed exactly the planned moves (same count, every index once, in order, same
+//!   per-syringe volumes and positions);
+//! - compares the composition that left the nozzle (the simulator's plug-flow mixing
+//!   chamber) with the designed composition of each road;
+//! - measures the planned roads' coverage (void, overlap, outside at 10 µm);
+//! - writes per layer the planned roads and the as-built roads side by side
+//!   (`layer-NNNN.svg`), the summary (`summary.json`) and the machine's recording
+//!   (`record.jsonl`, format in `hil-sim/README.md`) to `--out`.
+//!
+//! With `--port PATH --record FILE` it uses a machine that is already running (a hil-sim
+//! started with `--link PATH --record FILE`) instead of starting one.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use serde::Serialize;
+use serde_json::json;
+
+use super::client::{watch, Client};
+use crate::daemon::Config;
+use crate::job::Job;
+use crate::machine::record::{self, RecordLine};
+use crate::machine::MoveKind;
+use crate::pipeline::{LayerMoves, StreamState};
+
+/// The bundled job.
+pub const DEMO_JOB: &str = include_str!("../../config/examples/tooth-crown.toml");
+
+/// V_dead of the demo machine's mixing chamber, nl.
+pub const DEMO_DEAD_VOLUME_NL: u64 = 1000;
+
+/// Options of `edoctl demo`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct DemoArgs {
+    /// Where to write the side-by-side previews and summary.json.
+    #[arg(long, value_name = "DIR", default_value = "out/demo")]
+    pub out: PathBuf,
+    /// Machine time runs this many times faster than wall time.
+    #[arg(long, value_name = "X", default_value_t = 25.0)]
+    pub speed: f64,
+    /// The hil-sim executable (default: next to edoctl; under `cargo run` it is built
+    /// on first use).
+    #[arg(long, value_name = "PATH")]
+    pub sim_binary: Option<PathBuf>,
+    /// Use a machine that is already running on PATH instead of starting hil-sim
+    /// (needs --record: the recording that machine writes).
+    #[arg(long, value_name = "PATH", requires = "record")]
+    pub port: Option<PathBuf>,
+    /// The recording of the machine given with --port.
+    #[arg(long, value_name = "FILE", requires = "port")]
+    pub record: Option<PathBuf>,
+}
+
+/// Designed-versus-built composition error: the largest volume-fraction difference
+/// between a road's designed composition and what left the nozzle there.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct CompositionError {
+    /// Extrusion-volume-weighted mean.
+    pub mean: f64,
+    /// Worst move.
+    pub max: f64,
+}
+
+/// What `edoctl demo` prints (and writes to `summary.json`).
+#[derive(Debug, Clone, Serialize)]
+pub struct DemoSummary {
+    pub job: String,
+    pub job_id: u64,
+    pub state: String,
+    pub layers: usize,
+    pub moves_planned: u64,
+    pub moves_executed: u64,
+    /// Every planned move executed once, in order, with the planned volumes and positions.
+    pub executed_as_planned: bool,
+    /// The first difference found, if any.
+    pub mismatch: Option<String>,
+    /// Built (simulator's nozzle exit) against designed.
+    pub composition_error_built: CompositionError,
+    /// The planner's own plug-flow prediction of the same error (with the mixing lead).
+    pub composition_error_predicted: CompositionError,
+    /// Coverage of the planned roads at 10 µm (fractions of the part area).
+    pub void_fraction: f64,
+    pub overlap_fraction: f64,
+    pub outside_fraction: f64,
+    /// Volume pushed per syringe, µL (planned; the recording matches it exactly when
+    /// `executed_as_planned`).
+    pub syringe_volumes_ul: Vec<f64>,
+    /// Wall time from submission to the last move executed, s.
+    pub print_time_s: f64,
+    /// Machine (simulated) time of the print, s.
+    pub machine_time_s: f64,
+    /// Wall time of the whole demo, s.
+    pub total_time_s: f64,
+    /// The previews and summary.
+    pub out_dir: PathBuf,
+}
+
+/// Run the demo; the exit status is failure unless the job finished and the machine
+/// executed exactly what was planned.
+pub fn run(args: &DemoArgs, json_out: bool) -> Result<ExitCode> {
+    let started = Instant::now();
+    let work = std::env::temp_dir().join(format!("edo-demo-{}", std::process::id()));
+    std::fs::create_dir_all(&work).with_context(|| format!("cannot create {}", work.display()))?;
+    let result = run_in(args, json_out, &work, started);
+    let _ = std::fs::remove_dir_all(&work);
+    let summary = result?;
+    if json_out {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        print!("{}", human(&summary));
+    }
+    Ok(if summary.state == "done" && summary.executed_as_planned {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Result<DemoSummary> {
+    let job = Job::from_toml(DEMO_JOB, "tooth-crown.toml (bundled)")?;
+    let mut cfg = Config::from_toml("", "demo")?;
+    let record_path = match (&args.port, &args.record) {
+        (Some(port), Some(rec)) => {
+            cfg.serial.port = port.display().to_string();
+            rec.clone()
+        }
+        _ => {
+            let rec = work.join("record.jsonl");
+            cfg.sim.binary = Some(sim_binary(args.sim_binary.as_deref())?);
+            cfg.sim.speed = args.speed;
+            cfg.sim.record = Some(rec.clone());
+            rec
+        }
+    };
+    if !(args.speed.is_finite() && args.speed > 0.0) {
+        bail!("--speed must be a positive number, got {}", args.speed);
+    }
+    // A 1 µL mixing chamber: the crown is small (about 80 µL in all), and the default
+    // 20 µL chamber of config/edod.toml would hold a quarter of the part.
+    cfg.machine.dead_volume_nl = DEMO_DEAD_VOLUME_NL;
+    cfg.api.socket = work.join("edod.sock");
+    cfg.state.dir = work.join("state");
+    let machine = cfg.machine.clone();
+    let socket = cfg.api.socket.clone();
+
+    // edod in this process, on its own runtime thread.
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let daemon = std::thread::spawn(move || -> Result<()> {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        rt.block_on(crate::daemon::run_until(cfg, async {
+            let _ = stop_rx.await;
+        }))
+    });
+    let stop_daemon = move || -> Result<()> {
+        let _ = stop_tx.send(());
+        match daemon.join() {
+            Ok(r) => r.context("edod"),
+            Err(_) => bail!("edod stopped abnormally"),
+        }
+    };
+    let printed = (|| -> Result<(serde_json::Value, f64)> {
+        let mut c = connect(&socket)?;
+        let t = Instant::now();
+        loop {
+            let m = c.call("machine.status", json!({}))?;
+            if m["connected"] == json!(true) {
+                break;
+            }
+            if t.elapsed() > Duration::from_secs(15) {
+                bail!("the simulated machine did not connect within 15 s");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let submitted = Instant::now();
+        let r = c.call(
+            "job.submit",
+            json!({"job": DEMO_JOB, "name": format!("{} (demo)", job.name)}),
+        )?;
+        let id = r["id"].as_u64().context("edod returned no job id")?;
+        if !json_out {
+            eprintln!(
+                "edoctl demo: printing {:?} on the simulated machine ({}x speed)",
+                job.name, args.speed
+            );
+        }
+        let j = watch(&mut c, id, json_out)?;
+        Ok((j, submitted.elapsed().as_secs_f64()))
+    })();
+    let stopped = stop_daemon();
+    let (final_job, print_time_s) = printed?;
+    stopped?;
+
+    let record_text = std::fs::read_to_string(&record_path)
+        .with_context(|| format!("cannot read the recording {}", record_path.display()))?;
+    let recording = record::parse(&record_text).context("the machine's recording")?;
+    let job_id = final_job["id"].as_u64().unwrap_or(0);
+    let planned = plan_offline(&job, &machine)?;
+    let executed: Vec<&RecordLine> = recording
+        .iter()
+        .filter(|l| u64::from(l.job_id) == job_id)
+        .collect();
+    let mismatch = compare(&planned.layers, &executed);
+    let (built, predicted) = composition_errors(&planned.layers, &executed);
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let coverage = previews(&job, &planned, &recording, job_id as u32, &args.out)?;
+    let kept = args.out.join("record.jsonl");
+    if record_path != kept {
+        std::fs::write(&kept, &record_text)
+            .with_context(|| format!("cannot write {}", kept.display()))?;
+    }
+    let summary = DemoSummary {
+        job: job.name.clone(),
+        job_id,
+        state: final_job["state"].as_str().unwrap_or("unknown").to_string(),
+        layers: planned.layers.len(),
+        moves_planned: planned.moves,
+        moves_executed: executed.len() as u64,
+        executed_as_planned: mismatch.is_none(),
+        mismatch,
+        composition_error_built: built,
+        composition_error_predicted: predicted,
+        void_fraction: coverage.void_fraction(),
+        overlap_fraction: coverage.overlap_fraction(),
+        outside_fraction: coverage.outside_fraction(),
+        syringe_volumes_ul: planned
+            .state
+            .commanded_nl()
+            .iter()
+            .map(|&nl| nl as f64 / 1000.0)
+            .collect(),
+        print_time_s,
+        machine_time_s: executed.last().map_or(0.0, |l| l.t_s)
+            - executed.first().map_or(0.0, |l| l.t_s),
+        total_time_s: started.elapsed().as_secs_f64(),
+        out_dir: args.out.clone(),
+    };
+    let path = args.out.join("summary.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(summary)
+}
+
+/// Connect to the demo's edod, waiting for its socket.
+fn connect(socket: &Path) -> Result<Client> {
+    let t = Instant::now();
+    loop {
+        match Client::connect(socket) {
+            Ok(c) => return Ok(c),
+            Err(e) if t.elapsed() > Duration::from_secs(15) => return Err(e),
+            Err(_) => std::thread::sleep(Duration::from_millis(50)),
+        }
+    }
+}
+
+/// The hil-sim executable: `explicit`, else next to this program; under `cargo run`
+/// (which sets `CARGO` and `CARGO_MANIFEST_DIR`) it is built there once, with the same
+/// profile, the way an xtask builds its tools.
+fn sim_binary(explicit: Option<&Path>) -> Result<PathBuf> {
+    if let Some(p) = explicit {
+        if !p.is_file() {
+            bail!("--sim-binary {}: no such file", p.display());
+        }
+        return Ok(p.to_path_buf());
+    }
+    let exe = std::env::current_exe().context("cannot locate edoctl")?;
+    let dir = exe.parent().map(Path::to_path_buf).unwrap_or_default();
+    let beside = dir.join("hil-sim");
+    if beside.is_file() {
+        return Ok(beside);
+    }
+    if let (Some(cargo), Some(manifest)) = (
+        std::env::var_os("CARGO"),
+        std::env::var_os("CARGO_MANIFEST_DIR"),
+    ) {
+        let profile = match dir.file_name().and_then(|n| n.to_str()) {
+            Some("debug") | None => "dev".to_string(),
+            Some(p) => p.to_string(),
+        };
+        eprintln!("edoctl demo: building the simulated machine (hil-sim) once ...");
+        let status = std::process::Command::new(cargo)
+            .args([
+                "build",
+                "--quiet",
+                "--package",
+                "hil-sim",
+                "--bin",
+                "hil-sim",
+            ])
+            .args(["--profile", &profile, "--manifest-path"])
+            .arg(Path::new(&manifest).join("Cargo.toml"))
+            .status()
+            .context("cannot run cargo to build hil-sim")?;
+        if status.success() && beside.is_file() {
+            return Ok(beside);
+        }
+    }
+    bail!(
+        "the simulated machine `hil-sim` is not next to {} ; build it with `cargo build --release -p hil-sim` or pass --sim-binary PATH",
+        exe.display()
+    )
+}
+
+/// The job planned offline exactly as edod plans it for this machine.
+struct Planned {
+    layers: Vec<LayerMoves>,
+    islands: Vec<Vec<crate::geom::Region>>,
+    moves: u64,
+    state: StreamState,
+    road_width_mm: f64,
+}
+
+fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Result<Planned> {
+    let settings = crate::daemon::planner::process_settings(job, machine, &job.name)
+        .map_err(anyhow::Error::msg)?;
+    let stack = job
+        .extruded_layers()
+        .context("the demo job is an extruded polygon")?;
+    let slices = job.layer_slices(0, stack);
+    let plans = crate::edo::plan_layers(&slices, &job.plan, None)?;
+    let mut state = StreamState::new();
+    let mut layers = Vec::with_capacity(plans.len());
+    let mut next = 0u32;
+    for plan in &plans {
+        let lm = crate::pipeline::layer_moves(plan, &settings, 0, next, &mut state)?;
+        next = lm.next_index;
+        layers.push(lm);
+    }
+    Ok(Planned {
+        layers,
+        islands: slices.into_iter().map(|s| s.layer.islands).collect(),
+        moves: u64::from(next),
+        state,
+        road_width_mm: settings.road_width(),
+    })
+}
+
+/// The first way the execution differs from the plan, if any.
+fn compare(planned: &[LayerMoves], executed: &[&RecordLine]) -> Option<String> {
+    let moves: Vec<_> = planned.iter().flat_map(|l| &l.moves).collect();
+    if moves.len() != executed.len() {
+        return Some(format!(
+            "{} moves planned, {} executed",
+            moves.len(),
+            executed.len()
+        ));
+    }
+    for (m, e) in moves.iter().zip(executed) {
+        if m.index != e.index {
+            return Some(format!(
+                "move {} executed where {} was planned",
+                e.index, m.index
+            ));
+        }
+        let (to, volumes) = match &m.kind {
+            MoveKind::Extrude { to, volumes_nl, .. } => (Some(to), Some(volumes_nl)),
+            MoveKind::Travel { to, .. } => (Some(to), None),
+            MoveKind::Retract { volumes_nl, .. } | MoveKind::Prime { volumes_nl, .. } => {
+                (None, Some(volumes_nl))
+            }
+            _ => (None, None),
+        };
+        if let Some(v) = volumes {
+            if *v != e.volumes_nl {
+                return Some(format!(
+                    "move {}: volumes {:?} nl executed, {:?} planned",
+                    m.index, e.volumes_nl, v
+                ));
+            }
+        }
+        if let Some(to) = to {
+            let want = [to.x_um, to.y_um, to.z_um].map(|v| f64::from(v) / 1000.0);
+            if want.iter().zip(&e.to_mm).any(|(a, b)| (a - b).abs() > 1e-6) {
+                return Some(format!(
+                    "move {}: ended at {:?} mm, planned {:?} mm",
+                    m.index, e.to_mm, want
+                ));
+            }
+        }
+    }
+    None
+}
+
+/// Built (recorded nozzle exit) and predicted (planner's plug-flow model) composition
+/// errors against the designed composition of each road.
+fn composition_errors(
+    planned: &[LayerMoves],
+    executed: &[&RecordLine],
+) -> (CompositionError, CompositionError) {
+    let mut designed: std::collections::HashMap<u32, &[f64]> = Default::default();
+    for l in planned {
+        for &(index, path) in &l.extrusion_paths {
+            if let Some(p) = l.paths.get(path as usize) {
+                designed.insert(index, &p.composition);
+            }
+        }
+    }
+    let (mut sum, mut volume, mut max) = (0.0, 0.0, 0.0f64);
+    for e in executed {
+        let (Some(d), Some(exit)) = (designed.get(&e.index), &e.exit_composition) else {
+            continue;
+        };
+        let v: f64 = e.volumes_nl.iter().map(|&x| f64::from(x)).sum();
+        let err = d
+            .iter()
+            .zip(exit)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        sum += err * v;
+        volume += v;
+        max = max.max(err);
+    }
+    let built = CompositionError {
+        mean: if volume > 0.0 { sum / volume } else { 0.0 },
+        max,
+    };
+    let (mut sum, mut n, mut max) = (0.0, 0.0, 0.0f64);
+    for l in planned {
+        let v: f64 = l.stats.planned_nl.iter().sum();
+        sum += l.stats.composition_error_mean * v;
+        n += v;
+        max = max.max(l.stats.composition_error_max);
+    }
+    let predicted = CompositionError {
+        mean: if n > 0.0 { sum / n } else { 0.0 },
+        max,
+    };
+    (built, predicted)
+}
+
+/// Write `layer-NNNN.svg` (planned roads with voids | as built) per layer; returns the
+/// planned roads' coverage summed over the layers.
+fn previews(
+    job: &Job,
+    planned: &Planned,
+    recording: &[RecordLine],
+    job_id: u32,
+    out: &Path,
+) -> Result<crate::toolpath::coverage::Coverage> {
+    let built = record::built_roads(recording, Some(job_id));
+    let mut total = crate::toolpath::coverage::Coverage::default();
+    for (k, (lm, islands)) in planned.layers.iter().zip(&planned.islands).enumerate() {
+        let (cov, voids) = crate::toolpath::coverage::measure_with_voids(
+            islands,
+            &lm.paths,
+            planned.road_width_mm,
+            0.01,
+            20_000,
+        );
+        total.add(&cov);
+        let planned_svg = crate::svg::roads_svg(
+            &lm.paths,
+            &crate::svg::RoadsInput {
+                title: &format!("{} layer {k}: planned", job.name),
+                islands,
+                road_width_mm: planned.road_width_mm,
+                voids: &voids,
+                void_cell_mm: cov.cell_mm,
+            },
+        );
+        let roads = built
+            .get(&(k as u32))
+            .map(Vec::as_slice)
+            .unwrap_or_default();
+        let built_svg = crate::svg::built_svg(
+            roads,
+            islands,
+            planned.road_width_mm,
+            &format!("{} layer {k}: as built", job.name),
+        );
+        let svg = crate::svg::side_by_side(
+            &[
+                (
+                    &format!(
+                        "layer {k} planned: void {:.2} %, overlap {:.2} %",
+                        100.0 * cov.void_fraction(),
+                        100.0 * cov.overlap_fraction()
+                    ),
+                    &planned_svg,
+                ),
+                (
+                    &format!("layer {k} as built ({} extrusions)", roads.len()),
+                    &built_svg,
+                ),
+            ],
+            &format!("{}: layer {k}, planned and as built", job.name),
+        );
+        let path = out.join(format!("layer-{k:04}.svg"));
+        std::fs::write(&path, svg).with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(total)
+}
+
+fn human(s: &DemoSummary) -> String {
+    let pct = |f: f64| format!("{:.2} %", 100.0 * f);
+    let ul: Vec<String> = s
+        .syringe_volumes_ul
+        .iter()
+        .map(|v| format!("{v:.1}"))
+        .collect();
+    format!(
+        "{job}: {state} ({layers} layers)\n\
+         \x20 moves planned {planned}, executed {executed}: {as_planned}\n\
+         \x20 composition designed vs built: mean {bmean:.4}, max {bmax:.4} (planner predicted mean {pmean:.4}, max {pmax:.4})\n\
+         \x20 planned roads: void {void}, overlap {overlap}, outside {outside}\n\
+         \x20 syringes pushed [{ul}] µL\n\
+         \x20 printed in {print:.1} s ({machine:.1} s of machine time), demo {total:.1} s\n\
+         \x20 previews (planned | as built): {out}/layer-*.svg, summary: {out}/summary.json, recording: {out}/record.jsonl\n",
+        job = s.job,
+        state = s.state,
+        layers = s.layers,
+        planned = s.moves_planned,
+        executed = s.moves_executed,
+        as_planned = match &s.mismatch {
+            None => "identical".to_string(),
+            Some(m) => format!("DIFFERENT: {m}"),
+        },
+        bmean = s.composition_error_built.mean,
+        bmax = s.composition_error_built.max,
+        pmean = s.composition_error_predicted.mean,
+        pmax = s.composition_error_predicted.max,
+        void = pct(s.void_fraction),
+        overlap = pct(s.overlap_fraction),
+        outside = pct(s.outside_fraction),
+        ul = ul.join(", "),
+        print = s.print_time_s,
+        machine = s.machine_time_s,
+        total = s.total_time_s,
+        out = s.out_dir.display(),
+    )
+}
