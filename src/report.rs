@@ -26,6 +26,9 @@ pub struct PlanReport {
     pub slicing: Option<crate::slice::SliceReport>,
     pub layers: Vec<LayerReport>,
     pub totals: Totals,
+    /// Toolpath totals (when the toolpaths were made: `--report` of `edoctl plan`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub toolpath: Option<ToolpathTotals>,
     pub planning_time_ms: f64,
 }
 
@@ -52,6 +55,79 @@ pub struct LayerReport {
     pub inner: Vec<f64>,
     pub outer: Vec<f64>,
     pub regions: Vec<RegionReport>,
+    /// The layer's roads as the machine will build them (see [`LayerToolpath`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub toolpath: Option<LayerToolpath>,
+}
+
+/// A layer's toolpath (`docs/toolpath.md`): paths, moves, travel, flow raise, and the
+/// coverage of its roads.
+#[derive(Debug, Clone, Serialize)]
+pub struct LayerToolpath {
+    pub paths: usize,
+    pub moves: usize,
+    pub extrude_moves: usize,
+    pub retracts: usize,
+    pub extruded_mm: f64,
+    pub travel_mm: f64,
+    /// Closed loops whose seam sits in a concave corner.
+    pub seams_at_corners: usize,
+    pub closed_loops: usize,
+    /// Widest road relative to nominal (flow raise in narrow sub-areas).
+    pub max_width_factor: f64,
+    /// Volume each syringe pushes in this layer, µL.
+    pub syringe_volumes_ul: Vec<f64>,
+    /// Designed-versus-delivered composition error under the plug-flow mixing-chamber
+    /// model, with the mixing lead (volume-weighted mean and worst).
+    pub composition_error_mean: f64,
+    pub composition_error_max: f64,
+    /// Coverage of the roads (with `--coverage` or `--svg`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<CoverageReport>,
+}
+
+/// Coverage of roads rasterised at `cell_mm` (`toolpath::coverage`): fractions of the
+/// part area.
+#[derive(Debug, Clone, Copy, Serialize, Default)]
+pub struct CoverageReport {
+    pub cell_mm: f64,
+    /// Part area no road covers.
+    pub void_fraction: f64,
+    /// The same roads at nominal width (no flow raise): the raise's gain is the difference.
+    pub void_fraction_without_raise: f64,
+    /// Part area covered by two or more roads.
+    pub overlap_fraction: f64,
+    /// Deposited outside the part.
+    pub outside_fraction: f64,
+}
+
+impl CoverageReport {
+    /// From the coverage with and without the flow raise.
+    pub fn new(
+        with_raise: &crate::toolpath::coverage::Coverage,
+        without_raise: &crate::toolpath::coverage::Coverage,
+    ) -> Self {
+        CoverageReport {
+            cell_mm: with_raise.cell_mm,
+            void_fraction: with_raise.void_fraction(),
+            void_fraction_without_raise: without_raise.void_fraction(),
+            overlap_fraction: with_raise.overlap_fraction(),
+            outside_fraction: with_raise.outside_fraction(),
+        }
+    }
+}
+
+/// Toolpath totals over the planned layers.
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct ToolpathTotals {
+    pub moves: usize,
+    pub extruded_mm: f64,
+    pub travel_mm: f64,
+    pub retracts: usize,
+    pub syringe_volumes_ul: Vec<f64>,
+    /// Summed over layers (cell counts), when coverage was measured.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<CoverageReport>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -250,6 +326,7 @@ pub fn build(
             inner: design.inner.fractions().to_vec(),
             outer: design.outer.fractions().to_vec(),
             regions,
+            toolpath: None,
         });
     }
     PlanReport {
@@ -271,6 +348,67 @@ pub fn build(
         slicing: notes.slicing,
         layers: reports,
         totals,
+        toolpath: None,
         planning_time_ms,
     }
+}
+
+/// Attach per-layer toolpaths (in layer order, one per report layer) and their totals;
+/// `coverage` holds each layer's coverage with and without the flow raise when measured.
+pub fn attach_toolpaths(
+    report: &mut PlanReport,
+    stats: &[crate::pipeline::LayerStats],
+    coverage: Option<
+        &[(
+            crate::toolpath::coverage::Coverage,
+            crate::toolpath::coverage::Coverage,
+        )],
+    >,
+) {
+    let mut totals = ToolpathTotals::default();
+    let (mut with, mut without) = (
+        crate::toolpath::coverage::Coverage::default(),
+        crate::toolpath::coverage::Coverage::default(),
+    );
+    for (k, (layer, st)) in report.layers.iter_mut().zip(stats).enumerate() {
+        let ul: Vec<f64> = st
+            .commanded_nl
+            .iter()
+            .map(|&nl| nl as f64 / 1000.0)
+            .collect();
+        if totals.syringe_volumes_ul.len() < ul.len() {
+            totals.syringe_volumes_ul.resize(ul.len(), 0.0);
+        }
+        for (t, v) in totals.syringe_volumes_ul.iter_mut().zip(&ul) {
+            *t += v;
+        }
+        totals.moves += st.moves;
+        totals.extruded_mm += st.extruded_mm;
+        totals.travel_mm += st.travel_mm;
+        totals.retracts += st.retracts;
+        let cov = coverage.and_then(|c| c.get(k)).map(|(a, b)| {
+            with.add(a);
+            without.add(b);
+            CoverageReport::new(a, b)
+        });
+        layer.toolpath = Some(LayerToolpath {
+            paths: st.paths,
+            moves: st.moves,
+            extrude_moves: st.extrude_moves,
+            retracts: st.retracts,
+            extruded_mm: st.extruded_mm,
+            travel_mm: st.travel_mm,
+            seams_at_corners: st.seams_at_corners,
+            closed_loops: st.closed_loops,
+            max_width_factor: st.max_width_factor,
+            syringe_volumes_ul: ul,
+            composition_error_mean: st.composition_error_mean,
+            composition_error_max: st.composition_error_max,
+            coverage: cov,
+        });
+    }
+    if coverage.is_some() {
+        totals.coverage = Some(CoverageReport::new(&with, &without));
+    }
+    report.toolpath = Some(totals);
 }

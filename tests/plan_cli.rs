@@ -77,7 +77,21 @@ fn paper_annulus_report_matches_the_paper() {
         assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
         assert!(svg.contains(">A</text>") && svg.contains(">B</text>"));
         assert!(svg.contains("id=\"contours\"") && svg.contains("id=\"offsets\""));
+        // And the roads as the machine builds them: travel dashed, seams marked.
+        let roads =
+            std::fs::read_to_string(dir.path().join(format!("layer-{k:04}-roads.svg"))).unwrap();
+        assert!(roads.contains("stroke-dasharray") && roads.contains("<circle"));
     }
+    // The toolpath and its coverage (measured because of --svg) are in the report.
+    let tp = &layers[0]["toolpath"];
+    assert!(tp["moves"].as_u64().unwrap() > 1000, "{tp}");
+    let cov = &r["toolpath"]["coverage"];
+    let void = cov["void_fraction"].as_f64().unwrap();
+    assert!(void < 0.005, "void {void}");
+    assert!(cov["void_fraction_without_raise"].as_f64().unwrap() < 0.005);
+    assert!(cov["outside_fraction"].as_f64().unwrap() < 0.005, "{cov}");
+    let ul = r["toolpath"]["syringe_volumes_ul"].as_array().unwrap();
+    assert_eq!(ul.len(), 2);
 }
 
 #[test]

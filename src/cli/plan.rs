@@ -32,6 +32,10 @@ pub struct PlanArgs {
     /// No progress bar even on a terminal.
     #[arg(long)]
     pub quiet: bool,
+    /// Measure the roads' coverage (void, overlap, outside at 10 µm) into the report
+    /// (always done for the layers drawn with --svg).
+    #[arg(long)]
+    pub coverage: bool,
     #[command(flatten)]
     pub gcode: crate::cli::gcode::GcodeArgs,
 }
@@ -171,7 +175,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let layers = plan_with_progress(&job, &slices, args.quiet)
         .with_context(|| format!("planning {}", args.job.display()))?;
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
-    let report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
+    let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
 
     let to_stdout = args.report.as_deref() == Some("-");
     let mut human: Box<dyn Write> = if to_stdout {
@@ -179,42 +183,73 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     } else {
         Box::new(std::io::stdout())
     };
-    if let Some(target) = &args.report {
-        let json = serde_json::to_string_pretty(&report)?;
-        if to_stdout {
-            println!("{json}");
-        } else {
-            if let Some(parent) = Path::new(target)
-                .parent()
-                .filter(|p| !p.as_os_str().is_empty())
-            {
-                std::fs::create_dir_all(parent)
-                    .with_context(|| format!("cannot create {}", parent.display()))?;
+    let process = process_settings(&job);
+    let mut toolpath_line = None;
+    if args.report.is_some() || args.svg.is_some() || args.coverage {
+        let toolpaths = layer_toolpaths(&job, &layers, &process)?;
+        let coverage = (args.coverage || args.svg.is_some()).then(|| {
+            measure_coverage(
+                &toolpaths,
+                &slices,
+                process.road_width(),
+                args.svg.is_some(),
+                args.quiet,
+            )
+        });
+        let stats: Vec<_> = toolpaths.iter().map(|t| t.stats.clone()).collect();
+        let pairs: Option<Vec<_>> = coverage
+            .as_ref()
+            .map(|c| c.iter().map(|l| (l.with_raise, l.without_raise)).collect());
+        crate::report::attach_toolpaths(&mut report, &stats, pairs.as_deref());
+        toolpath_line = report.toolpath.as_ref().map(toolpath_summary);
+        if let Some(dir) = &args.svg {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("cannot create {}", dir.display()))?;
+            for (k, (layer, slice)) in layers.iter().zip(&slices).enumerate() {
+                let svg = crate::svg::layer_svg(
+                    layer,
+                    &crate::svg::PreviewInput {
+                        job_name: &job.name,
+                        materials: &job.materials,
+                        nozzle_mm: job.plan.nozzle_mm,
+                        islands: &slice.layer.islands,
+                    },
+                );
+                let file = dir.join(format!("layer-{:04}.svg", layer.index));
+                std::fs::write(&file, svg)
+                    .with_context(|| format!("cannot write {}", file.display()))?;
+                let (Some(t), Some(c)) =
+                    (toolpaths.get(k), coverage.as_ref().and_then(|c| c.get(k)))
+                else {
+                    continue;
+                };
+                let roads = crate::svg::roads_svg(
+                    &t.paths,
+                    &crate::svg::RoadsInput {
+                        title: &format!(
+                            "{} layer {}: roads, void {:.2} %, overlap {:.2} %",
+                            job.name,
+                            layer.index,
+                            100.0 * c.with_raise.void_fraction(),
+                            100.0 * c.with_raise.overlap_fraction()
+                        ),
+                        islands: &slice.layer.islands,
+                        road_width_mm: process.road_width(),
+                        voids: &c.voids,
+                        void_cell_mm: c.with_raise.cell_mm,
+                    },
+                );
+                let file = dir.join(format!("layer-{:04}-roads.svg", layer.index));
+                std::fs::write(&file, roads)
+                    .with_context(|| format!("cannot write {}", file.display()))?;
             }
-            std::fs::write(target, json + "\n")
-                .with_context(|| format!("cannot write report {target}"))?;
         }
     }
-    if let Some(dir) = &args.svg {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        for (layer, slice) in layers.iter().zip(&slices) {
-            let svg = crate::svg::layer_svg(
-                layer,
-                &crate::svg::PreviewInput {
-                    job_name: &job.name,
-                    materials: &job.materials,
-                    nozzle_mm: job.plan.nozzle_mm,
-                    islands: &slice.layer.islands,
-                },
-            );
-            let file = dir.join(format!("layer-{:04}.svg", layer.index));
-            std::fs::write(&file, svg)
-                .with_context(|| format!("cannot write {}", file.display()))?;
-        }
+    if let Some(target) = &args.report {
+        write_report(&report, target)?;
     }
     let gcode = match &args.gcode.gcode {
         Some(path) => {
-            let process = crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm);
             let summary =
                 crate::cli::gcode::write(&job, &layers, &process, &args.gcode.settings(), path)?;
             Some((path, summary))
@@ -259,8 +294,16 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         "  compact material data {} B, whole plan {} B, voxel grid at R_mach/4 {} B",
         t.compact_material_bytes, t.plan_bytes, t.voxel_grid_bytes
     )?;
+    if let Some(line) = toolpath_line {
+        writeln!(human, "  {line}")?;
+    }
     if let Some(dir) = &args.svg {
-        writeln!(human, "  previews: {}", dir.join("layer-*.svg").display())?;
+        writeln!(
+            human,
+            "  previews: {} (EDO contours and offsets), {} (roads: widths, travel, seams, voids)",
+            dir.join("layer-*.svg").display(),
+            dir.join("layer-*-roads.svg").display()
+        )?;
     }
     if let Some((path, g)) = gcode {
         let ul: Vec<String> = g
@@ -276,6 +319,135 @@ pub fn run(args: &PlanArgs) -> Result<()> {
             ul.join(", "),
             path.display()
         )?;
+    }
+    Ok(())
+}
+
+/// The process settings `edoctl plan` makes toolpaths and G-code with.
+pub fn process_settings(job: &Job) -> crate::pipeline::ProcessSettings {
+    crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm)
+}
+
+/// Every layer's ordered paths and moves, continuing the stream state from layer to
+/// layer (as edod streams them).
+fn layer_toolpaths(
+    job: &Job,
+    layers: &[LayerPlan],
+    process: &crate::pipeline::ProcessSettings,
+) -> Result<Vec<crate::pipeline::LayerMoves>> {
+    let mut state = crate::pipeline::StreamState::new();
+    let mut next = 0u32;
+    layers
+        .iter()
+        .map(|l| {
+            let lm = crate::pipeline::layer_moves(l, process, 0, next, &mut state)
+                .with_context(|| format!("job {}: layer {} to moves", job.name, l.index))?;
+            next = lm.next_index;
+            Ok(lm)
+        })
+        .collect()
+}
+
+/// One layer's coverage, with and without the flow raise, and void cells to draw.
+struct LayerCoverage {
+    with_raise: crate::toolpath::coverage::Coverage,
+    without_raise: crate::toolpath::coverage::Coverage,
+    voids: Vec<glam::DVec2>,
+}
+
+/// Coverage of every layer at 10 µm, layers in parallel.
+fn measure_coverage(
+    toolpaths: &[crate::pipeline::LayerMoves],
+    slices: &[LayerSlice],
+    road_width_mm: f64,
+    with_voids: bool,
+    quiet: bool,
+) -> Vec<LayerCoverage> {
+    use crate::toolpath::coverage::{measure, measure_with_voids};
+    use rayon::prelude::*;
+    let b = bar(toolpaths.len() as u64, "coverage", quiet);
+    let out = toolpaths
+        .par_iter()
+        .zip(slices)
+        .map(|(t, s)| {
+            let islands = &s.layer.islands;
+            let (with_raise, voids) = measure_with_voids(
+                islands,
+                &t.paths,
+                road_width_mm,
+                COVERAGE_CELL_MM,
+                if with_voids { 20_000 } else { 0 },
+            );
+            let nominal: Vec<_> = t
+                .paths
+                .iter()
+                .map(|p| {
+                    let mut p = p.clone();
+                    p.width_factors.iter_mut().for_each(|f| *f = 1.0);
+                    p
+                })
+                .collect();
+            let without_raise = measure(islands, &nominal, road_width_mm, COVERAGE_CELL_MM);
+            if let Some(b) = &b {
+                b.inc(1);
+            }
+            LayerCoverage {
+                with_raise,
+                without_raise,
+                voids,
+            }
+        })
+        .collect();
+    if let Some(b) = b {
+        b.finish_and_clear();
+    }
+    out
+}
+
+/// Raster of the coverage measure (issue 4: 10 µm).
+pub const COVERAGE_CELL_MM: f64 = 0.01;
+
+fn toolpath_summary(t: &crate::report::ToolpathTotals) -> String {
+    let ul: Vec<String> = t
+        .syringe_volumes_ul
+        .iter()
+        .map(|v| format!("{v:.1}"))
+        .collect();
+    let mut line = format!(
+        "toolpath: {} moves, {:.1} mm extruded, {:.1} mm travel, {} retracts, syringes [{}] µL",
+        t.moves,
+        t.extruded_mm,
+        t.travel_mm,
+        t.retracts,
+        ul.join(", ")
+    );
+    if let Some(c) = &t.coverage {
+        line.push_str(&format!(
+            "\n  coverage at {:.0} µm: void {:.2} % ({:.2} % without the flow raise), overlap {:.2} %, outside {:.2} %",
+            c.cell_mm * 1000.0,
+            100.0 * c.void_fraction,
+            100.0 * c.void_fraction_without_raise,
+            100.0 * c.overlap_fraction,
+            100.0 * c.outside_fraction
+        ));
+    }
+    line
+}
+
+fn write_report(report: &crate::report::PlanReport, target: &str) -> Result<()> {
+    let json = serde_json::to_string_pretty(&report)?;
+    if target == "-" {
+        println!("{json}");
+    } else {
+        if let Some(parent) = Path::new(target)
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+        {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("cannot create {}", parent.display()))?;
+        }
+        std::fs::write(target, json + "\n")
+            .with_context(|| format!("cannot write report {target}"))?;
     }
     Ok(())
 }
