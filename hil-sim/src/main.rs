@@ -47,6 +47,10 @@ struct Cli {
     /// Do not read run-time commands from stdin.
     #[arg(long)]
     no_stdin: bool,
+    /// Stop (as on SIGTERM) when the process that started hil-sim dies, even by SIGKILL
+    /// (edod's built-in simulated machine uses this; Linux only).
+    #[arg(long)]
+    exit_with_parent: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -102,6 +106,14 @@ fn main() -> anyhow::Result<()> {
         ..SimConfig::default()
     };
     install_signal_handlers()?;
+    if cli.exit_with_parent {
+        nix::sys::prctl::set_pdeathsig(nix::sys::signal::Signal::SIGTERM)
+            .context("--exit-with-parent")?;
+        if nix::unistd::getppid() == nix::unistd::Pid::from_raw(1) {
+            // The parent died before the request took effect.
+            return Ok(());
+        }
+    }
     let commands = if cli.no_stdin {
         None
     } else {

@@ -56,6 +56,7 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
         .arg("--dead-volume-nl")
         .arg(cfg.machine.dead_volume_nl.to_string())
         .arg("--no-stdin")
+        .arg("--exit-with-parent")
         .stdout(std::process::Stdio::piped())
         .stdin(std::process::Stdio::null())
         .kill_on_drop(true);
