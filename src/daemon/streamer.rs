@@ -122,8 +122,16 @@ async fn read_port(port: &mut Option<SerialStream>, buf: &mut [u8]) -> std::io::
     }
 }
 
-async fn recv_planner(a: &mut Option<Active>) -> Option<PlannerMsg> {
-    match a.as_mut().and_then(|a| a.planner.as_mut()) {
+/// The planner's next message, once the active job's queue has room: moves are taken
+/// from the planner only while fewer than `ahead` wait here, so the bounded planner
+/// channel (`planner.layers_ahead` layers) is what holds a job's future, and memory
+/// stays bounded however large the part.
+async fn recv_planner(a: &mut Option<Active>, ahead: usize) -> Option<PlannerMsg> {
+    match a
+        .as_mut()
+        .filter(|a| a.queue.len() < ahead)
+        .and_then(|a| a.planner.as_mut())
+    {
         Some(rx) => rx.recv().await,
         None => std::future::pending().await,
     }
@@ -179,6 +187,7 @@ impl Streamer {
     /// Run until a `Shutdown` request has been served.
     pub async fn run(mut self, mut control: mpsc::Receiver<Control>) {
         let mut buf = vec![0u8; 4096];
+        let ahead = self.shared.config.planner.moves_ahead.max(1);
         self.publish();
         loop {
             let wake = self
@@ -202,7 +211,7 @@ impl Streamer {
                     Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
                     Err(e) => self.port_lost(&e.to_string()),
                 },
-                m = recv_planner(&mut self.active) => self.on_planner(m),
+                m = recv_planner(&mut self.active, ahead) => self.on_planner(m),
                 _ = tokio::time::sleep(wake) => {}
             }
             self.pump().await;
