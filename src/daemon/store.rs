@@ -164,6 +164,10 @@ pub struct Store {
     conn: Connection,
 }
 
+/// The columns a [`JobRecord`] is read from (all but the mesh).
+const COLUMNS: &str = "id, name, state, reason, spec, total_moves, next_index, layer, \
+     composition, remaining_nl, submitted_ms, updated_ms";
+
 const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS jobs (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -218,12 +222,9 @@ impl Store {
 
     fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<JobRecord> {
         let spec_json: String = r.get("spec")?;
-        let mesh: Option<Vec<u8>> = r.get("mesh")?;
-        let mut spec: JobSpec =
+        // The mesh stays in the database until the planner asks (`Store::mesh`).
+        let spec: JobSpec =
             serde_json::from_str(&spec_json).unwrap_or(JobSpec::DryRun { moves: 0 });
-        if let JobSpec::Toml { mesh: m, .. } = &mut spec {
-            *m = mesh;
-        }
         let composition: Option<String> = r.get("composition")?;
         let remaining: String = r.get("remaining_nl")?;
         Ok(JobRecord {
@@ -247,14 +248,29 @@ impl Store {
     /// One job.
     pub fn get(&self, id: u32) -> Result<JobRecord, StoreError> {
         self.conn
-            .query_row("SELECT * FROM jobs WHERE id = ?1", [id], Store::row)
+            .query_row(
+                &format!("SELECT {COLUMNS} FROM jobs WHERE id = ?1"),
+                [id],
+                Store::row,
+            )
             .optional()?
             .ok_or(StoreError::NotFound(id))
     }
 
-    /// Every job, oldest first (without meshes' bytes mattering to callers).
+    /// A job's mesh bytes (mesh jobs), read only when the planner needs them: listings
+    /// and progress never load meshes.
+    pub fn mesh(&self, id: u32) -> Result<Option<Vec<u8>>, StoreError> {
+        self.conn
+            .query_row("SELECT mesh FROM jobs WHERE id = ?1", [id], |r| r.get(0))
+            .optional()?
+            .ok_or(StoreError::NotFound(id))
+    }
+
+    /// Every job, oldest first.
     pub fn list(&self) -> Result<Vec<JobRecord>, StoreError> {
-        let mut st = self.conn.prepare("SELECT * FROM jobs ORDER BY id")?;
+        let mut st = self
+            .conn
+            .prepare(&format!("SELECT {COLUMNS} FROM jobs ORDER BY id"))?;
         let rows = st.query_map([], Store::row)?;
         Ok(rows.collect::<Result<_, _>>()?)
     }
@@ -264,7 +280,7 @@ impl Store {
         Ok(self
             .conn
             .query_row(
-                "SELECT * FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1",
+                &format!("SELECT {COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1"),
                 [],
                 Store::row,
             )

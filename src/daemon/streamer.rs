@@ -85,6 +85,8 @@ struct Active {
     executed_at_start: u32,
     notified: Instant,
     machine_was_empty: bool,
+    /// Moves have gone out since the job (re)started: the store says `printing`.
+    printing: bool,
 }
 
 /// The streamer task.
@@ -356,14 +358,16 @@ impl Streamer {
                 }
             }
         }
-        let id = a.id;
-        if self
-            .shared
-            .with_store(|s| s.get(id))
-            .is_ok_and(|j| j.state == JobState::Planning)
-            && !a.sent.is_empty()
-        {
-            self.set_job_state(id, JobState::Printing, None);
+        if !a.printing && !a.sent.is_empty() {
+            a.printing = true;
+            let id = a.id;
+            if self
+                .shared
+                .with_store(|s| s.get(id))
+                .is_ok_and(|j| j.state == JobState::Planning)
+            {
+                self.set_job_state(id, JobState::Printing, None);
+            }
         }
     }
 
@@ -489,6 +493,7 @@ impl Streamer {
             executed_at_start,
             notified: Instant::now(),
             machine_was_empty: false,
+            printing: false,
         });
         if phase == Phase::Streaming {
             self.spawn_planner();
@@ -530,13 +535,20 @@ impl Streamer {
             .with_store(|s| s.get(id))
             .map_err(|e| e.message)?;
         let syringes = self.status.remaining_nl.len().max(1);
+        let mesh = match &job.spec {
+            JobSpec::Toml { .. } => self
+                .shared
+                .with_store(|s| s.mesh(id))
+                .map_err(|e| e.message)?,
+            JobSpec::DryRun { .. } => None,
+        };
         match &job.spec {
             JobSpec::DryRun { moves } => Ok(Box::new(DryRunSource::new(
                 *moves,
                 self.shared.config.planner.dry_run_moves_per_layer,
                 syringes,
             ))),
-            JobSpec::Toml { toml, mesh } => JobSource::new(
+            JobSpec::Toml { toml, .. } => JobSource::new(
                 toml,
                 mesh.as_deref(),
                 &format!("job {id}"),
