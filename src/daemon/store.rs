@@ -185,6 +185,9 @@ CREATE TABLE IF NOT EXISTS jobs (
     updated_ms INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+-- Meshes apart from the jobs table: a job's row is updated at every checkpoint, and
+-- SQLite rewrites a whole row (its overflow pages too) on every update.
+CREATE TABLE IF NOT EXISTS job_meshes (id INTEGER PRIMARY KEY, mesh BLOB NOT NULL);
 ";
 
 impl Store {
@@ -204,20 +207,27 @@ impl Store {
 
     /// Store a new job (queued) and return its id.
     pub fn insert(&self, name: &str, spec: &JobSpec) -> Result<u32, StoreError> {
-        let (spec_json, mesh) = match spec {
-            JobSpec::Toml { mesh, .. } => (
-                serde_json::to_string(spec).unwrap_or_default(),
-                mesh.clone(),
-            ),
-            JobSpec::DryRun { .. } => (serde_json::to_string(spec).unwrap_or_default(), None),
+        let spec_json = serde_json::to_string(spec).unwrap_or_default();
+        let mesh = match spec {
+            JobSpec::Toml { mesh, .. } => mesh.as_deref(),
+            JobSpec::DryRun { .. } => None,
         };
         let t = now_ms();
-        self.conn.execute(
-            "INSERT INTO jobs (name, state, spec, mesh, submitted_ms, updated_ms)
-             VALUES (?1, 'queued', ?2, ?3, ?4, ?4)",
-            params![name, spec_json, mesh, t],
+        let tx = self.conn.unchecked_transaction()?;
+        tx.execute(
+            "INSERT INTO jobs (name, state, spec, submitted_ms, updated_ms)
+             VALUES (?1, 'queued', ?2, ?3, ?3)",
+            params![name, spec_json, t],
         )?;
-        Ok(self.conn.last_insert_rowid() as u32)
+        let id = tx.last_insert_rowid();
+        if let Some(mesh) = mesh {
+            tx.execute(
+                "INSERT INTO job_meshes (id, mesh) VALUES (?1, ?2)",
+                params![id, mesh],
+            )?;
+        }
+        tx.commit()?;
+        Ok(id as u32)
     }
 
     fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<JobRecord> {
@@ -260,10 +270,13 @@ impl Store {
     /// A job's mesh bytes (mesh jobs), read only when the planner needs them: listings
     /// and progress never load meshes.
     pub fn mesh(&self, id: u32) -> Result<Option<Vec<u8>>, StoreError> {
-        self.conn
-            .query_row("SELECT mesh FROM jobs WHERE id = ?1", [id], |r| r.get(0))
-            .optional()?
-            .ok_or(StoreError::NotFound(id))
+        self.get(id)?;
+        Ok(self
+            .conn
+            .query_row("SELECT mesh FROM job_meshes WHERE id = ?1", [id], |r| {
+                r.get(0)
+            })
+            .optional()?)
     }
 
     /// Every job, oldest first.
@@ -411,13 +424,17 @@ mod tests {
         assert_eq!(a.checkpoint.next_index, 7);
         assert_eq!(a.checkpoint.composition, Some(vec![0.25, 0.75]));
         let b = s.get(2).unwrap();
+        // Records come without their mesh; the planner asks for it.
         assert_eq!(
             b.spec,
             JobSpec::Toml {
                 toml: "name = 'b'".into(),
-                mesh: Some(vec![0, 1, 2, 255])
+                mesh: None
             }
         );
+        assert_eq!(s.mesh(2).unwrap(), Some(vec![0, 1, 2, 255]));
+        assert_eq!(s.mesh(1).unwrap(), None);
+        assert!(matches!(s.mesh(9), Err(StoreError::NotFound(9))));
         assert_eq!(s.next_queued().unwrap().map(|j| j.id), Some(2));
         assert_eq!(s.next_service_index().unwrap(), 2);
         assert!(matches!(s.get(9), Err(StoreError::NotFound(9))));
