@@ -535,6 +535,12 @@ impl SegmentIndex {
 
     /// Distance from `p` to the nearest indexed segment (infinity when empty).
     pub fn distance(&self, p: DVec2) -> f64 {
+        self.distance_skipping(p, |_| false)
+    }
+
+    /// [`Self::distance`] ignoring the segments `skip` says yes to (segments are numbered
+    /// in the order given to [`Self::new`]: loops' edges, then polylines' edges).
+    pub fn distance_skipping(&self, p: DVec2, skip: impl Fn(u32) -> bool) -> f64 {
         if self.segments.is_empty() {
             return f64::INFINITY;
         }
@@ -557,6 +563,9 @@ impl SegmentIndex {
                 while col <= pc + r {
                     if col >= 0 && col < self.nx as isize {
                         for &k in &self.cells[row as usize * self.nx + col as usize] {
+                            if skip(k) {
+                                continue;
+                            }
                             let (a, b) = self.segments[k as usize];
                             best = best.min(point_segment_distance(p, a, b));
                         }

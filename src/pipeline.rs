@@ -84,8 +84,12 @@ pub struct ProcessSettings {
     /// Largest width (flow) factor a road may be raised to in narrow sub-areas.
     /// Default 1.5.
     pub max_flow_factor: f64,
-    /// Raise the flow where a gap needs a non-integer number of roads (§4, Fig. 4(a)
-    /// (i)–(iii)). Default true.
+    /// Narrowest bead relative to nominal: roads spaced closer than a road width are
+    /// narrowed to their spacing down to this (≤ 1; 1 turns narrowing off). Default 0.6.
+    pub min_flow_factor: f64,
+    /// Match road widths to their neighbours (`toolpath::flow`): raise the flow where a
+    /// gap needs a non-integer number of roads (§4, Fig. 4(a) (i)–(iii)), lower it where
+    /// roads are closer than a road width. Default true.
     pub flow_raise: bool,
     /// Gaps between bead edges narrower than this fraction of the road width are not
     /// raised for (noise, the beads' own spread). Default 0.02.
@@ -121,6 +125,7 @@ impl Default for ProcessSettings {
             dwell_ms: 100,
             retract_min_travel_mm: 0.0,
             max_flow_factor: 1.5,
+            min_flow_factor: 0.6,
             flow_raise: true,
             flow_min_gap_fraction: 0.02,
             v_dead_ul: 0.0,
@@ -225,6 +230,18 @@ impl ProcessSettings {
             return Err(PipelineError::Setting {
                 field: "max_flow_factor",
                 message: format!("must be 1 or more, got {}", self.max_flow_factor),
+            });
+        }
+        if !(self.min_flow_factor.is_finite()
+            && self.min_flow_factor > 0.0
+            && self.min_flow_factor <= 1.0)
+        {
+            return Err(PipelineError::Setting {
+                field: "min_flow_factor",
+                message: format!(
+                    "must be more than 0 and at most 1, got {}",
+                    self.min_flow_factor
+                ),
             });
         }
         if !(self.flow_min_gap_fraction.is_finite() && self.flow_min_gap_fraction >= 0.0) {
@@ -374,6 +391,7 @@ pub fn layer_paths(
                 road_width_mm: settings.road_width(),
                 max_flow_factor: settings.max_flow_factor,
                 min_gap_fraction: settings.flow_min_gap_fraction,
+                min_flow_factor: settings.min_flow_factor,
             },
         );
     }

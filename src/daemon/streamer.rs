@@ -87,6 +87,8 @@ struct Active {
     machine_was_empty: bool,
     /// Moves have gone out since the job (re)started: the store says `printing`.
     printing: bool,
+    /// The machine has executed a move sent since the job (re)started.
+    ran: bool,
 }
 
 /// The streamer task.
@@ -125,7 +127,7 @@ async fn read_port(port: &mut Option<SerialStream>, buf: &mut [u8]) -> std::io::
 }
 
 /// The planner's next message, once the active job's queue has room: moves are taken
-/// from the planner only while fewer than `ahead` wait here, so the bounded planner
+/// from the planner only while fewer than `ahead` (4 × `planner.moves_ahead`) wait here, so the bounded planner
 /// channel (`planner.layers_ahead` layers) is what holds a job's future, and memory
 /// stays bounded however large the part.
 async fn recv_planner(a: &mut Option<Active>, ahead: usize) -> Option<PlannerMsg> {
@@ -189,7 +191,9 @@ impl Streamer {
     /// Run until a `Shutdown` request has been served.
     pub async fn run(mut self, mut control: mpsc::Receiver<Control>) {
         let mut buf = vec![0u8; 4096];
-        let ahead = self.shared.config.planner.moves_ahead.max(1);
+        // Moves held here besides the link's `moves_ahead`: the planner channel's layers
+        // come in whole, so keep a few windows' worth to ride out a slow worker.
+        let ahead = 4 * self.shared.config.planner.moves_ahead.max(1);
         self.publish();
         loop {
             let wake = self
@@ -494,6 +498,7 @@ impl Streamer {
             notified: Instant::now(),
             machine_was_empty: false,
             printing: false,
+            ran: false,
         });
         if phase == Phase::Streaming {
             self.spawn_planner();
@@ -790,8 +795,18 @@ impl Streamer {
             // Queue underrun: the machine ran dry while the job had moves left.
             let left = a.total.is_none_or(|t| a.checkpoint.next_index < t);
             let empty = self.status.queued == 0 && state == MachineState::Idle;
-            if a.phase == Phase::Streaming && left && empty && a.first_move_after_ms.is_some() {
+            // Only once the machine has executed a move sent in this run: right after a
+            // (re)start it is idle because nothing has reached it yet, not because the
+            // host fell behind.
+            if a.phase == Phase::Streaming && left && empty && a.ran {
                 if !a.machine_was_empty {
+                    warn!(
+                        job = a.id,
+                        executed = a.checkpoint.next_index,
+                        waiting_here = a.queue.len(),
+                        planner_running = a.planner.is_some(),
+                        "queue underrun: the machine ran out of moves"
+                    );
                     self.underruns += 1;
                     a.machine_was_empty = true;
                 }
@@ -815,6 +830,7 @@ impl Streamer {
             a.checkpoint.next_index = index.saturating_add(1);
             while a.sent.front().is_some_and(|m| m.index <= index) {
                 if let Some(m) = a.sent.pop_front() {
+                    a.ran = true;
                     match &m.kind {
                         MoveKind::LayerMark { layer, .. } => a.checkpoint.layer = Some(*layer),
                         MoveKind::Extrude { volumes_nl, .. } => {

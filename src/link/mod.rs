@@ -117,13 +117,13 @@ impl Default for LinkConfig {
 
 /// Data that may be ahead of an e-stop on the wire, µs: the daemon and `edoctl
 /// link-test` cap their byte window to it (`docs/protocol.md` §5).
-pub const PRIORITY_LATENCY_US: u64 = 15_000;
+pub const PRIORITY_LATENCY_US: u64 = 25_000;
 
 impl LinkConfig {
     /// Cap the bytes in flight so that at most `latency_us` of data (at `baud`, 10 bits a
     /// byte) can be ahead of a priority frame, but never below `min_frame` (one small
     /// frame always fits). A serial line's round trip is a few milliseconds, so a window
-    /// of 15 ms still keeps the line full (see `docs/protocol.md` §5).
+    /// of 25 ms still keeps the line full (see `docs/protocol.md` §5).
     pub fn with_priority_latency(mut self, baud: u32, latency_us: u64) -> Self {
         let bytes = (u64::from(baud) / 10).saturating_mul(latency_us) / 1_000_000;
         self.max_bytes_in_flight = (bytes as usize).max(self.min_frame);

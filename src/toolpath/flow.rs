@@ -13,11 +13,25 @@
 //!    road's own (the midpoint between the two centrelines). This gives the
 //!    centre-to-centre distance g to the neighbour on that side (∞ where no road is
 //!    within reach, e.g. the part boundary side of the outer contour).
-//! 3. **Width factor**: the two beads facing a gap of g share the missing g − w, each
-//!    widening by (g − w)/2 on that side; a bead widens on both sides, so its factor is
-//!    1 + 2·max_side((g − w)/2)/w, only for gaps that need less than one more road
-//!    (w < g < 2w), capped at `max_flow_factor`. Gaps too wide for the cap stay (a
-//!    gap-fill road would be needed: not implemented, reported by the coverage measure).
+//! 3. **Width factor**: a bead's width is matched to its neighbours, each gap of g
+//!    (centre to centre) being shared half and half by the two beads facing it:
+//!    - neighbours on both sides (g1, g2 < 2w): width max(g1, g2), so roads spaced
+//!      closer than a road width on both sides (eq (5) rounds N_max up, so the equal
+//!      distance offsets of a sub-region are D_max/N_max ≤ D_noz apart) are narrowed to
+//!      their spacing instead of overlapping, and roads beside a gap that needs a
+//!      non-integer number of roads (w < g < 2w) widen into it; where the two spacings
+//!      differ the bead fills its half of the wider one and overlaps on the narrower
+//!      side (never a void);
+//!    - a neighbour on one side only (the other is the part boundary or open space):
+//!      width max(w, g) — raised into a gap, never narrowed, so the bead's far edge
+//!      stays where nozzle radius compensation put it;
+//!
+//!    The factor is then clamped to [`FlowSettings::min_flow_factor`,
+//!    `max_flow_factor`]; changes smaller than `min_gap_fraction` are left (noise). Gaps
+//!    too wide for the cap stay (a gap-fill road would be needed: not implemented,
+//!    reported by the coverage measure). A path's own edges within 1.5 w + 2 reach
+//!    along it never count as its neighbour (on a loop's concave side they come nearer
+//!    than the probe).
 
 use super::ToolPath;
 use crate::geom::SegmentIndex;
@@ -30,12 +44,15 @@ pub struct FlowSettings {
     pub max_flow_factor: f64,
     /// Gaps narrower than this fraction of a road width beyond touching are left (noise).
     pub min_gap_fraction: f64,
+    /// Narrowest bead relative to nominal (≤ 1; 1 turns narrowing off).
+    pub min_flow_factor: f64,
 }
 
 /// Raise the width factors of `paths` in place (steps 1–3).
 pub fn raise(paths: &mut [ToolPath], s: &FlowSettings) {
     let w = s.road_width_mm;
-    if !w.is_finite() || w <= 0.0 || s.max_flow_factor <= 1.0 || paths.is_empty() {
+    let adjusts = s.max_flow_factor > 1.0 || s.min_flow_factor < 1.0;
+    if !w.is_finite() || w <= 0.0 || !adjusts || paths.is_empty() {
         return;
     }
     // Step 1.
@@ -54,15 +71,65 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings) {
         .map(|p| p.points.as_slice())
         .collect();
     let index = SegmentIndex::new(&loops, &lines);
+    // Segment ids of each path in the index (loops first, then open paths) and the arc
+    // length at each of its vertices, so a probe can skip the path's own nearby edges:
+    // on the concave side of a curve (a loop's inside) they come nearer than the probe
+    // distance and would pass for a neighbour.
+    let mut first_segment = vec![0u32; paths.len()];
+    let mut next = 0u32;
+    for closed in [true, false] {
+        for (i, p) in paths.iter().enumerate().filter(|(_, p)| p.closed == closed) {
+            first_segment[i] = next;
+            let n = p.points.len() as u32;
+            next += if closed { n } else { n.saturating_sub(1) };
+        }
+    }
     let step = w / 8.0;
     let reach = w; // probe up to a gap of 2w centre to centre
-    for p in paths.iter_mut() {
+                   // Own edges nearer (along the path) than this are never a neighbour.
+    let own_window = 1.5 * w + 2.0 * reach;
+    for (i, p) in paths.iter_mut().enumerate() {
         let n = p.points.len();
         if n < 2 {
             continue;
         }
+        let mut cum = Vec::with_capacity(n + 1);
+        cum.push(0.0);
+        for j in 0..n {
+            let b = if j + 1 < n {
+                p.points[j + 1]
+            } else {
+                p.points[0]
+            };
+            let last = cum[j];
+            cum.push(last + p.points[j].distance(b));
+        }
+        let total = if p.closed { cum[n] } else { cum[n - 1] };
+        let base = first_segment[i];
+        let segments = if p.closed { n } else { n - 1 } as u32;
         let mut factors = Vec::with_capacity(n);
         for k in 0..n {
+            let s0 = cum[k];
+            let own_nearby = |id: u32| {
+                let Some(j) = id.checked_sub(base).filter(|&j| j < segments) else {
+                    return false;
+                };
+                let (a, b) = (cum[j as usize], cum[j as usize + 1]);
+                let gap = |x: f64| {
+                    if x < a {
+                        a - x
+                    } else if x > b {
+                        x - b
+                    } else {
+                        0.0
+                    }
+                };
+                let mut d = gap(s0);
+                if p.closed {
+                    d = d.min(gap(s0 + total)).min(gap(s0 - total));
+                }
+                d < own_window
+            };
             let prev = if k > 0 {
                 p.points[k - 1]
             } else if p.closed {
@@ -84,31 +151,32 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings) {
             }
             let nrm = t.perp();
             let q0 = p.points[k];
-            let mut extra: f64 = 0.0;
-            for side in [1.0, -1.0] {
+            let mut gaps = [None, None];
+            for (g_side, side) in gaps.iter_mut().zip([1.0, -1.0]) {
                 // Half the centre-to-centre gap: where another centreline becomes nearer
-                // than our own.
-                let mut half = None;
-                let mut d = 0.5 * w + step;
+                // than our own. Neighbours closer than w/2 are not roads of this plan.
+                let mut d = 0.25 * w + step;
                 while d <= 0.5 * w + reach {
                     let q = q0 + nrm * (side * d);
-                    let other = index.distance(q);
+                    let other = index.distance_skipping(q, own_nearby);
                     if other < d - 1e-3 * w {
                         // Parallel neighbour at g: other = g - d, so g = d + other.
-                        half = Some(0.5 * (d + other));
+                        *g_side = Some(d + other);
                         break;
                     }
                     d += step;
                 }
-                if let Some(h) = half {
-                    let g = 2.0 * h;
-                    let missing = 0.5 * (g - w);
-                    if missing > s.min_gap_fraction * w && g < 2.0 * w {
-                        extra = extra.max(missing);
-                    }
-                }
             }
-            factors.push((1.0 + 2.0 * extra / w).min(s.max_flow_factor));
+            let width = match gaps {
+                [Some(a), Some(b)] => a.max(b),
+                [Some(g), None] | [None, Some(g)] => g.max(w),
+                [None, None] => w,
+            };
+            let mut f = width / w;
+            if (f - 1.0).abs() <= s.min_gap_fraction {
+                f = 1.0;
+            }
+            factors.push(f.clamp(s.min_flow_factor.min(1.0), s.max_flow_factor.max(1.0)));
         }
         p.width_factors = factors;
     }
@@ -164,6 +232,7 @@ mod tests {
             road_width_mm: 0.4,
             max_flow_factor: 1.5,
             min_gap_fraction: 0.02,
+            min_flow_factor: 0.6,
         };
         raise(&mut paths, &s);
         let mid = paths[0].width_factors[paths[0].points.len() / 2];
@@ -176,5 +245,67 @@ mod tests {
         raise(&mut wide, &s);
         let f = wide[0].width_factors[5];
         assert!((f - 1.5).abs() < 1e-9, "{f}");
+    }
+
+    #[test]
+    fn roads_closer_than_a_road_width_on_both_sides_are_narrowed_to_their_spacing() {
+        let s = FlowSettings {
+            road_width_mm: 0.4,
+            max_flow_factor: 1.5,
+            min_gap_fraction: 0.02,
+            min_flow_factor: 0.6,
+        };
+        let mut paths = vec![line(0.0), line(0.3), line(0.6), line(0.9)];
+        raise(&mut paths, &s);
+        let mid = |p: &ToolPath| p.width_factors[p.points.len() / 2];
+        // Inner roads: neighbours 0.3 away on both sides: 0.3 wide.
+        assert!((mid(&paths[1]) - 0.75).abs() < 0.02, "{}", mid(&paths[1]));
+        assert!((mid(&paths[2]) - 0.75).abs() < 0.02, "{}", mid(&paths[2]));
+        // Outer roads keep their far edge where it was: not narrowed.
+        assert_eq!(mid(&paths[0]), 1.0);
+        assert_eq!(mid(&paths[3]), 1.0);
+        // Never below the floor.
+        let mut tight = vec![line(0.0), line(0.12), line(0.24)];
+        raise(&mut tight, &s);
+        assert!(tight[1].width_factors.iter().all(|&f| f >= 0.6 - 1e-12));
+    }
+
+    #[test]
+    fn a_loop_is_not_its_own_neighbour() {
+        // On the inside of a polygonal circle the loop's own edges come nearer than the
+        // probe distance; they must not count as a neighbour. The inner of two rings 0.3
+        // apart (w = 0.4) has a neighbour on one side only: it keeps its nominal width.
+        let ring = |r: f64| {
+            let n = 24;
+            let points: Vec<DVec2> = (0..n)
+                .map(|k| {
+                    let a = std::f64::consts::TAU * k as f64 / n as f64;
+                    DVec2::new(a.cos(), a.sin()) * r
+                })
+                .collect();
+            ToolPath {
+                role: PathRole::Contour { island: 0, j: 1 },
+                width_factors: vec![1.0; points.len()],
+                points,
+                closed: true,
+                composition: vec![1.0],
+                seam_at_corner: false,
+            }
+        };
+        let mut paths = vec![ring(1.2), ring(1.5)];
+        raise(
+            &mut paths,
+            &FlowSettings {
+                road_width_mm: 0.4,
+                max_flow_factor: 1.5,
+                min_gap_fraction: 0.02,
+                min_flow_factor: 0.6,
+            },
+        );
+        assert!(
+            paths[0].width_factors.iter().all(|&f| f == 1.0),
+            "{:?}",
+            paths[0].width_factors
+        );
     }
 }
