@@ -107,7 +107,14 @@ fn gcode_drive_sums_equal_plan_volumes() {
         match flavor {
             Flavor::Rrf => assert!(text.contains("M563 P0 D0:1")),
             Flavor::Marlin if direct => assert!(text.contains(" A") && !text.contains("M163")),
-            Flavor::Marlin => assert!(text.contains("M163 S1") && text.contains("M164 S0")),
+            Flavor::Marlin => {
+                assert!(text.contains("M163 S1") && text.contains("M164 S0"));
+                // A mix goes out when the composition changes or rounding drifts, not
+                // before every move.
+                let moves = text.lines().filter(|l| l.starts_with("G1 X")).count();
+                let mixes = text.lines().filter(|l| l.starts_with("M164")).count();
+                assert!(mixes * 8 < moves, "{mixes} mixes for {moves} moves");
+            }
         }
     }
 }

@@ -64,7 +64,8 @@ pub enum GcodeError {
     TooManyDrives(usize),
 }
 
-/// Cumulative rounding of one drive's E to 10⁻⁵ mm.
+/// Cumulative rounding of one drive's E to 10⁻⁶ mm (a syringe plunger moves a few
+/// 10⁻⁴ mm per move, so E is printed with six decimals).
 #[derive(Default, Clone)]
 struct Drive {
     exact_mm: f64,
@@ -72,10 +73,10 @@ struct Drive {
 }
 
 impl Drive {
-    /// Add `mm` and return the increment to print, in 10⁻⁵ mm units.
+    /// Add `mm` and return the increment to print, in 10⁻⁶ mm units.
     fn add(&mut self, mm: f64) -> i64 {
         self.exact_mm += mm;
-        let target = (self.exact_mm * 1e5).round() as i64;
+        let target = (self.exact_mm * 1e6).round() as i64;
         let d = target - self.printed_units;
         self.printed_units = target;
         d
@@ -85,7 +86,7 @@ impl Drive {
 fn e(units: i64) -> String {
     let sign = if units < 0 { "-" } else { "" };
     let u = units.unsigned_abs();
-    format!("{sign}{}.{:05}", u / 100_000, u % 100_000)
+    format!("{sign}{}.{:06}", u / 1_000_000, u % 1_000_000)
 }
 
 fn mm(um: i32) -> String {
@@ -149,7 +150,7 @@ pub fn write_gcode(
     line(out, "G21 ; millimetres");
     line(out, "G90 ; absolute positions");
     line(out, "M83 ; relative extrusion");
-    let mut last_mix: Option<Vec<i64>> = None;
+    let mut mix = MarlinMix::new(drives);
     let mut s = String::new();
     for m in moves {
         s.clear();
@@ -189,7 +190,7 @@ pub fn write_gcode(
                     .collect();
                 // Plunger-only move: E over the duration, as a feed in mm/min of the
                 // largest drive's travel.
-                let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e5;
+                let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e6;
                 let feed = most * 60_000.0 / f64::from((*duration_ms).max(1));
                 let what = if sign < 0.0 { "retract" } else { "prime" };
                 match settings.flavor {
@@ -229,12 +230,11 @@ pub fn write_gcode(
                             }
                             let _ = write!(s, " F{}", f_mm_min(*feed_um_s));
                         } else {
-                            if total > 0 && last_mix.as_ref() != Some(&units) {
-                                for (d, u) in units.iter().enumerate() {
-                                    line(out, &format!("M163 S{d} P{}", e(*u)));
+                            if let Some(weights) = mix.next(&units) {
+                                for (d, w) in weights.iter().enumerate() {
+                                    line(out, &format!("M163 S{d} P{w:.6}"));
                                 }
                                 line(out, "M164 S0");
-                                last_mix = Some(units.clone());
                             }
                             let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(*feed_um_s));
                         }
@@ -245,9 +245,124 @@ pub fn write_gcode(
         line(out, &s);
     }
     Ok(GcodeStats {
-        extrude_e_mm: ext.iter().map(|d| d.printed_units as f64 / 1e5).collect(),
+        extrude_e_mm: ext.iter().map(|d| d.printed_units as f64 / 1e6).collect(),
         lines,
     })
+}
+
+/// Marlin `M163`/`M164` mixes, sent only when needed. The mix is the composition of the
+/// last [`MarlinMix::WINDOW`] moves' E (cumulatively rounded per drive, so exact to a
+/// unit over the window, unlike one small move's). A new mix goes out when splitting the
+/// moves' total E by the current one would leave any drive more than
+/// [`MarlinMix::DRIFT`] units (1e-6 mm each) off its planned E — a composition change
+/// does that within a few moves, rounding only after hundreds: that mix pays the drift
+/// back over `WINDOW` moves, after which the plain composition is sent again. So every
+/// drive's E summed over the file stays within `DRIFT` units of the plan, with a few
+/// mixes per path instead of one per move.
+struct MarlinMix {
+    /// Current weights (fractions summing to 1), none before the first mix.
+    weights: Option<Vec<f64>>,
+    /// Per drive: planned E so far and E the firmware has split to it so far (units).
+    planned: Vec<f64>,
+    split: Vec<f64>,
+    /// The last moves' per-drive E.
+    recent: std::collections::VecDeque<Vec<i64>>,
+    /// Moves left before a pay-back mix is replaced by the plain composition.
+    paying: Option<usize>,
+}
+
+impl MarlinMix {
+    /// Largest drift of a drive's split E from its planned E, units (5e-5 mm, 8 nl in a
+    /// 165 mm² barrel).
+    const DRIFT: f64 = 50.0;
+    /// Moves the composition is taken over, and a drift is paid back over.
+    const WINDOW: usize = 8;
+
+    fn new(drives: usize) -> Self {
+        MarlinMix {
+            weights: None,
+            planned: vec![0.0; drives],
+            split: vec![0.0; drives],
+            recent: Default::default(),
+            paying: None,
+        }
+    }
+
+    /// Account for a move of per-drive `units`; the weights to send first, if any.
+    fn next(&mut self, units: &[i64]) -> Option<Vec<f64>> {
+        let total: i64 = units.iter().sum();
+        if total <= 0 {
+            return None;
+        }
+        let t = total as f64;
+        if self.recent.len() == Self::WINDOW {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(units.to_vec());
+        let mut sums = vec![0.0; units.len()];
+        for r in &self.recent {
+            for (s, &u) in sums.iter_mut().zip(r) {
+                *s += u as f64;
+            }
+        }
+        let window_total: f64 = sums.iter().sum();
+        let base: Vec<f64> = sums.iter().map(|x| x / window_total).collect();
+        let before: Vec<f64> = self
+            .split
+            .iter()
+            .zip(&self.planned)
+            .map(|(s, p)| p - s)
+            .collect();
+        for (p, &u) in self.planned.iter_mut().zip(units) {
+            *p += u as f64;
+        }
+        let off_after = |w: &[f64]| {
+            let wsum: f64 = w.iter().sum();
+            self.split
+                .iter()
+                .zip(&self.planned)
+                .zip(w)
+                .map(|((s, p), wi)| (s + t * wi / wsum - p).abs())
+                .fold(0.0, f64::max)
+        };
+        let new = match (&self.weights, self.paying) {
+            (None, _) => Some(base.clone()),
+            (Some(w), _) if off_after(w) > Self::DRIFT => {
+                // Pay back what is owed before this move over the next WINDOW moves.
+                self.paying = Some(Self::WINDOW);
+                let k = Self::WINDOW as f64;
+                Some(
+                    base.iter()
+                        .zip(&before)
+                        .map(|(b, owed)| (b + owed / (k * t)).max(0.0))
+                        .collect(),
+                )
+            }
+            (Some(_), Some(0)) => {
+                self.paying = None;
+                Some(base.clone())
+            }
+            (Some(_), Some(n)) => {
+                self.paying = Some(n - 1);
+                None
+            }
+            (Some(_), None) => None,
+        };
+        let sent = new.map(|w| {
+            let sum: f64 = w.iter().sum();
+            let w: Vec<f64> = w.iter().map(|x| (x / sum * 1e6).round() / 1e6).collect();
+            self.weights = Some(w.clone());
+            w
+        });
+        let w = self.weights.as_deref().unwrap_or_default();
+        let wsum: f64 = w.iter().sum();
+        if wsum > 0.0 {
+            for (s, wi) in self.split.iter_mut().zip(w) {
+                *s += t * wi / wsum;
+            }
+        }
+        sent
+    }
 }
 
 /// Sum each drive's E over the Extrude lines of a file this module wrote (for checks).
