@@ -541,14 +541,22 @@ impl SegmentIndex {
     /// [`Self::distance`] ignoring the segments `skip` says yes to (segments are numbered
     /// in the order given to [`Self::new`]: loops' edges, then polylines' edges).
     pub fn distance_skipping(&self, p: DVec2, skip: impl Fn(u32) -> bool) -> f64 {
+        self.nearest_skipping(p, skip)
+            .map_or(f64::INFINITY, |(d, _)| d)
+    }
+
+    /// The distance from `p` to the nearest segment `skip` does not exclude, and that
+    /// segment's number (see [`Self::distance_skipping`]); none when there is none.
+    pub fn nearest_skipping(&self, p: DVec2, skip: impl Fn(u32) -> bool) -> Option<(f64, u32)> {
         if self.segments.is_empty() {
-            return f64::INFINITY;
+            return None;
         }
         let (pc, pr) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p);
         // Distance from p to the grid box, so rings are counted from where p projects.
         let box_hi = self.origin + DVec2::new(self.nx as f64, self.ny as f64) * self.cell_mm;
         let outside = (self.origin - p).max(p - box_hi).max(DVec2::ZERO).length();
         let mut best = f64::INFINITY;
+        let mut best_k = None;
         let max_ring = self.nx.max(self.ny);
         for ring in 0..=max_ring {
             let r = ring as isize;
@@ -567,7 +575,11 @@ impl SegmentIndex {
                                 continue;
                             }
                             let (a, b) = self.segments[k as usize];
-                            best = best.min(point_segment_distance(p, a, b));
+                            let d = point_segment_distance(p, a, b);
+                            if d < best {
+                                best = d;
+                                best_k = Some(k);
+                            }
                         }
                     }
                     col += step as isize;
@@ -578,7 +590,7 @@ impl SegmentIndex {
                 break;
             }
         }
-        best
+        best_k.map(|k| (best, k))
     }
 }
 

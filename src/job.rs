@@ -150,6 +150,7 @@ struct RawProcess {
     nozzle: f64,
     layer: Option<LayerSpec>,
     boundary_offset: Option<f64>,
+    offset_end_clearance: Option<f64>,
     radial_lines: Option<usize>,
     field_cell: Option<f64>,
     cusp: Option<f64>,
@@ -290,6 +291,18 @@ impl Job {
                 ));
             }
             plan.boundary_offset_mm = b;
+        }
+        if let Some(c) = p.offset_end_clearance {
+            if !c.is_finite() || c < 0.0 || c > p.nozzle {
+                return Err(bad(
+                    "process.offset_end_clearance",
+                    format!(
+                        "must be a distance from 0 to the nozzle ({} mm), got {c}",
+                        p.nozzle
+                    ),
+                ));
+            }
+            plan.offset_end_clearance_mm = c;
         }
         if let Some(n) = p.radial_lines {
             if !(8..=100_000).contains(&n) {

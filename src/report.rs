@@ -43,6 +43,7 @@ pub struct Settings {
     pub r_mach_mm: f64,
     pub nozzle_mm: f64,
     pub boundary_offset_mm: f64,
+    pub offset_end_clearance_mm: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -343,6 +344,7 @@ pub fn build(
             r_mach_mm: job.plan.r_mach_mm,
             nozzle_mm: job.plan.nozzle_mm,
             boundary_offset_mm: job.plan.boundary_offset_mm,
+            offset_end_clearance_mm: job.plan.offset_end_clearance_mm,
         },
         mesh: notes.mesh,
         slicing: notes.slicing,

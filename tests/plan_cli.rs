@@ -147,6 +147,11 @@ fn bad_jobs_fail_with_named_errors() {
             "gradient.function",
         ),
         ("[process]", "[process]\nspeed = 3", "speed"),
+        (
+            "[process]",
+            "[process]\noffset_end_clearance = 0.8",
+            "process.offset_end_clearance",
+        ),
         ("r_mach = 2.0", "r_mach = 50.0", "too thin"),
     ];
     for (from, to, want) in cases {

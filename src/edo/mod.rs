@@ -113,6 +113,13 @@ pub struct PlanOptions {
     /// Offset of C1 outwards and Cm+1 inwards so roads stay inside the part (§3.2).
     /// Default D_noz / 2.
     pub boundary_offset_mm: f64,
+    /// How far short of the contour they run towards the equal distance offsets of a
+    /// sub-region stop, centreline to centreline, mm (§4, narrow sub-areas). An offset
+    /// that meets C_n at a shallow angle would otherwise run beside C_n's road closer
+    /// than a road width and overlap it; stopped half a road short, the gap it leaves
+    /// is at most 1.5 road widths centre to centre, which the flow raise closes
+    /// (`max_flow_factor` 1.5). Default D_noz / 2; 0 clips at the contour itself.
+    pub offset_end_clearance_mm: f64,
     pub subdivision: Subdivision,
     /// Which bounding contour the equal distance offsets start from (eq (6)).
     pub direction: OffsetDirection,
@@ -135,6 +142,7 @@ impl PlanOptions {
             r_mach_mm,
             nozzle_mm,
             boundary_offset_mm: nozzle_mm / 2.0,
+            offset_end_clearance_mm: nozzle_mm / 2.0,
             subdivision: Subdivision::Auto,
             direction: OffsetDirection::Inward,
             radial_lines: 360,
@@ -524,6 +532,21 @@ pub fn plan_region(
         } else {
             step_width(opts.direction, 2, m_n, m_n)
         };
+        // The offsets stop `offset_end_clearance_mm` short of the contour they run
+        // towards (C_n inward, C_n+1 outward).
+        let c = opts.offset_end_clearance_mm;
+        let clip = if c <= 0.0 {
+            s.clone()
+        } else {
+            match opts.direction {
+                OffsetDirection::Inward => {
+                    shapes::difference(&s, &level_shapes_grown(&levels[(n - 1) as usize], c, chord))
+                }
+                OffsetDirection::Outward => {
+                    shapes::intersection(&s, &level_shapes_grown(&levels[n as usize], -c, chord))
+                }
+            }
+        };
         // Equal distance offsets, each one step from the previous: eroding (or
         // dilating) by r1 then r2 is eroding by r1 + r2, and small steps keep the
         // outline cheap where a contour has many vertices.
@@ -544,7 +567,7 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            offsets.push(level.roads(&s, false, eps));
+            offsets.push(level.roads(&clip, false, eps));
         }
         sub_regions.push(SubRegion {
             n,
@@ -574,6 +597,11 @@ pub fn plan_region(
             )
         }),
     })
+}
+
+/// The area enclosed by a level's contour, grown (or shrunk, `delta_mm` < 0).
+fn level_shapes_grown(level: &Level, delta_mm: f64, chord_mm: f64) -> Shapes {
+    level.offset(delta_mm, chord_mm).to_shapes()
 }
 
 /// Split the loops of the interior (the region shrunk by the boundary offset) into
@@ -749,19 +777,12 @@ fn gap_along_gradient(
         let edges = if road.closed { n } else { n.saturating_sub(1) };
         for k in 0..edges {
             let (a, b) = (pts[k], pts[(k + 1) % n]);
+            // Sampled at the middle of pieces at most a nozzle long, never at a vertex:
+            // from a convex corner the nearest point of the lower contour lies along
+            // the bisector, d / sin(α/2) away, further than the gap beside the edges.
             let pieces = ((a.distance(b) / step).ceil() as usize).max(1);
             for q in 0..pieces {
-                let p = a.lerp(b, q as f64 / pieces as f64);
-                let d = if index.is_empty() {
-                    centre.map_or(0.0, |c| p.distance(c))
-                } else {
-                    index.distance(p)
-                };
-                best = best.max(d);
-            }
-        }
-        if !road.closed {
-            if let Some(&p) = pts.last() {
+                let p = a.lerp(b, (q as f64 + 0.5) / pieces as f64);
                 let d = if index.is_empty() {
                     centre.map_or(0.0, |c| p.distance(c))
                 } else {
