@@ -97,8 +97,15 @@ fn gcode_drive_sums_equal_plan_volumes() {
         let sums = summed_drive_e(&text, 2, flavor);
         for (d, (e, v)) in sums.iter().zip(&summary.commanded_nl).enumerate() {
             let want = *v as f64 / 1000.0 / 165.0;
+            // RRF and direct mixing print each drive's E (1e-6 mm, cumulative); M163
+            // mixes keep each drive within 5e-5 mm of its plan (docs/gcode.md).
+            let tolerance = if flavor == Flavor::Marlin && !direct {
+                5e-5
+            } else {
+                2e-6
+            };
             assert!(
-                (e - want).abs() <= 2e-5,
+                (e - want).abs() <= tolerance,
                 "{flavor:?} drive {d}: E sum {e} against {want}"
             );
             assert!((summary.gcode.extrude_e_mm[d] - want).abs() <= 1e-5);

@@ -9,11 +9,20 @@
 //!
 //! Fractions are of the part area (cells inside the part). The part is the layer's
 //! islands (outer loops and holes, even-odd).
+//!
+//! The cell centres sit [`SAMPLE_PHASE`] of a cell off round coordinates: roads designed
+//! exactly one width apart on round coordinates touch along a line, and a row of cell
+//! centres lying on that line would count as covered by both (a 1-cell overlap line
+//! along every such pair, 2.5 % of the area at 10 µm cells and 0.4 mm roads).
 
 use super::ToolPath;
 use crate::geom::Region;
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
+
+/// Offset of the cell centres from the grid origin's round coordinates, in cells
+/// (1/π and e^(−π/2): no simple fraction).
+pub const SAMPLE_PHASE: (f64, f64) = (std::f64::consts::FRAC_1_PI, 0.207_879_576_350_762);
 
 /// Coverage of one layer (or a sum of layers: add the cell counts).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -86,7 +95,7 @@ pub fn measure_with_voids(
     if !(lo.x.is_finite() && hi.x.is_finite() && cell_mm.is_finite() && cell_mm > 0.0) {
         return (Coverage::default(), Vec::new());
     }
-    lo -= DVec2::splat(r_max + cell_mm);
+    lo -= DVec2::splat(r_max + cell_mm) + DVec2::from(SAMPLE_PHASE) * cell_mm;
     hi += DVec2::splat(r_max + cell_mm);
     let mut cell = cell_mm;
     let size = |c: f64| {
