@@ -37,6 +37,8 @@ struct RawJob {
     materials: RawMaterials,
     gradient: RawGradient,
     process: RawProcess,
+    /// Process settings of the toolpath stage (`docs/toolpath.md`), all optional.
+    toolpath: Option<crate::pipeline::ProcessSettings>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -214,6 +216,9 @@ pub struct Job {
     pub z_step: f64,
     pub plan: PlanOptions,
     pub layers: LayerHeights,
+    /// The `[toolpath]` table: feeds, cessation, flow limits, mixing chamber, purge,
+    /// seams (defaults where absent), with `nozzle_mm` = `process.nozzle`.
+    pub toolpath: crate::pipeline::ProcessSettings,
 }
 
 /// One layer to plan: its index in the job's stack, its geometry and the gradient design
@@ -270,6 +275,7 @@ impl Job {
         }
         // Process.
         let p = raw.process;
+        let p_nozzle = p.nozzle;
         positive(p.r_mach, "process.r_mach", &bad)?;
         positive(p.nozzle, "process.nozzle", &bad)?;
         if p.nozzle > p.r_mach {
@@ -569,7 +575,28 @@ impl Job {
                 "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
             ));
         }
+        let default_nozzle = crate::pipeline::ProcessSettings::default().nozzle_mm;
+        let mut toolpath = raw.toolpath.unwrap_or_default();
+        if toolpath.nozzle_mm != default_nozzle && toolpath.nozzle_mm != p_nozzle {
+            return Err(bad(
+                "toolpath.nozzle_mm",
+                format!(
+                    "is {} mm but process.nozzle is {p_nozzle} mm: set the nozzle once, in [process]",
+                    toolpath.nozzle_mm
+                ),
+            ));
+        }
+        toolpath.nozzle_mm = p_nozzle;
+        if let Err(e) = toolpath.validate() {
+            return Err(match e {
+                crate::pipeline::PipelineError::Setting { field, message } => {
+                    bad(&format!("toolpath.{field}"), message)
+                }
+                other => bad("toolpath", other.to_string()),
+            });
+        }
         Ok(Job {
+            toolpath,
             name: raw.name,
             geometry,
             materials,

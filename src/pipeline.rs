@@ -34,7 +34,9 @@
 //! `mixing_lead` each extrusion segment is commanded the composition designed V_dead
 //! further along the layer's stream, so the designed composition leaves the nozzle where
 //! each path starts (within a layer; past the layer's last road the last composition is
-//! held). [`StreamState`] carries the chamber's content across layers, and
+//! held). A layer whose start the chamber does not hold begins, with `purge_xy_mm` set,
+//! with a purge pad off the part commanded with the layer's first V_dead of designed
+//! composition. [`StreamState`] carries the chamber's content across layers, and
 //! [`LayerStats`] reports the designed-versus-delivered error (largest per-material
 //! difference, volume-weighted mean and maximum). With the lead, the per-syringe volumes
 //! are those of the commanded compositions.
@@ -99,6 +101,19 @@ pub struct ProcessSettings {
     /// Command each composition change V_dead ahead so it reaches the nozzle exit where
     /// the path starts. Default true (no effect when `v_dead_ul` is 0).
     pub mixing_lead: bool,
+    /// Purge position (x, y mm, off the part: a waste bin, or a spot on the bed where the
+    /// purges stack into a tower). Where the mixing chamber does not hold what a layer
+    /// starts with (the lead cannot reach back into the previous layer), the layer
+    /// begins with a purge there: V_dead laid as a zig-zag pad, commanded with the
+    /// layer's first V_dead of designed composition, so the designed composition leaves
+    /// the nozzle where the layer's first road starts. Default unset (no purge: the
+    /// layer start's error is reported).
+    pub purge_xy_mm: Option<[f64; 2]>,
+    /// Side of the square purge pad, mm. Default 5.
+    pub purge_pad_mm: f64,
+    /// Purge only where the chamber's content differs from the layer's first V_dead
+    /// by more than this (largest per-material difference). Default 0.02.
+    pub purge_min_error: f64,
     /// Seam placement of closed loops. Default `aligned`.
     pub seam: SeamMode,
     /// Seam direction (aligned; start of staggered), degrees from +x. Default 90 (rear).
@@ -130,6 +145,9 @@ impl Default for ProcessSettings {
             flow_min_gap_fraction: 0.005,
             v_dead_ul: 0.0,
             mixing_lead: true,
+            purge_xy_mm: None,
+            purge_pad_mm: 5.0,
+            purge_min_error: 0.02,
             seam: SeamMode::Aligned,
             seam_angle_deg: 90.0,
             seam_corner_min_deg: 30.0,
@@ -226,6 +244,17 @@ impl ProcessSettings {
         positive(self.travel_feed_mm_s, "travel_feed_mm_s")?;
         non_negative(self.retract_min_travel_mm, "retract_min_travel_mm")?;
         non_negative(self.v_dead_ul, "v_dead_ul")?;
+        positive(self.purge_pad_mm, "purge_pad_mm")?;
+        non_negative(self.purge_min_error, "purge_min_error")?;
+        if let Some([x, y]) = self.purge_xy_mm {
+            if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
+            {
+                return Err(PipelineError::Setting {
+                    field: "purge_xy_mm",
+                    message: format!("must be a finite position on the machine, got [{x}, {y}]"),
+                });
+            }
+        }
         if !(self.max_flow_factor.is_finite() && self.max_flow_factor >= 1.0) {
             return Err(PipelineError::Setting {
                 field: "max_flow_factor",
@@ -361,6 +390,8 @@ pub struct LayerStats {
     /// weighted mean of the largest per-material difference, and its maximum over moves.
     pub composition_error_mean: f64,
     pub composition_error_max: f64,
+    /// Volume purged before the layer (all syringes), nl; 0 when no purge was needed.
+    pub purge_nl: f64,
 }
 
 /// One layer's moves, stats, and the paths they build (for previews and checks).
@@ -461,11 +492,13 @@ pub fn moves_for_paths(
         path_index: 0,
         extrusion_paths: Vec::new(),
     };
-    b.commanded = commanded_compositions(&paths, settings, layer.thickness_mm);
+    let designed = designed_stream(&paths, settings, layer.thickness_mm);
+    b.commanded = commanded_compositions(&designed, settings);
     b.push(MoveKind::LayerMark {
         layer: layer.index as u32,
         z_um: to_um(layer.z_mm),
     })?;
+    b.purge_if_needed(&designed)?;
     for (i, p) in paths.iter().enumerate() {
         b.path_index = i as u32;
         b.path(p)?;
@@ -527,12 +560,13 @@ struct Builder<'a> {
     extrusion_paths: Vec<(u32, u32)>,
 }
 
-/// The composition to command on each extrusion segment of a layer: with the mixing lead,
-/// the designed composition V_dead of extrusion later (volume-weighted over the segment's
-/// window), so it reaches the nozzle exit where designed; past the layer's last road the
-/// last designed composition (the next layer is not known here). Without the lead, the
-/// designed composition.
-fn commanded_compositions(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<Vec<f64>> {
+/// The designed extrusion stream of a layer: (volume nl, composition) per extrusion
+/// segment, in building order.
+fn designed_stream<'p>(
+    paths: &'p [ToolPath],
+    s: &ProcessSettings,
+    h_mm: f64,
+) -> Vec<(f64, &'p [f64])> {
     let section = s.road_width() * h_mm * 1000.0;
     let mut segs: Vec<(f64, &[f64])> = Vec::new();
     for p in paths {
@@ -550,24 +584,39 @@ fn commanded_compositions(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) ->
             segs.push((len * section * f, &p.composition));
         }
     }
-    let lead = s.v_dead_ul * 1000.0;
-    if !(s.mixing_lead && lead > 0.0) {
-        return segs.iter().map(|(_, c)| c.to_vec()).collect();
-    }
-    let mut out = Vec::with_capacity(segs.len());
-    // Window [start + lead, start + lead + v) over the designed stream.
-    let mut start = 0.0;
-    let mut j = 0usize; // first segment that may overlap the window
-    let mut j_start = 0.0; // cumulative volume before segment j
-    for (v, c) in &segs {
-        let (w0, w1) = (start + lead, start + lead + v);
-        while j < segs.len() && j_start + segs[j].0 <= w0 {
-            j_start += segs[j].0;
-            j += 1;
+    segs
+}
+
+/// Walks a designed stream by volume: the composition over successive windows.
+struct StreamWindow<'s, 'p> {
+    segs: &'s [(f64, &'p [f64])],
+    /// First segment that may overlap the next window, and the volume before it.
+    j: usize,
+    j_start: f64,
+}
+
+impl<'s, 'p> StreamWindow<'s, 'p> {
+    fn new(segs: &'s [(f64, &'p [f64])]) -> Self {
+        StreamWindow {
+            segs,
+            j: 0,
+            j_start: 0.0,
         }
-        let mut acc = vec![0.0; c.len()];
+    }
+
+    /// Volume-weighted designed composition over [w0, w1) (windows in increasing
+    /// order); past the stream's end its last composition is held (`fallback` when the
+    /// stream is empty).
+    fn over(&mut self, w0: f64, w1: f64, fallback: &[f64]) -> Vec<f64> {
+        let segs = self.segs;
+        while self.j < segs.len() && self.j_start + segs[self.j].0 <= w0 {
+            self.j_start += segs[self.j].0;
+            self.j += 1;
+        }
+        let v = w1 - w0;
+        let mut acc = vec![0.0; fallback.len()];
         let mut got = 0.0;
-        let (mut q, mut q_start) = (j, j_start);
+        let (mut q, mut q_start) = (self.j, self.j_start);
         while q < segs.len() && q_start < w1 {
             let a = q_start.max(w0);
             let b = (q_start + segs[q].0).min(w1);
@@ -582,15 +631,103 @@ fn commanded_compositions(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) ->
         }
         let rest = v - got;
         if rest > 0.0 {
-            let last = segs.last().map(|s| s.1).unwrap_or(c);
+            let last = segs.last().map(|s| s.1).unwrap_or(fallback);
             for (x, y) in acc.iter_mut().zip(last) {
                 *x += rest * y;
             }
         }
-        out.push(acc.iter().map(|x| x / v).collect());
-        start += v;
+        if v > 0.0 {
+            acc.iter().map(|x| x / v).collect()
+        } else {
+            fallback.to_vec()
+        }
     }
-    out
+}
+
+/// The composition to command on each extrusion segment of a layer: with the mixing lead,
+/// the designed composition V_dead of extrusion later (volume-weighted over the segment's
+/// window), so it reaches the nozzle exit where designed; past the layer's last road the
+/// last designed composition (the next layer is not known here). Without the lead, the
+/// designed composition.
+fn commanded_compositions(segs: &[(f64, &[f64])], s: &ProcessSettings) -> Vec<Vec<f64>> {
+    let lead = s.v_dead_ul * 1000.0;
+    if !(s.mixing_lead && lead > 0.0) {
+        return segs.iter().map(|(_, c)| c.to_vec()).collect();
+    }
+    let mut window = StreamWindow::new(segs);
+    let mut start = 0.0;
+    segs.iter()
+        .map(|(v, c)| {
+            let out = window.over(start + lead, start + lead + v, c);
+            start += v;
+            out
+        })
+        .collect()
+}
+
+/// How far the chamber's content (front first) is from the first `dead_nl` of the
+/// designed stream: the largest per-material difference over the volume they share.
+fn chamber_mismatch(
+    chamber: &std::collections::VecDeque<(f64, Vec<f64>)>,
+    segs: &[(f64, &[f64])],
+) -> f64 {
+    let mut window = StreamWindow::new(segs);
+    let mut at = 0.0;
+    let mut worst: f64 = 0.0;
+    for (v, c) in chamber {
+        if *v <= 0.0 {
+            continue;
+        }
+        let want = window.over(at, at + v, c);
+        at += v;
+        let err = want
+            .iter()
+            .zip(c)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        worst = worst.max(err);
+    }
+    worst
+}
+
+/// The purge pad's road: a zig-zag from `corner` along +x, one road width apart in +y,
+/// `length_mm` long, within a square of `side_mm` (wrapping back to the corner when the
+/// pad is full).
+fn purge_zigzag(corner: DVec2, side_mm: f64, spacing_mm: f64, length_mm: f64) -> Vec<DVec2> {
+    let rows = ((side_mm / spacing_mm).floor() as usize).max(1);
+    let mut points = vec![corner];
+    let mut left = length_mm;
+    let mut row = 0usize;
+    while left > 1e-9 {
+        let y = corner.y + (row % rows) as f64 * spacing_mm;
+        let forward = row.is_multiple_of(2);
+        let (x0, x1) = if forward {
+            (corner.x, corner.x + side_mm)
+        } else {
+            (corner.x + side_mm, corner.x)
+        };
+        let here = *points.last().unwrap_or(&corner);
+        // Step over to this row's start.
+        let start = DVec2::new(x0, y);
+        let step = here.distance(start);
+        if step > 1e-9 {
+            if step >= left {
+                points.push(here.lerp(start, left / step));
+                break;
+            }
+            points.push(start);
+            left -= step;
+        }
+        let run = (x1 - x0).abs();
+        if run >= left {
+            points.push(start.lerp(DVec2::new(x1, y), left / run));
+            break;
+        }
+        points.push(DVec2::new(x1, y));
+        left -= run;
+        row += 1;
+    }
+    points
 }
 
 impl Builder<'_> {
@@ -701,35 +838,109 @@ impl Builder<'_> {
         Ok(())
     }
 
+    /// Before the layer's first road: a purge at `purge_xy_mm` where the chamber does
+    /// not hold the layer's first V_dead of designed composition (and a purge position
+    /// is set). The pad's segments are commanded the designed stream's window [0,
+    /// V_dead) in order, so after it the chamber holds exactly that.
+    fn purge_if_needed(&mut self, designed: &[(f64, &[f64])]) -> Result<(), PipelineError> {
+        let s = self.settings;
+        let dead = s.v_dead_ul * 1000.0;
+        let Some([x, y]) = s.purge_xy_mm else {
+            return Ok(());
+        };
+        if !(s.mixing_lead && dead > 0.0)
+            || designed.is_empty()
+            || self.state.chamber.is_empty()
+            || chamber_mismatch(&self.state.chamber, designed) <= s.purge_min_error
+        {
+            return Ok(());
+        }
+        let section_nl_per_mm = self.section_mm2 * 1000.0;
+        let points = purge_zigzag(
+            DVec2::new(x, y),
+            s.purge_pad_mm,
+            s.road_width(),
+            dead / section_nl_per_mm,
+        );
+        let first = designed[0].1;
+        self.travel_to(points[0], first)?;
+        self.pressurise()?;
+        let mut window = StreamWindow::new(designed);
+        let mut at = 0.0;
+        for w in points.windows(2) {
+            let v = w[0].distance(w[1]) * section_nl_per_mm;
+            if v <= 0.0 {
+                continue;
+            }
+            let commanded = window.over(at, at + v, first);
+            at += v;
+            self.push_through_chamber(v, &commanded);
+            let volumes = self.account(v, &commanded);
+            let to = self.position(w[1])?;
+            self.push(MoveKind::Extrude {
+                to,
+                feed_um_s: Self::feed(s.print_feed_mm_s),
+                volumes_nl: volumes,
+                width_factor_ppt: FACTOR_NOMINAL_PPT,
+            })?;
+            self.stats.extrude_moves += 1;
+            self.stats.purge_nl += v;
+            self.state.position = Some(DVec3::new(w[1].x, w[1].y, self.z_mm));
+        }
+        Ok(())
+    }
+
+    /// Push `volume_nl` of `commanded` into the chamber; what leaves the nozzle (plug
+    /// flow), or none without a chamber.
+    fn push_through_chamber(&mut self, volume_nl: f64, commanded: &[f64]) -> Option<Vec<f64>> {
+        let dead = self.settings.v_dead_ul * 1000.0;
+        if dead <= 0.0 || volume_nl <= 0.0 {
+            return None;
+        }
+        let ch = &mut self.state.chamber;
+        ch.push_back((volume_nl, commanded.to_vec()));
+        let mut need = volume_nl;
+        let mut out = vec![0.0; commanded.len()];
+        while need > 1e-12 {
+            let Some(front) = ch.front_mut() else { break };
+            let take = front.0.min(need);
+            for (o, c) in out.iter_mut().zip(&front.1) {
+                *o += take * c;
+            }
+            front.0 -= take;
+            need -= take;
+            if front.0 <= 1e-12 {
+                ch.pop_front();
+            }
+        }
+        Some(out.iter().map(|x| x / volume_nl).collect())
+    }
+
+    /// Add `volume_nl` of `composition` to the job's planned and commanded totals; the
+    /// move's per-syringe volumes (cumulatively rounded).
+    fn account(&mut self, volume_nl: f64, composition: &[f64]) -> Vec<u32> {
+        let mut volumes = Vec::with_capacity(composition.len());
+        for (k, f) in composition.iter().enumerate() {
+            self.state.planned_nl[k] += volume_nl * f.max(0.0);
+            let target = self.state.planned_nl[k].round().max(0.0) as u64;
+            let v = target.saturating_sub(self.state.commanded_nl[k]);
+            self.state.commanded_nl[k] += v;
+            volumes.push(v.min(u64::from(u32::MAX)) as u32);
+        }
+        volumes
+    }
+
     /// Push `volume_nl` of `commanded` through the chamber; compare what leaves the
     /// nozzle with `designed`.
     fn plug_flow(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
         let dead = self.settings.v_dead_ul * 1000.0;
-        let delivered: Vec<f64> = if dead <= 0.0 {
-            commanded.to_vec()
-        } else {
-            let ch = &mut self.state.chamber;
-            if ch.is_empty() {
-                // A fresh chamber is full of the first designed composition (primed).
-                ch.push_back((dead, designed.to_vec()));
-            }
-            ch.push_back((volume_nl, commanded.to_vec()));
-            let mut need = volume_nl;
-            let mut out = vec![0.0; commanded.len()];
-            while need > 1e-12 {
-                let Some(front) = ch.front_mut() else { break };
-                let take = front.0.min(need);
-                for (o, c) in out.iter_mut().zip(&front.1) {
-                    *o += take * c;
-                }
-                front.0 -= take;
-                need -= take;
-                if front.0 <= 1e-12 {
-                    ch.pop_front();
-                }
-            }
-            out.iter().map(|x| x / volume_nl).collect()
-        };
+        if dead > 0.0 && self.state.chamber.is_empty() {
+            // A fresh chamber is full of the first designed composition (primed).
+            self.state.chamber.push_back((dead, designed.to_vec()));
+        }
+        let delivered = self
+            .push_through_chamber(volume_nl, commanded)
+            .unwrap_or_else(|| commanded.to_vec());
         let err = delivered
             .iter()
             .zip(designed)
@@ -759,15 +970,7 @@ impl Builder<'_> {
             .unwrap_or_else(|| composition.to_vec());
         self.segment += 1;
         self.plug_flow(volume_nl, &commanded, composition);
-        let composition = commanded.as_slice();
-        let mut volumes = Vec::with_capacity(composition.len());
-        for (k, f) in composition.iter().enumerate() {
-            self.state.planned_nl[k] += volume_nl * f.max(0.0);
-            let target = self.state.planned_nl[k].round().max(0.0) as u64;
-            let v = target.saturating_sub(self.state.commanded_nl[k]);
-            self.state.commanded_nl[k] += v;
-            volumes.push(v.min(u64::from(u32::MAX)) as u32);
-        }
+        let volumes = self.account(volume_nl, &commanded);
         let to = self.position(b)?;
         self.push(MoveKind::Extrude {
             to,

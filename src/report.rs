@@ -82,6 +82,8 @@ pub struct LayerToolpath {
     /// model, with the mixing lead (volume-weighted mean and worst).
     pub composition_error_mean: f64,
     pub composition_error_max: f64,
+    /// Volume purged before the layer (`[toolpath] purge_xy_mm`), µL; 0 without a purge.
+    pub purge_ul: f64,
     /// Coverage of the roads (with `--coverage` or `--svg`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub coverage: Option<CoverageReport>,
@@ -406,6 +408,7 @@ pub fn attach_toolpaths(
             syringe_volumes_ul: ul,
             composition_error_mean: st.composition_error_mean,
             composition_error_max: st.composition_error_max,
+            purge_ul: st.purge_nl / 1000.0,
             coverage: cov,
         });
     }

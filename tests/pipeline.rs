@@ -281,3 +281,69 @@ fn alternating_order_removes_the_layer_change_jump() {
     eprintln!("worst delivered composition error (inner-to-outer, alternating): {worst:?}");
     assert!(worst[1] < 0.5 * worst[0], "{worst:?}");
 }
+
+/// With a purge position set, a layer whose start the mixing chamber does not hold
+/// begins with a purge pad off the part: the layer change's composition jump goes, the
+/// purge lies where asked, and the per-syringe totals still equal the moves' volumes.
+#[test]
+fn purge_pad_removes_the_layer_change_jump() {
+    use edo::machine::MoveKind;
+    let job = job("paper-annulus");
+    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
+    let layers = plan_layers(&slices[..2], &job.plan, None).unwrap();
+    let run = |purge: Option<[f64; 2]>| {
+        let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        s.v_dead_ul = 2.0;
+        s.purge_xy_mm = purge;
+        let mut state = StreamState::new();
+        let mut idx = 0;
+        let mut outs = Vec::new();
+        for l in &layers {
+            let out = layer_moves(l, &s, 1, idx, &mut state).unwrap();
+            idx = out.next_index;
+            outs.push(out);
+        }
+        (outs, state)
+    };
+    let (plain, _) = run(None);
+    let (purged, state) = run(Some([-45.0, -45.0]));
+    // The first layer starts from a primed chamber: no purge. The second starts at
+    // M(Ci) after a layer that ended at M(Ce): purged.
+    assert_eq!(purged[0].stats.purge_nl, 0.0);
+    let dead_nl = 2000.0;
+    assert!(
+        (purged[1].stats.purge_nl - dead_nl).abs() < 1.0,
+        "{}",
+        purged[1].stats.purge_nl
+    );
+    let before = plain[1].stats.composition_error_max;
+    let after = purged[1].stats.composition_error_max;
+    eprintln!("layer 2 worst delivered composition error: no purge {before}, purge {after}");
+    assert!(before > 0.5 && after < 0.1, "{before} -> {after}");
+    // Purge moves stay on the pad (5 mm square at the purge corner), before any road.
+    let first_road = purged[1].extrusion_paths[0].0;
+    let mut pad_moves = 0;
+    for m in &purged[1].moves {
+        if let MoveKind::Extrude { to, .. } = &m.kind {
+            if m.index < first_road {
+                pad_moves += 1;
+                let (x, y) = (to.x_um as f64 / 1000.0, to.y_um as f64 / 1000.0);
+                assert!((-45.001..=-39.999).contains(&x), "{x}");
+                assert!((-45.001..=-39.999).contains(&y), "{y}");
+            }
+        }
+    }
+    assert!(pad_moves > 0);
+    // Totals: every Extrude's volumes, purge included, sum to the commanded totals.
+    let mut sums = vec![0u64; 2];
+    for out in &purged {
+        for m in &out.moves {
+            if let MoveKind::Extrude { volumes_nl, .. } = &m.kind {
+                for (s, v) in sums.iter_mut().zip(volumes_nl) {
+                    *s += u64::from(*v);
+                }
+            }
+        }
+    }
+    assert_eq!(sums, state.commanded_nl());
+}

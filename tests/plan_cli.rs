@@ -152,6 +152,17 @@ fn bad_jobs_fail_with_named_errors() {
             "[process]\noffset_end_clearance = 0.8",
             "process.offset_end_clearance",
         ),
+        (
+            "[process]",
+            "[toolpath]\npurge_pad_mm = -1.0\n[process]",
+            "toolpath.purge_pad_mm",
+        ),
+        ("[process]", "[toolpath]\nfeed = 3\n[process]", "feed"),
+        (
+            "[process]",
+            "[toolpath]\nnozzle_mm = 0.3\n[process]",
+            "toolpath.nozzle_mm",
+        ),
         ("r_mach = 2.0", "r_mach = 50.0", "too thin"),
     ];
     for (from, to, want) in cases {
@@ -187,4 +198,28 @@ fn radial_on_a_non_star_region_is_refused_with_advice() {
         .replace("subdivision = \"auto\"", "subdivision = \"radial\"");
     let e = plan_error(&text);
     assert!(e.contains("radial") && e.contains("distance"), "{e}");
+}
+
+/// A job's `[toolpath]` table reaches the toolpath: with a mixing chamber and a purge
+/// position, the second layer (which starts at M(Ci) after a layer that ended at M(Ce))
+/// begins with a purge of V_dead, reported per layer.
+#[test]
+fn toolpath_table_sets_the_purge() {
+    let good = std::fs::read_to_string(example("paper-annulus.toml")).unwrap();
+    let text = good.replace(
+        "[process]",
+        "[toolpath]\nv_dead_ul = 2.0\npurge_xy_mm = [-45.0, -45.0]\n\n[process]",
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("job.toml");
+    std::fs::write(&path, text).unwrap();
+    let r = plan_json(&path, None);
+    let layers = r["layers"].as_array().unwrap();
+    let purge = |k: usize| layers[k]["toolpath"]["purge_ul"].as_f64().unwrap();
+    assert_eq!(purge(0), 0.0);
+    assert!((purge(1) - 2.0).abs() < 1e-3, "{}", purge(1));
+    let err = layers[1]["toolpath"]["composition_error_max"]
+        .as_f64()
+        .unwrap();
+    assert!(err < 0.1, "{err}");
 }

@@ -325,7 +325,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
 
 /// The process settings `edoctl plan` makes toolpaths and G-code with.
 pub fn process_settings(job: &Job) -> crate::pipeline::ProcessSettings {
-    crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm)
+    job.toolpath.clone()
 }
 
 /// Every layer's ordered paths and moves, continuing the stream state from layer to

@@ -209,14 +209,24 @@ pub fn process_settings(
             machine.syringes.len()
         ));
     }
-    let mut settings = crate::pipeline::ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+    // The job's [toolpath] settings, bounded by what this machine is.
+    let mut settings = job.toolpath.clone();
     settings.syringes = Some(machine.syringes.len());
-    settings.max_flow_factor = machine.max_flow_factor;
+    // A job that leaves max_flow_factor at its default gets what the machine allows.
+    let default_cap = crate::pipeline::ProcessSettings::default().max_flow_factor;
+    settings.max_flow_factor = if settings.max_flow_factor == default_cap {
+        machine.max_flow_factor
+    } else {
+        settings.max_flow_factor.min(machine.max_flow_factor)
+    };
     settings.v_dead_ul = machine.dead_volume_nl as f64 / 1000.0;
     // The streamer plans a layer before it knows the next one, so the mixing lead cannot
-    // reach across a layer change: alternate the sub-region order so that every layer
-    // starts with the composition the previous one ended with (no jump to lead for).
-    settings.sub_region_order = crate::toolpath::SubRegionOrder::Alternating;
+    // reach across a layer change: unless the job purges at layer changes, alternate the
+    // sub-region order so that every layer starts with the composition the previous one
+    // ended with (no jump to lead for).
+    if settings.purge_xy_mm.is_none() {
+        settings.sub_region_order = crate::toolpath::SubRegionOrder::Alternating;
+    }
     settings
         .validate()
         .map_err(|e| format!("{source_name}: {e}"))?;
