@@ -35,7 +35,7 @@ use crate::material::{
 };
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
-use shapes::{Path, Shapes};
+use shapes::{ClipArea, Path, Shapes};
 
 /// How the region between Ci and Ce is divided into contours (job key `subdivision`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -313,10 +313,10 @@ impl Level {
     }
 
     /// The road centrelines of this level's contour, clipped to `interior`.
-    fn roads(&self, interior: &Shapes, boundary_included: bool, eps: f64) -> Vec<Path> {
+    fn roads(&self, interior: &ClipArea, boundary_included: bool, eps: f64) -> Vec<Path> {
         match self {
             Level::Shapes(s) => shapes::loops(s)
-                .flat_map(|l| shapes::clip_loop(l, interior, boundary_included, eps))
+                .flat_map(|l| interior.clip_loop(l, boundary_included, eps))
                 .collect(),
             Level::HalfPlane { normal, s, lo, hi } => {
                 let t = normal.perp();
@@ -324,7 +324,7 @@ impl Level {
                 let mid = 0.5 * (*lo + *hi);
                 let foot = mid + *normal * (s - normal.dot(mid));
                 let line = [foot - t * reach, foot + t * reach];
-                shapes::clip_polyline(&line, interior, boundary_included)
+                shapes::clip_polyline(&line, interior.shapes(), boundary_included)
             }
         }
     }
@@ -465,6 +465,7 @@ pub fn plan_region(
             )
         })
         .collect();
+    let interior_area = ClipArea::inside(&interior, tol.clip_margin_mm);
     let contours: Vec<Contour> = (1..=m + 1)
         .map(|j| Contour {
             j,
@@ -478,7 +479,11 @@ pub fn plan_region(
             } else if j == 1 && pre.inner_is_boundary && !parallel {
                 hole_runs.clone()
             } else {
-                levels[(j - 1) as usize].roads(&interior, parallel && (j == 1 || j == m + 1), eps)
+                levels[(j - 1) as usize].roads(
+                    &interior_area,
+                    parallel && (j == 1 || j == m + 1),
+                    eps,
+                )
             },
         })
         .collect();
@@ -529,6 +534,20 @@ pub fn plan_region(
         // outline cheap where a contour has many vertices.
         let step = d_max_mm / n_max.max(1) as f64;
         let mut offsets = Vec::new();
+        // Growth-ring offsets of one bounding contour already lie on the sub-region's
+        // side of it, so only the other contour can cut them: clip against that
+        // contour's area alone (half the edges of the sub-region).
+        let (lower_shape, upper_shape) =
+            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
+        let s_area = match (pre.method, opts.direction) {
+            (SubdivisionMethod::Radial | SubdivisionMethod::Distance, OffsetDirection::Inward) => {
+                ClipArea::outside(lower_shape, tol.clip_margin_mm)
+            }
+            (SubdivisionMethod::Radial | SubdivisionMethod::Distance, OffsetDirection::Outward) => {
+                ClipArea::inside(upper_shape, tol.clip_margin_mm)
+            }
+            _ => ClipArea::inside(&s, tol.clip_margin_mm),
+        };
         let mut level = match opts.direction {
             OffsetDirection::Inward => upper.clone(),
             OffsetDirection::Outward => lower.clone(),
@@ -544,7 +563,7 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            offsets.push(level.roads(&s, false, eps));
+            offsets.push(level.roads(&s_area, false, eps));
         }
         sub_regions.push(SubRegion {
             n,
@@ -743,6 +762,18 @@ fn gap_along_gradient(
     let index = SegmentIndex::new(&lower_loops, &[]);
     let step = opts.nozzle_mm.max(1e-3);
     let mut best: f64 = 0.0;
+    // Raise `best` to the distance of `p`; a point with a segment within `best` cannot
+    // raise it, and saying so looks at fewer cells than the distance itself.
+    let mut farther = |p: DVec2| {
+        let d = if index.is_empty() {
+            centre.map_or(0.0, |c| p.distance(c))
+        } else if index.within(p, best) {
+            return;
+        } else {
+            index.distance(p)
+        };
+        best = best.max(d);
+    };
     for road in upper_roads {
         let pts = &road.points;
         let n = pts.len();
@@ -752,22 +783,12 @@ fn gap_along_gradient(
             let pieces = ((a.distance(b) / step).ceil() as usize).max(1);
             for q in 0..pieces {
                 let p = a.lerp(b, q as f64 / pieces as f64);
-                let d = if index.is_empty() {
-                    centre.map_or(0.0, |c| p.distance(c))
-                } else {
-                    index.distance(p)
-                };
-                best = best.max(d);
+                farther(p);
             }
         }
         if !road.closed {
             if let Some(&p) = pts.last() {
-                let d = if index.is_empty() {
-                    centre.map_or(0.0, |c| p.distance(c))
-                } else {
-                    index.distance(p)
-                };
-                best = best.max(d);
+                farther(p);
             }
         }
     }
