@@ -106,6 +106,13 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
     inside
 }
 
+/// A node's nearest boundary point so far (NaN: none yet) and its squared distance.
+#[derive(Clone, Copy)]
+struct Nearest {
+    q: DVec2,
+    d2: f64,
+}
+
 /// Vector distance transform: distance from every node to the nearest point of the
 /// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere. Nodes
 /// carry their nearest boundary point and the squared distance to it: squared
@@ -113,8 +120,13 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
 fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
     let (nx, ny) = (grid.nx, grid.ny);
     let n = nx * ny;
-    let mut near = vec![DVec2::splat(f64::NAN); n];
-    let mut dist2 = vec![f64::INFINITY; n];
+    let mut near = vec![
+        Nearest {
+            q: DVec2::splat(f64::NAN),
+            d2: f64::INFINITY,
+        };
+        n
+    ];
     let band = 1.5 * grid.h;
     for l in loops {
         let m = l.len();
@@ -140,9 +152,8 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
                     let q = a + ab * t;
                     let d2 = p.distance_squared(q);
                     let k = r * nx + c;
-                    if d2 < dist2[k] {
-                        dist2[k] = d2;
-                        near[k] = q;
+                    if d2 < near[k].d2 {
+                        near[k] = Nearest { q, d2 };
                     }
                 }
             }
@@ -150,15 +161,15 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
     }
     // Offer node `k` (at `p`) the nearest point of node `from`. A neighbour with the
     // same nearest point has nothing to offer (and a NaN point, none yet, never equals).
-    let relax = |near: &mut [DVec2], dist2: &mut [f64], k: usize, p: DVec2, from: usize| {
-        let q = near[from];
-        if q == near[k] || q.x.is_nan() {
+    let relax = |near: &mut [Nearest], k: usize, p: DVec2, from: usize| {
+        let q = near[from].q;
+        let here = &mut near[k];
+        if q == here.q || q.x.is_nan() {
             return;
         }
         let d2 = p.distance_squared(q);
-        if d2 < dist2[k] {
-            dist2[k] = d2;
-            near[k] = q;
+        if d2 < here.d2 {
+            *here = Nearest { q, d2 };
         }
     };
     // Forward pass: rows upwards, each from the left (left, lower-left, below,
@@ -167,21 +178,21 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         for c in 0..nx {
             let (k, p) = (r * nx + c, grid.node(c, r));
             if c > 0 {
-                relax(&mut near, &mut dist2, k, p, k - 1);
+                relax(&mut near, k, p, k - 1);
             }
             if r > 0 {
                 if c > 0 {
-                    relax(&mut near, &mut dist2, k, p, k - nx - 1);
+                    relax(&mut near, k, p, k - nx - 1);
                 }
-                relax(&mut near, &mut dist2, k, p, k - nx);
+                relax(&mut near, k, p, k - nx);
                 if c + 1 < nx {
-                    relax(&mut near, &mut dist2, k, p, k - nx + 1);
+                    relax(&mut near, k, p, k - nx + 1);
                 }
             }
         }
         for c in (0..nx.saturating_sub(1)).rev() {
             let k = r * nx + c;
-            relax(&mut near, &mut dist2, k, grid.node(c, r), k + 1);
+            relax(&mut near, k, grid.node(c, r), k + 1);
         }
     }
     // Backward pass, mirrored.
@@ -189,24 +200,24 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         for c in (0..nx).rev() {
             let (k, p) = (r * nx + c, grid.node(c, r));
             if c + 1 < nx {
-                relax(&mut near, &mut dist2, k, p, k + 1);
+                relax(&mut near, k, p, k + 1);
             }
             if r + 1 < ny {
                 if c + 1 < nx {
-                    relax(&mut near, &mut dist2, k, p, k + nx + 1);
+                    relax(&mut near, k, p, k + nx + 1);
                 }
-                relax(&mut near, &mut dist2, k, p, k + nx);
+                relax(&mut near, k, p, k + nx);
                 if c > 0 {
-                    relax(&mut near, &mut dist2, k, p, k + nx - 1);
+                    relax(&mut near, k, p, k + nx - 1);
                 }
             }
         }
         for c in 1..nx {
             let k = r * nx + c;
-            relax(&mut near, &mut dist2, k, grid.node(c, r), k - 1);
+            relax(&mut near, k, grid.node(c, r), k - 1);
         }
     }
-    dist2.into_iter().map(f64::sqrt).collect()
+    near.into_iter().map(|n| n.d2.sqrt()).collect()
 }
 
 impl DistanceField {

@@ -343,7 +343,9 @@ struct PreSubdivision {
     m: u32,
     l_short_mm: f64,
     centre: Option<DVec2>,
-    /// A_1..A_m+1 (index j − 1).
+    /// A_1..A_m+1 (index j − 1). Except for fibers (half-planes), A_m+1 is the area
+    /// inside Ce, and A_1 is the holes when `inner_is_boundary`: [`plan_region`] takes
+    /// their boundary offsets from the interior's own offsets of Ce and Ci.
     levels: Vec<Level>,
     /// Is C1 a real boundary of the part (holes), offset outwards by the boundary offset?
     inner_is_boundary: bool,
@@ -409,12 +411,18 @@ pub fn plan_region(
     };
     let m = pre.m;
 
-    // Step 2: boundary offsets and the interior the roads may occupy.
+    // Step 2: boundary offsets and the interior the roads may occupy. The region shrunk
+    // by b is its outer loop shrunk by b less its holes grown by b, and those two
+    // offsets are also the offset Cm+1 (growth rings, crown) and C1 (growth rings):
+    // each is computed once.
     let b = opts.boundary_offset_mm;
-    let mut region_loops = vec![region.outer.clone()];
-    region_loops.extend(region.holes.iter().cloned());
-    let region_shape = shapes::from_loops(&region_loops);
-    let interior = shapes::offset(&region_shape, -b, chord);
+    let outer_in = shapes::offset(
+        &shapes::from_loops(std::slice::from_ref(&region.outer)),
+        -b,
+        chord,
+    );
+    let holes_out = shapes::offset(&shapes::from_loops(&region.holes), b, chord);
+    let interior = shapes::difference(&outer_in, &holes_out);
     if interior.is_empty() {
         if opts.thin_regions == ThinRegions::Fill {
             return Ok(RegionPlan {
@@ -436,18 +444,28 @@ pub fn plan_region(
             offset_mm: b,
         });
     }
+    // A1 of growth rings is the holes and Am+1 of growth rings and the crown is the
+    // area inside Ce; fiber levels are half-planes, offset as such.
+    let parallel = pre.method == SubdivisionMethod::Parallel;
     let mut levels = pre.levels;
     if pre.inner_is_boundary {
-        levels[0] = levels[0].offset(b, chord);
+        levels[0] = if parallel {
+            levels[0].offset(b, chord)
+        } else {
+            Level::Shapes(holes_out)
+        };
     }
     let last = levels.len() - 1;
-    levels[last] = levels[last].offset(-b, chord);
+    levels[last] = if parallel {
+        levels[last].offset(-b, chord)
+    } else {
+        Level::Shapes(outer_in)
+    };
     let level_shapes: Vec<Shapes> = levels.iter().map(Level::to_shapes).collect();
     // Roads of C1 and Cm+1 where they are part surfaces: the interior's own boundary,
     // split into the runs nearer the holes (C1) and nearer the outer loop (Cm+1). Taken
     // from the same loops, they can meet but never cross, even where a wall is thinner
     // than two roads.
-    let parallel = pre.method == SubdivisionMethod::Parallel;
     let (hole_runs, outer_runs) = if parallel {
         (Vec::new(), Vec::new())
     } else {
