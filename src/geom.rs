@@ -21,7 +21,9 @@ pub struct Tolerances {
     /// Compositions must sum to 1 within this.
     pub composition_sum: f64,
     /// Roads lying on the boundary of the area they are clipped to are kept whole by
-    /// clipping against that area grown by this much, mm.
+    /// clipping against that area grown by this much, mm. A loop farther than this from
+    /// every boundary of the area it is clipped to is inside or outside it whole, and is
+    /// taken or dropped without running the clipper.
     pub clip_margin_mm: f64,
 }
 
@@ -119,6 +121,17 @@ pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
     }
     let t = ((p - a).dot(ab) / len2).clamp(0.0, 1.0);
     p.distance(a + ab * t)
+}
+
+/// Distance between the segments `a`–`b` and `c`–`d` (zero where they touch or cross).
+pub fn segment_segment_distance(a: DVec2, b: DVec2, c: DVec2, d: DVec2) -> f64 {
+    if segments_intersect(a, b, c, d) {
+        return 0.0;
+    }
+    point_segment_distance(a, c, d)
+        .min(point_segment_distance(b, c, d))
+        .min(point_segment_distance(c, a, b))
+        .min(point_segment_distance(d, a, b))
 }
 
 /// Distance from `p` to the closest point of a closed loop's boundary.
@@ -531,6 +544,44 @@ impl SegmentIndex {
 
     pub fn is_empty(&self) -> bool {
         self.segments.is_empty()
+    }
+
+    /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
+    pub fn any_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
+        self.any_in_box(a.min(b), a.max(b), r_mm, |c, d| {
+            segment_segment_distance(a, b, c, d) <= r_mm
+        })
+    }
+
+    /// Does any indexed segment come within `r_mm` of `p`? Looks only at the cells
+    /// within that reach, so it answers a bounded question faster than [`Self::distance`].
+    pub fn within(&self, p: DVec2, r_mm: f64) -> bool {
+        self.any_in_box(p, p, r_mm, |c, d| point_segment_distance(p, c, d) <= r_mm)
+    }
+
+    /// Does `hit` hold for any segment in the cells over the box `lo`–`hi` grown by `pad`?
+    fn any_in_box(
+        &self,
+        lo: DVec2,
+        hi: DVec2,
+        pad: f64,
+        hit: impl Fn(DVec2, DVec2) -> bool,
+    ) -> bool {
+        if self.segments.is_empty() {
+            return false;
+        }
+        let pad = DVec2::splat(pad);
+        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
+        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
+        (r0..=r1).any(|row| {
+            self.cells[row * self.nx + c0..=row * self.nx + c1]
+                .iter()
+                .flatten()
+                .any(|&k| {
+                    let (c, d) = self.segments[k as usize];
+                    hit(c, d)
+                })
+        })
     }
 
     /// Distance from `p` to the nearest indexed segment (infinity when empty).

@@ -21,6 +21,7 @@
 use crate::geom::Region;
 use glam::DVec2;
 use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 
 /// Sampled normalised distance over a region.
 pub struct DistanceField {
@@ -105,12 +106,27 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
     inside
 }
 
+/// A node's nearest boundary point so far (NaN: none yet) and its squared distance.
+#[derive(Clone, Copy)]
+struct Nearest {
+    q: DVec2,
+    d2: f64,
+}
+
 /// Vector distance transform: distance from every node to the nearest point of the
-/// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere.
+/// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere. Nodes
+/// carry their nearest boundary point and the squared distance to it: squared
+/// distances order the same as distances and spare a square root per relaxation.
 fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
-    let n = grid.nx * grid.ny;
-    let mut near = vec![DVec2::splat(f64::NAN); n];
-    let mut dist = vec![f64::INFINITY; n];
+    let (nx, ny) = (grid.nx, grid.ny);
+    let n = nx * ny;
+    let mut near = vec![
+        Nearest {
+            q: DVec2::splat(f64::NAN),
+            d2: f64::INFINITY,
+        };
+        n
+    ];
     let band = 1.5 * grid.h;
     for l in loops {
         let m = l.len();
@@ -120,8 +136,8 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
             let hi = (a.max(b) + DVec2::splat(band) - grid.origin) / grid.h;
             let (c0, r0) = (lo.x.ceil().max(0.0) as usize, lo.y.ceil().max(0.0) as usize);
             let (c1, r1) = (
-                (hi.x.floor().max(0.0) as usize).min(grid.nx - 1),
-                (hi.y.floor().max(0.0) as usize).min(grid.ny - 1),
+                (hi.x.floor().max(0.0) as usize).min(nx - 1),
+                (hi.y.floor().max(0.0) as usize).min(ny - 1),
             );
             let ab = b - a;
             let len2 = ab.length_squared();
@@ -134,58 +150,74 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
                         0.0
                     };
                     let q = a + ab * t;
-                    let d = p.distance(q);
-                    let k = r * grid.nx + c;
-                    if d < dist[k] {
-                        dist[k] = d;
-                        near[k] = q;
+                    let d2 = p.distance_squared(q);
+                    let k = r * nx + c;
+                    if d2 < near[k].d2 {
+                        near[k] = Nearest { q, d2 };
                     }
                 }
             }
         }
     }
-    let (nx, ny) = (grid.nx as isize, grid.ny as isize);
-    let relax =
-        |near: &mut Vec<DVec2>, dist: &mut Vec<f64>, c: isize, r: isize, dc: isize, dr: isize| {
-            let (cc, rr) = (c + dc, r + dr);
-            if cc < 0 || rr < 0 || cc >= nx || rr >= ny {
-                return;
+    // Offer node `k` (at `p`) the nearest point of node `from`. A neighbour with the
+    // same nearest point has nothing to offer (and a NaN point, none yet, never equals).
+    let relax = |near: &mut [Nearest], k: usize, p: DVec2, from: usize| {
+        let q = near[from].q;
+        let here = &mut near[k];
+        if q == here.q || q.x.is_nan() {
+            return;
+        }
+        let d2 = p.distance_squared(q);
+        if d2 < here.d2 {
+            *here = Nearest { q, d2 };
+        }
+    };
+    // Forward pass: rows upwards, each from the left (left, lower-left, below,
+    // lower-right), then back from the right (right).
+    for r in 0..ny {
+        for c in 0..nx {
+            let (k, p) = (r * nx + c, grid.node(c, r));
+            if c > 0 {
+                relax(&mut near, k, p, k - 1);
             }
-            let from = (rr * nx + cc) as usize;
-            let q = near[from];
-            if q.x.is_nan() {
-                return;
-            }
-            let k = (r * nx + c) as usize;
-            let d = grid.node(c as usize, r as usize).distance(q);
-            if d < dist[k] {
-                dist[k] = d;
-                near[k] = q;
-            }
-        };
-    {
-        for r in 0..ny {
-            for c in 0..nx {
-                for (dc, dr) in [(-1, 0), (-1, -1), (0, -1), (1, -1)] {
-                    relax(&mut near, &mut dist, c, r, dc, dr);
+            if r > 0 {
+                if c > 0 {
+                    relax(&mut near, k, p, k - nx - 1);
                 }
-            }
-            for c in (0..nx).rev() {
-                relax(&mut near, &mut dist, c, r, 1, 0);
+                relax(&mut near, k, p, k - nx);
+                if c + 1 < nx {
+                    relax(&mut near, k, p, k - nx + 1);
+                }
             }
         }
-        for r in (0..ny).rev() {
-            for c in (0..nx).rev() {
-                for (dc, dr) in [(1, 0), (1, 1), (0, 1), (-1, 1)] {
-                    relax(&mut near, &mut dist, c, r, dc, dr);
-                }
-            }
-            for c in 0..nx {
-                relax(&mut near, &mut dist, c, r, -1, 0);
-            }
+        for c in (0..nx.saturating_sub(1)).rev() {
+            let k = r * nx + c;
+            relax(&mut near, k, grid.node(c, r), k + 1);
         }
     }
-    dist
+    // Backward pass, mirrored.
+    for r in (0..ny).rev() {
+        for c in (0..nx).rev() {
+            let (k, p) = (r * nx + c, grid.node(c, r));
+            if c + 1 < nx {
+                relax(&mut near, k, p, k + 1);
+            }
+            if r + 1 < ny {
+                if c + 1 < nx {
+                    relax(&mut near, k, p, k + nx + 1);
+                }
+                relax(&mut near, k, p, k + nx);
+                if c > 0 {
+                    relax(&mut near, k, p, k + nx - 1);
+                }
+            }
+        }
+        for c in 1..nx {
+            let k = r * nx + c;
+            relax(&mut near, k, grid.node(c, r), k - 1);
+        }
+    }
+    near.into_iter().map(|n| n.d2.sqrt()).collect()
 }
 
 impl DistanceField {
@@ -314,12 +346,6 @@ impl DistanceField {
                     ((r + 1) * nx + c + 1) as u64,
                     ((r + 1) * nx + c) as u64,
                 ];
-                let pos = [
-                    node_pos(c, r),
-                    node_pos(c + 1, r),
-                    node_pos(c + 1, r + 1),
-                    node_pos(c, r + 1),
-                ];
                 let val = [
                     self.d[ids[0] as usize],
                     self.d[ids[1] as usize],
@@ -334,6 +360,12 @@ impl DistanceField {
                 if k_lo > k_hi {
                     continue;
                 }
+                let pos = [
+                    node_pos(c, r),
+                    node_pos(c + 1, r),
+                    node_pos(c + 1, r + 1),
+                    node_pos(c, r + 1),
+                ];
                 let centre_id = nodes + (r * (nx - 1) + c) as u64;
                 let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
                 let centre_pos = 0.25 * (pos[0] + pos[1] + pos[2] + pos[3]);
@@ -388,9 +420,33 @@ fn triangle_crossing(
     }
 }
 
+/// Hasher for edge keys (packed node-id pairs, see [`edge_key`]): one multiply spreads
+/// them well enough, and chaining hashes every crossing twice, so SipHash's cost shows.
+#[derive(Default)]
+struct EdgeKeyHasher(u64);
+
+impl Hasher for EdgeKeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, key: u64) {
+        // Fibonacci hashing (2^64 / golden ratio), high bits folded down for the table index.
+        let h = (self.0 ^ key).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        self.0 = h ^ (h >> 32);
+    }
+}
+
 /// Chain crossing segments into closed loops through their shared edge keys.
 fn chain_segments(segs: Vec<(u64, u64, DVec2, DVec2)>) -> Vec<Vec<DVec2>> {
-    let mut by_key: HashMap<u64, [usize; 2]> = HashMap::with_capacity(segs.len() * 2);
+    let mut by_key: HashMap<u64, [usize; 2], BuildHasherDefault<EdgeKeyHasher>> =
+        HashMap::with_capacity_and_hasher(segs.len() * 2, Default::default());
     for (i, s) in segs.iter().enumerate() {
         for key in [s.0, s.1] {
             by_key

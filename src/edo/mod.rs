@@ -35,7 +35,7 @@ use crate::material::{
 };
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
-use shapes::{Path, Shapes};
+use shapes::{ClipArea, Path, Shapes};
 
 /// How the region between Ci and Ce is divided into contours (job key `subdivision`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -321,10 +321,10 @@ impl Level {
     }
 
     /// The road centrelines of this level's contour, clipped to `interior`.
-    fn roads(&self, interior: &Shapes, boundary_included: bool, eps: f64) -> Vec<Path> {
+    fn roads(&self, interior: &ClipArea, boundary_included: bool, eps: f64) -> Vec<Path> {
         match self {
             Level::Shapes(s) => shapes::loops(s)
-                .flat_map(|l| shapes::clip_loop(l, interior, boundary_included, eps))
+                .flat_map(|l| interior.clip_loop(l, boundary_included, eps))
                 .collect(),
             Level::HalfPlane { normal, s, lo, hi } => {
                 let t = normal.perp();
@@ -332,7 +332,7 @@ impl Level {
                 let mid = 0.5 * (*lo + *hi);
                 let foot = mid + *normal * (s - normal.dot(mid));
                 let line = [foot - t * reach, foot + t * reach];
-                shapes::clip_polyline(&line, interior, boundary_included)
+                shapes::clip_polyline(&line, interior.shapes(), boundary_included)
             }
         }
     }
@@ -351,7 +351,9 @@ struct PreSubdivision {
     m: u32,
     l_short_mm: f64,
     centre: Option<DVec2>,
-    /// A_1..A_m+1 (index j − 1).
+    /// A_1..A_m+1 (index j − 1). Except for fibers (half-planes), A_m+1 is the area
+    /// inside Ce, and A_1 is the holes when `inner_is_boundary`: [`plan_region`] takes
+    /// their boundary offsets from the interior's own offsets of Ce and Ci.
     levels: Vec<Level>,
     /// Is C1 a real boundary of the part (holes), offset outwards by the boundary offset?
     inner_is_boundary: bool,
@@ -417,12 +419,18 @@ pub fn plan_region(
     };
     let m = pre.m;
 
-    // Step 2: boundary offsets and the interior the roads may occupy.
+    // Step 2: boundary offsets and the interior the roads may occupy. The region shrunk
+    // by b is its outer loop shrunk by b less its holes grown by b, and those two
+    // offsets are also the offset Cm+1 (growth rings, crown) and C1 (growth rings):
+    // each is computed once.
     let b = opts.boundary_offset_mm;
-    let mut region_loops = vec![region.outer.clone()];
-    region_loops.extend(region.holes.iter().cloned());
-    let region_shape = shapes::from_loops(&region_loops);
-    let interior = shapes::offset(&region_shape, -b, chord);
+    let outer_in = shapes::offset(
+        &shapes::from_loops(std::slice::from_ref(&region.outer)),
+        -b,
+        chord,
+    );
+    let holes_out = shapes::offset(&shapes::from_loops(&region.holes), b, chord);
+    let interior = shapes::difference(&outer_in, &holes_out);
     if interior.is_empty() {
         if opts.thin_regions == ThinRegions::Fill {
             return Ok(RegionPlan {
@@ -444,18 +452,28 @@ pub fn plan_region(
             offset_mm: b,
         });
     }
+    // A1 of growth rings is the holes and Am+1 of growth rings and the crown is the
+    // area inside Ce; fiber levels are half-planes, offset as such.
+    let parallel = pre.method == SubdivisionMethod::Parallel;
     let mut levels = pre.levels;
     if pre.inner_is_boundary {
-        levels[0] = levels[0].offset(b, chord);
+        levels[0] = if parallel {
+            levels[0].offset(b, chord)
+        } else {
+            Level::Shapes(holes_out)
+        };
     }
     let last = levels.len() - 1;
-    levels[last] = levels[last].offset(-b, chord);
+    levels[last] = if parallel {
+        levels[last].offset(-b, chord)
+    } else {
+        Level::Shapes(outer_in)
+    };
     let level_shapes: Vec<Shapes> = levels.iter().map(Level::to_shapes).collect();
     // Roads of C1 and Cm+1 where they are part surfaces: the interior's own boundary,
     // split into the runs nearer the holes (C1) and nearer the outer loop (Cm+1). Taken
     // from the same loops, they can meet but never cross, even where a wall is thinner
     // than two roads.
-    let parallel = pre.method == SubdivisionMethod::Parallel;
     let (hole_runs, outer_runs) = if parallel {
         (Vec::new(), Vec::new())
     } else {
@@ -473,6 +491,7 @@ pub fn plan_region(
             )
         })
         .collect();
+    let interior_area = ClipArea::inside(&interior, tol.clip_margin_mm);
     let contours: Vec<Contour> = (1..=m + 1)
         .map(|j| Contour {
             j,
@@ -486,7 +505,11 @@ pub fn plan_region(
             } else if j == 1 && pre.inner_is_boundary && !parallel {
                 hole_runs.clone()
             } else {
-                levels[(j - 1) as usize].roads(&interior, parallel && (j == 1 || j == m + 1), eps)
+                levels[(j - 1) as usize].roads(
+                    &interior_area,
+                    parallel && (j == 1 || j == m + 1),
+                    eps,
+                )
             },
         })
         .collect();
@@ -532,26 +555,45 @@ pub fn plan_region(
         } else {
             step_width(opts.direction, 2, m_n, m_n)
         };
-        // The offsets stop `offset_end_clearance_mm` short of the contour they run
-        // towards (C_n inward, C_n+1 outward).
-        let c = opts.offset_end_clearance_mm;
-        let clip = if c <= 0.0 {
-            s.clone()
-        } else {
-            match opts.direction {
-                OffsetDirection::Inward => {
-                    shapes::difference(&s, &level_shapes_grown(&levels[(n - 1) as usize], c, chord))
-                }
-                OffsetDirection::Outward => {
-                    shapes::intersection(&s, &level_shapes_grown(&levels[n as usize], -c, chord))
-                }
-            }
-        };
         // Equal distance offsets, each one step from the previous: eroding (or
         // dilating) by r1 then r2 is eroding by r1 + r2, and small steps keep the
         // outline cheap where a contour has many vertices.
         let step = d_max_mm / n_max.max(1) as f64;
         let mut offsets = Vec::new();
+        // The offsets stop `offset_end_clearance_mm` short of the contour they run
+        // towards (C_n inward, C_n+1 outward).
+        let c = opts.offset_end_clearance_mm;
+        let (lower_shape, upper_shape) =
+            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
+        let clear_of = |k: u32, delta: f64, shape: &Shapes| {
+            if c > 0.0 {
+                level_shapes_grown(&levels[k as usize], delta, chord)
+            } else {
+                shape.clone()
+            }
+        };
+        // Growth-ring offsets of one bounding contour already lie on the sub-region's
+        // side of it, so only the other contour can cut them: clip against that
+        // contour's area alone (half the edges of the sub-region).
+        let growth = matches!(
+            pre.method,
+            SubdivisionMethod::Radial | SubdivisionMethod::Distance
+        );
+        let clip_shape = match (growth, opts.direction) {
+            (true, OffsetDirection::Inward) => clear_of(n - 1, c, lower_shape),
+            (true, OffsetDirection::Outward) => clear_of(n, -c, upper_shape),
+            (false, OffsetDirection::Inward) => {
+                shapes::difference(&s, &clear_of(n - 1, c, lower_shape))
+            }
+            (false, OffsetDirection::Outward) => {
+                shapes::intersection(&s, &clear_of(n, -c, upper_shape))
+            }
+        };
+        let s_area = if growth && opts.direction == OffsetDirection::Inward {
+            ClipArea::outside(&clip_shape, tol.clip_margin_mm)
+        } else {
+            ClipArea::inside(&clip_shape, tol.clip_margin_mm)
+        };
         let mut level = match opts.direction {
             OffsetDirection::Inward => upper.clone(),
             OffsetDirection::Outward => lower.clone(),
@@ -567,7 +609,7 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            offsets.push(level.roads(&clip, false, eps));
+            offsets.push(level.roads(&s_area, false, eps));
         }
         sub_regions.push(SubRegion {
             n,
@@ -771,6 +813,18 @@ fn gap_along_gradient(
     let index = SegmentIndex::new(&lower_loops, &[]);
     let step = opts.nozzle_mm.max(1e-3);
     let mut best: f64 = 0.0;
+    // Raise `best` to the distance of `p`; a point with a segment within `best` cannot
+    // raise it, and saying so looks at fewer cells than the distance itself.
+    let mut farther = |p: DVec2| {
+        let d = if index.is_empty() {
+            centre.map_or(0.0, |c| p.distance(c))
+        } else if index.within(p, best) {
+            return;
+        } else {
+            index.distance(p)
+        };
+        best = best.max(d);
+    };
     for road in upper_roads {
         let pts = &road.points;
         let n = pts.len();
@@ -782,13 +836,7 @@ fn gap_along_gradient(
             // the bisector, d / sin(α/2) away, further than the gap beside the edges.
             let pieces = ((a.distance(b) / step).ceil() as usize).max(1);
             for q in 0..pieces {
-                let p = a.lerp(b, (q as f64 + 0.5) / pieces as f64);
-                let d = if index.is_empty() {
-                    centre.map_or(0.0, |c| p.distance(c))
-                } else {
-                    index.distance(p)
-                };
-                best = best.max(d);
+                farther(a.lerp(b, (q as f64 + 0.5) / pieces as f64));
             }
         }
     }

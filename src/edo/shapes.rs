@@ -3,6 +3,7 @@
 //! enclosed by contours, and clipping of offset loops to a sub-region (which turns a
 //! loop cut by the neighbouring contour into the non-continuous segments of Fig. 4(a)).
 
+use crate::geom::{point_in_loop, SegmentIndex};
 use glam::DVec2;
 use i_overlay::core::fill_rule::FillRule;
 use i_overlay::core::overlay_rule::OverlayRule;
@@ -175,17 +176,101 @@ pub fn union(a: &Shapes, b: &Shapes) -> Shapes {
 /// `boundary_included`): the whole loop as one closed path when nothing cuts it, else
 /// the open pieces, with the piece through the loop's start vertex joined up.
 pub fn clip_loop(l: &[DVec2], by: &Shapes, boundary_included: bool, eps_mm: f64) -> Vec<Path> {
-    if l.len() < 2 || by.is_empty() {
-        return Vec::new();
-    }
-    let mut ring = l.to_vec();
-    ring.push(l[0]);
     let rule = ClipRule {
         invert: false,
         boundary_included,
     };
+    clip_ring(l, by, rule, eps_mm)
+}
+
+/// [`clip_loop`] by any clip rule (`invert` keeps the parts outside `by`).
+fn clip_ring(l: &[DVec2], by: &Shapes, rule: ClipRule, eps_mm: f64) -> Vec<Path> {
+    if l.len() < 2 || (by.is_empty() && !rule.invert) {
+        return Vec::new();
+    }
+    if by.is_empty() {
+        return vec![Path {
+            points: l.to_vec(),
+            closed: true,
+        }];
+    }
+    let mut ring = l.to_vec();
+    ring.push(l[0]);
     let pieces: Vec<Vec<DVec2>> = ring.clip_by(by, FillRule::NonZero, rule);
     stitch_loop_pieces(pieces, crate::geom::loop_length(l), eps_mm)
+}
+
+/// An area many loops are clipped to (the inside of some shapes, or their outside),
+/// with its boundary indexed: a loop that keeps clear of the boundary lies wholly in
+/// or wholly out of the area, and is kept whole or dropped without running the clipper
+/// (which would return such a loop whole).
+pub struct ClipArea<'a> {
+    shapes: &'a Shapes,
+    /// The area is the outside of `shapes`.
+    outside: bool,
+    boundary: SegmentIndex,
+    clear_mm: f64,
+}
+
+impl<'a> ClipArea<'a> {
+    /// The inside of `shapes`. `clear_mm`: how far a loop must stay from the boundary
+    /// to be taken whole.
+    pub fn inside(shapes: &'a Shapes, clear_mm: f64) -> Self {
+        Self::new(shapes, false, clear_mm)
+    }
+
+    /// The outside of `shapes`.
+    pub fn outside(shapes: &'a Shapes, clear_mm: f64) -> Self {
+        Self::new(shapes, true, clear_mm)
+    }
+
+    fn new(shapes: &'a Shapes, outside: bool, clear_mm: f64) -> Self {
+        let boundary: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
+        ClipArea {
+            shapes,
+            outside,
+            boundary: SegmentIndex::new(&boundary, &[]),
+            clear_mm,
+        }
+    }
+
+    /// The shapes whose inside (or outside) the area is.
+    pub fn shapes(&self) -> &Shapes {
+        self.shapes
+    }
+
+    /// [`clip_loop`] against this area.
+    pub fn clip_loop(&self, l: &[DVec2], boundary_included: bool, eps_mm: f64) -> Vec<Path> {
+        // With `invert`, i_overlay's `boundary_included` means the opposite: lines on
+        // the boundary count as outside the shapes, so as inside the area, when false.
+        let rule = ClipRule {
+            invert: self.outside,
+            boundary_included: boundary_included != self.outside,
+        };
+        let n = l.len();
+        let clear = n >= 3
+            && (0..n).all(|i| {
+                !self
+                    .boundary
+                    .any_within(l[i], l[(i + 1) % n], self.clear_mm)
+            });
+        if !clear {
+            return clip_ring(l, self.shapes, rule, eps_mm);
+        }
+        if contains(self.shapes, l[0]) != self.outside {
+            vec![Path {
+                points: l.to_vec(),
+                closed: true,
+            }]
+        } else {
+            Vec::new()
+        }
+    }
+}
+
+/// Is `p` inside `shapes` (even-odd over all loops; points on a boundary go either way)?
+pub fn contains(shapes: &Shapes, p: DVec2) -> bool {
+    loops(shapes).filter(|l| point_in_loop(p, l)).count() % 2 == 1
 }
 
 /// The parts of open polyline `line` inside `by`.
@@ -312,6 +397,45 @@ mod tests {
             "{}",
             cut[0].length_mm()
         );
+    }
+
+    #[test]
+    fn clip_area_takes_clear_loops_whole_like_the_clipper() {
+        let ring = difference(&from_loops(&[square(5.0)]), &from_loops(&[square(1.0)]));
+        let area = ClipArea::inside(&ring, 1e-3);
+        let shift = |l: Vec<DVec2>, d: DVec2| -> Vec<DVec2> { l.iter().map(|p| *p + d).collect() };
+        let probes = [
+            square(3.0),                              // inside, around the hole
+            shift(square(0.5), DVec2::new(3.0, 3.0)), // inside, away from the hole
+            square(0.5),                              // in the hole
+            shift(square(0.5), DVec2::new(9.0, 0.0)), // outside
+            shift(square(2.0), DVec2::new(4.0, 0.0)), // cut by the outer edge
+            square(1.0),                              // on the hole's edge
+        ];
+        for l in &probes {
+            assert_eq!(
+                area.clip_loop(l, false, 1e-6),
+                clip_loop(l, &ring, false, 1e-6),
+                "{l:?}"
+            );
+        }
+        // Inside the outer square, the ring is the outside of the hole.
+        let hole = from_loops(&[square(1.0)]);
+        let outside_hole = ClipArea::outside(&hole, 1e-3);
+        for l in probes
+            .iter()
+            .filter(|l| l.iter().all(|p| p.abs().max_element() < 5.0))
+        {
+            let (got, want) = (
+                outside_hole.clip_loop(l, false, 1e-6),
+                clip_loop(l, &ring, false, 1e-6),
+            );
+            assert_eq!(got.len(), want.len(), "{l:?}");
+            for (g, w) in got.iter().zip(&want) {
+                assert_eq!(g.closed, w.closed);
+                assert!((g.length_mm() - w.length_mm()).abs() < 1e-6, "{l:?}");
+            }
+        }
     }
 
     #[test]
