@@ -84,7 +84,10 @@ fn main() -> anyhow::Result<()> {
         outer: Composition::new(vec![0.0, 1.0], 1e-9)?,
         function: GradientFunction::LINEAR,
     };
-    let opts = PlanOptions::new(1.6, 0.4);
+    // A real part's tips are thinner than r_mach: plan them with m = 1 (`thin_regions =
+    // "fill"`, as docs/job-format.md advises for meshes) rather than drop the layer.
+    let mut opts = PlanOptions::new(1.6, 0.4);
+    opts.thin_regions = edo::edo::ThinRegions::Fill;
     let s = ProcessSettings::for_nozzle(0.4);
     let meshes: &[&str] = if std::env::args().nth(2).as_deref() == Some("quick") {
         &["3DBenchy.stl"]
@@ -92,7 +95,7 @@ fn main() -> anyhow::Result<()> {
         &["3DBenchy.stl", "femur.stl", "hip.stl"]
     };
     for mesh in meshes {
-        let path = format!("/work/shared/meshes/{mesh}");
+        let path = format!("{}/../shared/meshes/{mesh}", env!("CARGO_MANIFEST_DIR"));
         let (m, _) = edo::mesh::path::load_path(
             std::path::Path::new(&path),
             &Default::default(),

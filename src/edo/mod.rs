@@ -19,7 +19,8 @@
 //!    along the gradient), N_max by eq (5), the N_max − 1 equal distance offsets of the
 //!    bounding contour clipped to the sub-region (closed loops where they stay closed,
 //!    non-continuous segments where the neighbouring contour cuts them, Fig. 4(a)),
-//!    their compositions by eq (6) and the step width W by eq (7).
+//!    their compositions by eq (6) and the step width W by eq (7). Offsets stop
+//!    `offset_end_clearance_mm` short of the contour they run into (§4 narrow areas).
 //!
 //! The result is a compact [`LayerPlan`] (§3.2, last paragraph): per sub-region one
 //! contour composition, W and N_max, plus the road geometry.
@@ -560,40 +561,29 @@ pub fn plan_region(
         // outline cheap where a contour has many vertices.
         let step = d_max_mm / n_max.max(1) as f64;
         let mut offsets = Vec::new();
-        // The offsets stop `offset_end_clearance_mm` short of the contour they run
-        // towards (C_n inward, C_n+1 outward).
-        let c = opts.offset_end_clearance_mm;
         let (lower_shape, upper_shape) =
             (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
-        let clear_of = |k: u32, delta: f64, shape: &Shapes| {
-            if c > 0.0 {
-                level_shapes_grown(&levels[k as usize], delta, chord)
-            } else {
-                shape.clone()
-            }
-        };
         // Growth-ring offsets of one bounding contour already lie on the sub-region's
         // side of it, so only the other contour can cut them: clip against that
         // contour's area alone (half the edges of the sub-region).
-        let growth = matches!(
-            pre.method,
-            SubdivisionMethod::Radial | SubdivisionMethod::Distance
-        );
-        let clip_shape = match (growth, opts.direction) {
-            (true, OffsetDirection::Inward) => clear_of(n - 1, c, lower_shape),
-            (true, OffsetDirection::Outward) => clear_of(n, -c, upper_shape),
-            (false, OffsetDirection::Inward) => {
-                shapes::difference(&s, &clear_of(n - 1, c, lower_shape))
+        let s_area = match (pre.method, opts.direction) {
+            (SubdivisionMethod::Radial | SubdivisionMethod::Distance, OffsetDirection::Inward) => {
+                ClipArea::outside(lower_shape, tol.clip_margin_mm)
             }
-            (false, OffsetDirection::Outward) => {
-                shapes::intersection(&s, &clear_of(n, -c, upper_shape))
+            (SubdivisionMethod::Radial | SubdivisionMethod::Distance, OffsetDirection::Outward) => {
+                ClipArea::inside(upper_shape, tol.clip_margin_mm)
             }
+            _ => ClipArea::inside(&s, tol.clip_margin_mm),
         };
-        let s_area = if growth && opts.direction == OffsetDirection::Inward {
-            ClipArea::outside(&clip_shape, tol.clip_margin_mm)
-        } else {
-            ClipArea::inside(&clip_shape, tol.clip_margin_mm)
+        // The offsets then stop `offset_end_clearance_mm` short of the contour they
+        // run towards (C_n inward, C_n+1 outward).
+        let facing = match opts.direction {
+            OffsetDirection::Inward => lower_shape,
+            OffsetDirection::Outward => upper_shape,
         };
+        let facing_loops: Vec<&[DVec2]> = shapes::loops(facing).map(|l| l.as_slice()).collect();
+        let facing_index = SegmentIndex::new(&facing_loops, &[]);
+        let clearance = opts.offset_end_clearance_mm;
         let mut level = match opts.direction {
             OffsetDirection::Inward => upper.clone(),
             OffsetDirection::Outward => lower.clone(),
@@ -609,7 +599,12 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            offsets.push(level.roads(&s_area, false, eps));
+            let roads = level.roads(&s_area, false, eps);
+            offsets.push(if clearance > 0.0 {
+                shapes::keep_clear_of(roads, &facing_index, clearance)
+            } else {
+                roads
+            });
         }
         sub_regions.push(SubRegion {
             n,
@@ -639,11 +634,6 @@ pub fn plan_region(
             )
         }),
     })
-}
-
-/// The area enclosed by a level's contour, grown (or shrunk, `delta_mm` < 0).
-fn level_shapes_grown(level: &Level, delta_mm: f64, chord_mm: f64) -> Shapes {
-    level.offset(delta_mm, chord_mm).to_shapes()
 }
 
 /// Split the loops of the interior (the region shrunk by the boundary offset) into

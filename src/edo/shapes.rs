@@ -352,6 +352,107 @@ pub fn circle(centre: DVec2, radius_mm: f64, chord_mm: f64) -> Vec<DVec2> {
         .collect()
 }
 
+/// The parts of `roads` at least `clearance_mm` from every segment of `index` (the
+/// contour the roads run towards): a piece that comes nearer is cut where it crosses
+/// that distance (found by bisection along the edge) and the near part dropped.
+pub fn keep_clear_of(
+    roads: Vec<Path>,
+    index: &crate::geom::SegmentIndex,
+    clearance_mm: f64,
+) -> Vec<Path> {
+    if index.is_empty() {
+        return roads;
+    }
+    let mut out = Vec::with_capacity(roads.len());
+    for road in roads {
+        // Edges that come within the clearance are split to at most the clearance, so
+        // a near pass between their ends is seen; the rest are clear whole.
+        let m = road.points.len();
+        let edges = if road.closed { m } else { m.saturating_sub(1) };
+        let mut pts = Vec::with_capacity(m);
+        for k in 0..edges {
+            let (a, b) = (road.points[k], road.points[(k + 1) % m]);
+            if index.segment_within(a, b, clearance_mm) {
+                let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
+                pts.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
+            } else {
+                pts.push(a);
+            }
+        }
+        if !road.closed {
+            pts.extend(road.points.last().copied());
+        }
+        let n = pts.len();
+        // Is each point at least the clearance from the contour?
+        let far: Vec<bool> = pts
+            .iter()
+            .map(|p| !index.within(*p, clearance_mm))
+            .collect();
+        let Some(first_near) = far.iter().position(|&f| !f) else {
+            out.push(road);
+            continue;
+        };
+        if n < 2 {
+            continue;
+        }
+        let pts = &pts;
+        // Where the distance crosses the clearance between a (far) and b (near).
+        let cross = |a: DVec2, b: DVec2| {
+            let (mut lo, mut hi) = (0.0, 1.0);
+            for _ in 0..CLEARANCE_BISECTIONS {
+                let mid = 0.5 * (lo + hi);
+                if !index.within(a.lerp(b, mid), clearance_mm) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            a.lerp(b, lo)
+        };
+        // A loop is walked from a near vertex, so no kept run wraps round its start.
+        let (start, edges) = if road.closed {
+            (first_near, n)
+        } else {
+            (0, n - 1)
+        };
+        let at = |k: usize| (start + k) % n;
+        let mut run: Vec<DVec2> = Vec::new();
+        if far[at(0)] {
+            run.push(pts[at(0)]);
+        }
+        let mut flush = |run: &mut Vec<DVec2>| {
+            if run.len() >= 2 {
+                out.push(Path {
+                    points: std::mem::take(run),
+                    closed: false,
+                });
+            } else {
+                run.clear();
+            }
+        };
+        for e in 0..edges {
+            let (i, j) = (at(e), at(e + 1));
+            match (far[i], far[j]) {
+                (true, true) => run.push(pts[j]),
+                (true, false) => {
+                    run.push(cross(pts[i], pts[j]));
+                    flush(&mut run);
+                }
+                (false, true) => {
+                    run.push(cross(pts[j], pts[i]));
+                    run.push(pts[j]);
+                }
+                (false, false) => {}
+            }
+        }
+        flush(&mut run);
+    }
+    out
+}
+
+/// Bisection steps placing a road's end at the clearance (2⁻¹² of an edge).
+const CLEARANCE_BISECTIONS: usize = 12;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -363,6 +464,37 @@ mod tests {
             DVec2::new(h, h),
             DVec2::new(-h, h),
         ]
+    }
+
+    #[test]
+    fn roads_stop_the_clearance_short_of_the_contour() {
+        // A contour along y = 0 and a road slanting down onto it from (0, 1) to (4, 0):
+        // kept only where it is 0.2 or more from the contour, i.e. up to x = 3.2.
+        let contour = [DVec2::new(-1.0, 0.0), DVec2::new(5.0, 0.0)];
+        let index = crate::geom::SegmentIndex::new(&[], &[&contour]);
+        let road = Path {
+            points: vec![DVec2::new(0.0, 1.0), DVec2::new(4.0, 0.0)],
+            closed: false,
+        };
+        let kept = keep_clear_of(vec![road], &index, 0.2);
+        assert_eq!(kept.len(), 1);
+        let end = *kept[0].points.last().unwrap();
+        assert!(
+            (end.y - 0.2).abs() < 1e-3 && (end.x - 3.2).abs() < 5e-3,
+            "{end:?}"
+        );
+        // A loop that dips near the contour in one place is cut open there; one that
+        // stays clear is kept whole and closed.
+        let ring = |cy: f64| Path {
+            points: circle(DVec2::new(2.0, cy), 1.0, 0.01),
+            closed: true,
+        };
+        let kept = keep_clear_of(vec![ring(1.1), ring(3.0)], &index, 0.2);
+        assert_eq!(kept.len(), 2);
+        assert!(!kept[0].closed && kept[1].closed);
+        for q in &kept[0].points {
+            assert!(index.distance(*q) >= 0.2 - 1e-3, "{q:?}");
+        }
     }
 
     #[test]
