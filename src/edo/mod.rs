@@ -538,13 +538,31 @@ pub fn plan_region(
         if area <= tol.min_loop_area_mm2 {
             continue;
         }
-        let d_max_mm = gap_along_gradient(
-            lower,
-            &contours[n as usize].roads,
-            pre.centre,
-            &level_shapes[(n - 1) as usize],
-            opts,
-        );
+        let d_max_mm = match (lower, upper) {
+            // Parallel lines: the gap between them, as far as the part reaches (where
+            // the boundary-offset C_m+1 or C1 misses the interior near a corner, the
+            // material up to the interior's edge is still to be filled).
+            (
+                Level::HalfPlane {
+                    s: s_lower, normal, ..
+                },
+                Level::HalfPlane { s: s_upper, .. },
+            ) => {
+                let (lo, hi) = shapes::loops(&interior)
+                    .flat_map(|l| l.iter())
+                    .map(|p| normal.dot(*p))
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                        (a.min(x), b.max(x))
+                    });
+                (s_upper.min(hi) - s_lower.max(lo)).max(0.0)
+            }
+            _ => gap_along_gradient(
+                &contours[n as usize].roads,
+                pre.centre,
+                &level_shapes[(n - 1) as usize],
+                opts,
+            ),
+        };
         let n_max = offset_count(d_max_mm, opts.nozzle_mm);
         let (m_n, m_n1) = (&compositions[(n - 1) as usize], &compositions[n as usize]);
         let from = match opts.direction {
@@ -779,26 +797,13 @@ pub fn plan_layers(
 
 /// D_max: the largest distance from the upper contour's roads to the lower contour
 /// (or the growth-ring centre), i.e. the widest gap between C_n and C_n+1 along the
-/// gradient. Parallel contours have it exactly.
+/// gradient (parallel contours have it exactly, see the caller).
 fn gap_along_gradient(
-    lower: &Level,
     upper_roads: &[Path],
     centre: Option<DVec2>,
     lower_shapes: &Shapes,
     opts: &PlanOptions,
 ) -> f64 {
-    if let Level::HalfPlane {
-        s: s_lower, normal, ..
-    } = lower
-    {
-        // Parallel lines: the gap is the distance between them.
-        let s_upper = upper_roads
-            .iter()
-            .flat_map(|p| p.points.iter())
-            .map(|p| normal.dot(*p))
-            .fold(f64::NEG_INFINITY, f64::max);
-        return (s_upper - s_lower).max(0.0);
-    }
     let lower_loops: Vec<&[DVec2]> = shapes::loops(lower_shapes).map(|l| l.as_slice()).collect();
     let index = SegmentIndex::new(&lower_loops, &[]);
     let step = opts.nozzle_mm.max(1e-3);
