@@ -856,6 +856,9 @@ impl Builder<'_> {
             return Ok(());
         }
         let section_nl_per_mm = self.section_mm2 * 1000.0;
+        if !(section_nl_per_mm > 0.0 && (dead / section_nl_per_mm).is_finite()) {
+            return Ok(());
+        }
         let points = purge_zigzag(
             DVec2::new(x, y),
             s.purge_pad_mm,
