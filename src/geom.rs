@@ -559,19 +559,6 @@ impl SegmentIndex {
         self.any_in_box(p, p, r_mm, |c, d| point_segment_distance(p, c, d) <= r_mm)
     }
 
-    /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
-    pub fn segment_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
-        let lo = a.min(b);
-        let hi = a.max(b);
-        self.any_in_box(lo, hi, r_mm, |c, d| {
-            segments_intersect(a, b, c, d)
-                || point_segment_distance(a, c, d) <= r_mm
-                || point_segment_distance(b, c, d) <= r_mm
-                || point_segment_distance(c, a, b) <= r_mm
-                || point_segment_distance(d, a, b) <= r_mm
-        })
-    }
-
     /// Does `hit` hold for any segment in the cells over the box `lo`–`hi` grown by `pad`?
     fn any_in_box(
         &self,

@@ -665,8 +665,8 @@ fn commanded_compositions(segs: &[(f64, &[f64])], s: &ProcessSettings) -> Vec<Ve
         .collect()
 }
 
-/// How far the chamber's content (front first) is from the first `dead_nl` of the
-/// designed stream: the largest per-material difference over the volume they share.
+/// How far the chamber's content (front first, V_dead in all) is from the designed
+/// stream's first V_dead: the largest per-material difference over the volume they share.
 fn chamber_mismatch(
     chamber: &std::collections::VecDeque<(f64, Vec<f64>)>,
     segs: &[(f64, &[f64])],
@@ -878,17 +878,8 @@ impl Builder<'_> {
             let commanded = window.over(at, at + v, first);
             at += v;
             self.push_through_chamber(v, &commanded);
-            let volumes = self.account(v, &commanded);
-            let to = self.position(w[1])?;
-            self.push(MoveKind::Extrude {
-                to,
-                feed_um_s: Self::feed(s.print_feed_mm_s),
-                volumes_nl: volumes,
-                width_factor_ppt: FACTOR_NOMINAL_PPT,
-            })?;
-            self.stats.extrude_moves += 1;
+            self.extrude_move(w[1], 1.0, v, &commanded)?;
             self.stats.purge_nl += v;
-            self.state.position = Some(DVec3::new(w[1].x, w[1].y, self.z_mm));
         }
         Ok(())
     }
@@ -973,7 +964,24 @@ impl Builder<'_> {
             .unwrap_or_else(|| composition.to_vec());
         self.segment += 1;
         self.plug_flow(volume_nl, &commanded, composition);
-        let volumes = self.account(volume_nl, &commanded);
+        self.extrude_move(b, factor, volume_nl, &commanded)?;
+        self.extrusion_paths
+            .push((self.next.saturating_sub(1), self.path_index));
+        self.stats.extruded_mm += len;
+        self.stats.max_width_factor = self.stats.max_width_factor.max(factor);
+        Ok(())
+    }
+
+    /// The `Extrude` move to `b` pushing `volume_nl` of `commanded` (accounted in the
+    /// job's totals), at the print feed; the nozzle ends at `b`.
+    fn extrude_move(
+        &mut self,
+        b: DVec2,
+        factor: f64,
+        volume_nl: f64,
+        commanded: &[f64],
+    ) -> Result<(), PipelineError> {
+        let volumes = self.account(volume_nl, commanded);
         let to = self.position(b)?;
         self.push(MoveKind::Extrude {
             to,
@@ -983,11 +991,7 @@ impl Builder<'_> {
                 .round()
                 .clamp(0.0, f64::from(u16::MAX)) as u16,
         })?;
-        self.extrusion_paths
-            .push((self.next.saturating_sub(1), self.path_index));
         self.stats.extrude_moves += 1;
-        self.stats.extruded_mm += len;
-        self.stats.max_width_factor = self.stats.max_width_factor.max(factor);
         self.state.position = Some(DVec3::new(b.x, b.y, self.z_mm));
         Ok(())
     }

@@ -160,6 +160,16 @@ fn bad_jobs_fail_with_named_errors() {
         ("[process]", "[toolpath]\nfeed = 3\n[process]", "feed"),
         (
             "[process]",
+            "[toolpath]\npurge_xy_mm = [nan, 0.0]\n[process]",
+            "toolpath.purge_xy_mm",
+        ),
+        (
+            "[process]",
+            "[toolpath]\nv_dead_ul = -2.0\n[process]",
+            "toolpath.v_dead_ul",
+        ),
+        (
+            "[process]",
             "[toolpath]\nnozzle_mm = 0.3\n[process]",
             "toolpath.nozzle_mm",
         ),

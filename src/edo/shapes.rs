@@ -372,7 +372,7 @@ pub fn keep_clear_of(
         let mut pts = Vec::with_capacity(m);
         for k in 0..edges {
             let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            if index.segment_within(a, b, clearance_mm) {
+            if index.any_within(a, b, clearance_mm) {
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
                 pts.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
             } else {
@@ -383,6 +383,9 @@ pub fn keep_clear_of(
             pts.extend(road.points.last().copied());
         }
         let n = pts.len();
+        if n < 2 {
+            continue;
+        }
         // Is each point at least the clearance from the contour?
         let far: Vec<bool> = pts
             .iter()
@@ -392,10 +395,6 @@ pub fn keep_clear_of(
             out.push(road);
             continue;
         };
-        if n < 2 {
-            continue;
-        }
-        let pts = &pts;
         // Where the distance crosses the clearance between a (far) and b (near).
         let cross = |a: DVec2, b: DVec2| {
             let (mut lo, mut hi) = (0.0, 1.0);
