@@ -424,6 +424,7 @@ pub fn layer_paths(
                 min_gap_fraction: settings.flow_min_gap_fraction,
                 min_flow_factor: settings.min_flow_factor,
             },
+            &layer.islands,
         );
     }
     paths

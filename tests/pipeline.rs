@@ -347,3 +347,23 @@ fn purge_pad_removes_the_layer_change_jump() {
     }
     assert_eq!(sums, state.commanded_nl());
 }
+
+/// Width matching moves centrelines as well as widths, so roads between neighbours at
+/// different spacings touch both without overlapping either: the non-star bracket and
+/// the crown stay within the overlap and outside targets (3 %, 0.5 %) on a 20 µm raster.
+#[test]
+fn width_matching_keeps_overlap_and_outside_within_targets() {
+    use edo::pipeline::layer_paths;
+    use edo::toolpath::coverage::measure;
+    for name in ["non-star", "tooth-crown"] {
+        let job = job(name);
+        let slices = job.layer_slices(0, job.extruded_layers().unwrap());
+        let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+        let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        let paths = layer_paths(&layers[0], &s, &StreamState::new());
+        let c = measure(&slices[0].layer.islands, &paths, s.road_width(), 0.02);
+        assert!(c.overlap_fraction() <= 0.03, "{name}: {c:?}");
+        assert!(c.outside_fraction() <= 0.005, "{name}: {c:?}");
+        assert!(c.void_fraction() <= 0.01, "{name}: {c:?}");
+    }
+}

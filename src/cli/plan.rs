@@ -190,8 +190,9 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         let coverage = (args.coverage || args.svg.is_some()).then(|| {
             measure_coverage(
                 &toolpaths,
+                &layers,
                 &slices,
-                process.road_width(),
+                &process,
                 args.svg.is_some(),
                 args.quiet,
             )
@@ -358,18 +359,24 @@ struct LayerCoverage {
 /// Coverage of every layer at 10 µm, layers in parallel.
 fn measure_coverage(
     toolpaths: &[crate::pipeline::LayerMoves],
+    layers: &[LayerPlan],
     slices: &[LayerSlice],
-    road_width_mm: f64,
+    process: &crate::pipeline::ProcessSettings,
     with_voids: bool,
     quiet: bool,
 ) -> Vec<LayerCoverage> {
     use crate::toolpath::coverage::{measure, measure_with_voids};
     use rayon::prelude::*;
     let b = bar(toolpaths.len() as u64, "coverage", quiet);
+    let road_width_mm = process.road_width();
+    // The same plan without the flow raise: nominal widths on the unshifted centrelines.
+    let mut plain = process.clone();
+    plain.flow_raise = false;
     let out = toolpaths
         .par_iter()
+        .zip(layers)
         .zip(slices)
-        .map(|(t, s)| {
+        .map(|((t, layer), s)| {
             let islands = &s.layer.islands;
             let (with_raise, voids) = measure_with_voids(
                 islands,
@@ -378,15 +385,8 @@ fn measure_coverage(
                 COVERAGE_CELL_MM,
                 if with_voids { 20_000 } else { 0 },
             );
-            let nominal: Vec<_> = t
-                .paths
-                .iter()
-                .map(|p| {
-                    let mut p = p.clone();
-                    p.width_factors.iter_mut().for_each(|f| *f = 1.0);
-                    p
-                })
-                .collect();
+            let nominal =
+                crate::pipeline::layer_paths(layer, &plain, &crate::pipeline::StreamState::new());
             let without_raise = measure(islands, &nominal, road_width_mm, COVERAGE_CELL_MM);
             if let Some(b) = &b {
                 b.inc(1);

@@ -240,6 +240,10 @@ pub struct LayerPlan {
     pub thickness_mm: f64,
     pub area_mm2: f64,
     pub regions: Vec<RegionPlan>,
+    /// The part in this layer (the sliced islands the regions were planned from): the
+    /// boundary the roads' beads stay inside (`toolpath::flow`).
+    #[serde(default)]
+    pub islands: Vec<Region>,
 }
 
 /// Why a region could not be planned; every variant names the island.
@@ -731,6 +735,7 @@ pub fn plan_layer(
         thickness_mm,
         area_mm2: regions.iter().map(|r| r.area_mm2).sum(),
         regions,
+        islands: islands.to_vec(),
     })
 }
 

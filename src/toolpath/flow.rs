@@ -14,31 +14,39 @@
 //!    neighbour's corner √2 further off), and keep the nearer; the free gap ends where
 //!    another road's centreline is nearer than the road's own (the midpoint between the
 //!    two centrelines). This gives the centre-to-centre distance g to the road facing
-//!    the vertex on that side, and which road and edge it is (none where no road is
-//!    within 2w, e.g. the part boundary side of the outer contour).
-//! 3. **Width matching**: every bead's half-width h takes the room between its
-//!    centreline and the edges of the beads facing it (g − h_facing), iterated
-//!    ([`MATCH_ITERATIONS`], damped by half, so two beads sharing a gap settle on half
-//!    each):
-//!    - beads facing it on both sides: the larger room, so it touches both (never a
-//!      void) and overlaps the nearer as little as that allows. Roads spaced closer
-//!      than a road width (eq (5) rounds N_max, so the equal distance offsets of a
-//!      sub-region can be D_max/N_max < D_noz apart) are narrowed, and roads beside a
-//!      gap that needs a non-integer number of roads (w < g < 2w) widen into it (Fig.
-//!      4(a), the 1.3 x road at (iii));
-//!    - a bead facing it on one side only (the other is the part boundary or open
-//!      space): at least nominal, raised into a gap, never narrowed, so its far edge
-//!      stays where nozzle radius compensation put it.
+//!    the vertex on that side, and which road and edge it is. The part boundary (the
+//!    layer's islands) is traced along the same ray: where it comes first, that side
+//!    faces a wall at its distance, so no bead widens across the outside (a slot, the
+//!    gap between two islands) into the road beyond. Neither within 2w: open.
+//! 3. **Width matching** (what Arachne does with variable-width beads, on the planner's
+//!    roads): each bead vertex has a half-width h and a shift s of its centreline along
+//!    its normal, and takes the room between the facing edges on its two sides, edge to
+//!    edge: h = (left + right)/2, s = (left − right)/2, where a side's room is g −
+//!    (how far the facing bead reaches towards us), a wall's distance, or w/2 when
+//!    open (that edge stays where it is). Iterated ([`MATCH_ITERATIONS`], damped by
+//!    half, so two beads sharing a gap settle on half each). So:
+//!    - roads beside a gap that needs a non-integer number of roads widen into it from
+//!      where it opens (Fig. 4(a), the 1.3 x road at (iii)) and roads spaced closer
+//!      than a road width (eq (5) rounds N_max, so the offsets of a sub-region can be
+//!      D_max/N_max < D_noz apart) are narrowed, each touching both neighbours without
+//!      overlapping either, even when the two gaps differ;
+//!    - a bead with the part boundary on one side keeps that edge where nozzle radius
+//!      compensation put it, and widens or narrows on the other side only;
+//!    - an offset that runs at a slant into a contour tapers and moves off it as the
+//!      room on that side closes.
 //!
 //!    The factor 2h/w is clamped to [`FlowSettings::min_flow_factor`,
-//!    `max_flow_factor`]; changes smaller than `min_gap_fraction` are left (noise). Gaps
-//!    too wide for the cap stay (a gap-fill road would be needed: not implemented,
-//!    reported by the coverage measure). A path's own edges within 1.5 w + 2 reach
-//!    along it never count as its neighbour (on a loop's concave side they come nearer
-//!    than the probe).
+//!    `max_flow_factor`] and the shift to half a road width; changes smaller than
+//!    `min_gap_fraction` are left where the nominal bead covers the matched one
+//!    (rounding never opens a void). Gaps too wide for the cap stay (reported by the
+//!    coverage measure). A path's own edges within 1.5 w + 2 reach along it never count
+//!    as its neighbour (on a loop's concave side they come nearer than the probe).
+//! 4. **Ends** of open roads are never widened, and are pulled back along the road
+//!    where the last edge's bead would reach further than a nominal end (along the
+//!    road, or sideways into the part boundary at a slant).
 
 use super::ToolPath;
-use crate::geom::SegmentIndex;
+use crate::geom::{Region, SegmentIndex};
 use glam::DVec2;
 
 /// Settings of the flow raise (part of [`crate::pipeline::ProcessSettings`]).
@@ -59,13 +67,28 @@ struct Facing {
     gap_mm: f64,
     path: u32,
     edge: u32,
+    /// Whether the facing bead's left side (its left edge) is the one towards us.
+    left_faces_us: bool,
+}
+
+/// What lies beside a vertex on one side.
+#[derive(Clone, Copy, Debug)]
+enum Side {
+    /// Neither a road nor the part boundary within reach: the bead edge stays nominal.
+    Open,
+    /// Another road.
+    Road(Facing),
+    /// The part boundary, this far from the centreline (the bead may reach it, no
+    /// further: roads never widen across the outside into a road beyond).
+    Wall(f64),
 }
 
 /// Damped iterations of the width matching (step 3); each halves what is left.
-const MATCH_ITERATIONS: usize = 8;
+const MATCH_ITERATIONS: usize = 16;
 
-/// Raise the width factors of `paths` in place (steps 1–3).
-pub fn raise(paths: &mut [ToolPath], s: &FlowSettings) {
+/// Raise the width factors of `paths` in place (steps 1–3), keeping every bead inside
+/// the part `islands` (none: no boundary is known, only the roads count).
+pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
     let w = s.road_width_mm;
     let adjusts = s.max_flow_factor > 1.0 || s.min_flow_factor < 1.0;
     if !w.is_finite() || w <= 0.0 || !adjusts || paths.is_empty() {
@@ -87,6 +110,12 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings) {
         .map(|p| p.points.as_slice())
         .collect();
     let index = SegmentIndex::new(&loops, &lines);
+    let boundary_loops: Vec<&[DVec2]> = islands
+        .iter()
+        .flat_map(|r| r.loops())
+        .map(|l| l.as_slice())
+        .collect();
+    let boundary = SegmentIndex::new(&boundary_loops, &[]);
     // Segment ids of each path in the index (loops first, then open paths) and the arc
     // length at each of its vertices, so a probe can skip the path's own nearby edges:
     // on the concave side of a curve (a loop's inside) they come nearer than the probe
@@ -101,82 +130,223 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings) {
             owner.extend(std::iter::repeat_n(i as u32, edges));
         }
     }
-    let facing: Vec<Vec<[Option<Facing>; 2]>> = paths
+    let facing: Vec<Vec<[Side; 2]>> = paths
         .iter()
         .enumerate()
-        .map(|(i, p)| probe_path(p, first_segment[i], &owner, &first_segment, &index, w))
+        .map(|(i, p)| {
+            let ids = Ids {
+                base: first_segment[i],
+                owner: &owner,
+                first_segment: &first_segment,
+            };
+            probe_path(paths, p, &ids, &index, &boundary, w)
+        })
         .collect();
 
-    // Step 3: width matching. Half-widths h, all nominal at first; each bead takes what
-    // lies between its centreline and the facing beads' edges, damped so that two
-    // beads sharing a gap settle on half each.
+    // Step 3: width matching. Each bead vertex has a half-width h and a shift s of its
+    // centreline along its left normal (its edges are at s + h on the left and s − h on
+    // the right); all nominal and unshifted at first. Each takes what lies between the
+    // facing beads' edges, damped so that two beads sharing a gap settle on half each.
     let (h_min, h_max) = (
         0.5 * w * s.min_flow_factor.min(1.0),
         0.5 * w * s.max_flow_factor.max(1.0),
     );
-    let mut h: Vec<Vec<f64>> = paths
+    let mut bead: Vec<Vec<(f64, f64)>> = paths
         .iter()
-        .map(|p| vec![0.5 * w; p.points.len()])
+        .map(|p| vec![(0.5 * w, 0.0); p.points.len()])
         .collect();
-    let half_width_at = |h: &[Vec<f64>], f: &Facing| {
-        let hp = &h[f.path as usize];
-        let n = hp.len();
+    // How far the facing bead reaches towards us from its own centreline.
+    let reach_towards = |bead: &[Vec<(f64, f64)>], f: &Facing| {
+        let b = &bead[f.path as usize];
+        let n = b.len();
         let e = f.edge as usize;
-        0.5 * (hp[e % n] + hp[(e + 1) % n])
+        let (h, s) = (
+            0.5 * (b[e % n].0 + b[(e + 1) % n].0),
+            0.5 * (b[e % n].1 + b[(e + 1) % n].1),
+        );
+        if f.left_faces_us {
+            h + s
+        } else {
+            h - s
+        }
     };
     for _ in 0..MATCH_ITERATIONS {
-        let next: Vec<Vec<f64>> = facing
+        let next: Vec<Vec<(f64, f64)>> = facing
             .iter()
-            .zip(&h)
-            .map(|(fs, hs)| {
+            .zip(&bead)
+            .map(|(fs, bs)| {
                 fs.iter()
-                    .zip(hs)
-                    .map(|(sides, &old)| {
-                        let room = |f: &Option<Facing>| f.map(|f| f.gap_mm - half_width_at(&h, &f));
-                        let target = match [room(&sides[0]), room(&sides[1])] {
-                            // Both sides: touch the farther bead (never a void), overlap
-                            // the nearer one as little as that allows.
-                            [Some(a), Some(b)] => a.max(b),
-                            // One side (the other is the part boundary or open space):
-                            // raised into a gap, never narrowed, so the far edge stays
-                            // where nozzle radius compensation put it.
-                            [Some(g), None] | [None, Some(g)] => g.max(0.5 * w),
-                            [None, None] => 0.5 * w,
+                    .zip(bs)
+                    .map(|(sides, &(h_old, s_old))| {
+                        // Room from our centreline to the facing edge, left and right.
+                        // Open space: that edge stays where it is.
+                        let room = |side: &Side| match side {
+                            Side::Open => 0.5 * w,
+                            Side::Road(f) => f.gap_mm - reach_towards(&bead, f),
+                            Side::Wall(d) => *d,
                         };
-                        (0.5 * (old + target)).clamp(h_min, h_max)
+                        let (left, right) = (room(&sides[0]), room(&sides[1]));
+                        let h = (0.5 * (left + right)).clamp(h_min, h_max);
+                        let shift = (0.5 * (left - right)).clamp(-MAX_SHIFT * w, MAX_SHIFT * w);
+                        (
+                            (0.5 * (h_old + h)).clamp(h_min, h_max),
+                            0.5 * (s_old + shift),
+                        )
                     })
                     .collect()
             })
             .collect();
-        h = next;
+        bead = next;
     }
-    for (p, hs) in paths.iter_mut().zip(&h) {
-        p.width_factors = hs
-            .iter()
-            .map(|&hk| {
-                let f = 2.0 * hk / w;
-                if (f - 1.0).abs() <= s.min_gap_fraction {
-                    1.0
-                } else {
-                    f
-                }
-            })
-            .collect();
+    for (p, bs) in paths.iter_mut().zip(&bead) {
+        let normals = vertex_normals(&p.points, p.closed);
+        for (k, &(h, shift)) in bs.iter().enumerate() {
+            let f = 2.0 * h / w;
+            // A change too small to matter is left, but only where the nominal bead
+            // covers the matched one (rounding never opens a void).
+            let keep = f >= 1.0 - s.min_gap_fraction && h + shift.abs() <= 0.5 * w * (1.0 + 1e-9);
+            if keep {
+                p.width_factors[k] = 1.0;
+            } else {
+                p.width_factors[k] = f;
+                p.points[k] += normals[k] * shift;
+            }
+        }
+        if !p.closed {
+            keep_end_caps(p, w, &boundary);
+        }
     }
 }
 
-/// Step 2 for one path: the road facing each vertex on its left and right.
-fn probe_path(
-    p: &ToolPath,
-    base: u32,
-    owner: &[u32],
-    first_segment: &[u32],
-    index: &SegmentIndex,
-    w: f64,
-) -> Vec<[Option<Facing>; 2]> {
+/// An open road's ends were placed (clipped) so that a nominal bead's round end reaches
+/// the part boundary or the road it runs into and no further. A widened end would reach
+/// beyond: the end vertex is never widened, and where the last edge still is (its bead
+/// is the mean of its two vertices), the end is pulled back along the road by the excess.
+fn keep_end_caps(p: &mut ToolPath, w: f64, boundary: &SegmentIndex) {
     let n = p.points.len();
     if n < 2 {
-        return vec![[None, None]; n];
+        return;
+    }
+    for (end, inner) in [(0, 1), (n - 1, n - 2)] {
+        p.width_factors[end] = p.width_factors[end].min(1.0);
+        let r = 0.25 * w * (p.width_factors[end] + p.width_factors[inner]);
+        let (a, b) = (p.points[end], p.points[inner]);
+        let len = a.distance(b);
+        if r <= 0.5 * w || len <= 0.0 {
+            continue;
+        }
+        // Along the road: no further than a nominal end reached.
+        let mut t = ((r - 0.5 * w) / len).min(0.5);
+        // Sideways: the round end stays inside the part where the road meets the
+        // boundary at a slant (it reached it at w/2 there).
+        if !boundary.is_empty() && boundary.distance(a.lerp(b, t)) < r {
+            let (mut lo, mut hi) = (t, 0.5);
+            if boundary.distance(a.lerp(b, hi)) >= r {
+                for _ in 0..CLEARANCE_BISECTIONS {
+                    let mid = 0.5 * (lo + hi);
+                    if boundary.distance(a.lerp(b, mid)) >= r {
+                        hi = mid;
+                    } else {
+                        lo = mid;
+                    }
+                }
+            }
+            t = hi;
+        }
+        p.points[end] = a.lerp(b, t);
+    }
+}
+
+/// Bisections of an end's pull-back (1/2^12 of half the last edge).
+const CLEARANCE_BISECTIONS: usize = 12;
+
+/// Largest shift of a bead's centreline, in road widths.
+const MAX_SHIFT: f64 = 0.5;
+
+/// The left normal at each vertex, scaled so that moving the vertex by `normal * s`
+/// moves both edges meeting there by s (mitre, at most 2 for sharp corners).
+fn vertex_normals(points: &[DVec2], closed: bool) -> Vec<DVec2> {
+    let n = points.len();
+    (0..n)
+        .map(|k| {
+            let prev = if k > 0 {
+                Some(points[k - 1])
+            } else if closed {
+                Some(points[n - 1])
+            } else {
+                None
+            };
+            let next = if k + 1 < n {
+                Some(points[k + 1])
+            } else if closed {
+                Some(points[0])
+            } else {
+                None
+            };
+            let q = points[k];
+            let left = |a: DVec2, b: DVec2| (b - a).normalize_or_zero().perp();
+            let (a, b) = match (prev, next) {
+                (Some(p), Some(x)) => (left(p, q), left(q, x)),
+                (Some(p), None) => (left(p, q), left(p, q)),
+                (None, Some(x)) => (left(q, x), left(q, x)),
+                (None, None) => (DVec2::ZERO, DVec2::ZERO),
+            };
+            let mid = (a + b).normalize_or_zero();
+            let cos = mid.dot(a);
+            if cos <= 0.5 {
+                mid * 2.0
+            } else {
+                mid / cos
+            }
+        })
+        .collect()
+}
+
+/// Segment numbering of the road index: the path of each segment id, and each path's
+/// first id (`base` for the path being probed).
+struct Ids<'a> {
+    base: u32,
+    owner: &'a [u32],
+    first_segment: &'a [u32],
+}
+
+/// How far along the ray from `origin` in direction `dir` (unit) the part boundary is,
+/// up to `limit` (sphere tracing: step by the distance to the nearest boundary edge).
+fn wall_along(boundary: &SegmentIndex, origin: DVec2, dir: DVec2, limit: f64) -> Option<f64> {
+    if boundary.is_empty() {
+        return None;
+    }
+    let mut t = 0.0;
+    for _ in 0..WALL_STEPS {
+        let d = boundary.distance(origin + dir * t);
+        if d <= WALL_HIT_MM {
+            return Some(t);
+        }
+        t += d;
+        if t > limit {
+            return None;
+        }
+    }
+    None
+}
+
+/// Sphere-tracing steps and the distance that counts as on the boundary.
+const WALL_STEPS: usize = 32;
+const WALL_HIT_MM: f64 = 1e-4;
+
+/// Step 2 for one path: what faces each vertex on its left and right.
+fn probe_path(
+    paths: &[ToolPath],
+    p: &ToolPath,
+    ids: &Ids,
+    index: &SegmentIndex,
+    boundary: &SegmentIndex,
+    w: f64,
+) -> Vec<[Side; 2]> {
+    let (base, owner, first_segment) = (ids.base, ids.owner, ids.first_segment);
+    let n = p.points.len();
+    if n < 2 {
+        return vec![[Side::Open, Side::Open]; n];
     }
     let step = w / 8.0;
     let reach = w; // probe up to a gap of 2w centre to centre
@@ -274,31 +444,50 @@ fn probe_path(
                 })
                 .collect()
         };
-        let mut sides = [None, None];
+        let mut sides = [Side::Open, Side::Open];
+        // How near a side's finding is: a road by its nominal edge, a wall by itself.
+        let nearness = |f: &Side| match f {
+            Side::Open => f64::INFINITY,
+            Side::Road(f) => f.gap_mm - 0.5 * w,
+            Side::Wall(t) => *t,
+        };
+        let limit = 2.0 * (0.5 * w + reach);
         for (facing, side) in sides.iter_mut().zip([1.0, -1.0]) {
             for (origin, nrm) in &probes {
+                let dir = *nrm * side;
+                let wall = wall_along(boundary, *origin, dir, limit);
+                let mut found = wall.map_or(Side::Open, Side::Wall);
                 // Half the centre-to-centre gap: where another centreline becomes nearer
                 // than our own. Neighbours closer than w/2 are not roads of this plan.
                 let mut d = 0.25 * w + step;
-                while d <= 0.5 * w + reach {
-                    let q = *origin + *nrm * (side * d);
+                while d <= 0.5 * w + reach && wall.is_none_or(|t| d < t) {
+                    let q = *origin + dir * d;
                     if let Some((other, id)) = index.nearest_skipping(q, own_nearby) {
                         if other < d - 1e-3 * w {
                             // Parallel neighbour at g: other = g - d, so g = d + other.
                             let g = d + other;
+                            if wall.is_some_and(|t| t < g) {
+                                break; // beyond the part boundary
+                            }
                             let path = owner[id as usize];
-                            let f = Facing {
+                            let edge = id - first_segment[path as usize];
+                            let theirs = &paths[path as usize].points;
+                            let m = theirs.len();
+                            let (a, b) =
+                                (theirs[edge as usize % m], theirs[(edge as usize + 1) % m]);
+                            found = Side::Road(Facing {
                                 gap_mm: g,
                                 path,
-                                edge: id - first_segment[path as usize],
-                            };
-                            if facing.is_none_or(|x: Facing| g < x.gap_mm) {
-                                *facing = Some(f);
-                            }
+                                edge,
+                                left_faces_us: (b - a).perp().dot(dir) < 0.0,
+                            });
                             break;
                         }
                     }
                     d += step;
+                }
+                if nearness(&found) < nearness(facing) {
+                    *facing = found;
                 }
             }
         }
@@ -394,40 +583,128 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_gap_of_one_and_a_third_roads_widens_both_neighbours() {
-        // Centre to centre 1.3 w: each bead widens by 0.15 w on each side: factor 1.3.
-        let mut paths = vec![line(0.0), line(0.52)];
-        let s = SETTINGS;
-        raise(&mut paths, &s);
-        let mid = paths[0].width_factors[paths[0].points.len() / 2];
-        assert!((mid - 1.3).abs() < 0.05, "{mid}");
-        // Touching roads stay nominal; a wide gap is capped.
-        let mut touching = vec![line(0.0), line(0.4)];
-        raise(&mut touching, &s);
-        assert!(touching[0].width_factors.iter().all(|&f| f == 1.0));
-        let mut wide = vec![line(0.0), line(0.76)];
-        raise(&mut wide, &s);
-        let f = wide[0].width_factors[5];
-        assert!((f - 1.5).abs() < 1e-9, "{f}");
+    /// Where the bead at the middle of `p` has its edges (below, above) for lines along x.
+    fn edges(p: &ToolPath) -> (f64, f64) {
+        let k = p.points.len() / 2;
+        let (y, f) = (p.points[k].y, p.width_factors[k]);
+        (y - 0.2 * f, y + 0.2 * f)
     }
 
     #[test]
-    fn roads_closer_than_a_road_width_on_both_sides_are_narrowed_to_their_spacing() {
-        let s = SETTINGS;
+    fn a_gap_between_two_roads_is_shared_and_their_far_edges_stay() {
+        // Centre to centre 1.3 w, nothing beyond either road: each bead widens by 0.15 w
+        // into the gap (factor 1.15) and its centreline moves 0.075 w towards it, so the
+        // beads meet in the middle and their far edges stay where they were.
+        let mut paths = vec![line(0.0), line(0.52)];
+        raise(&mut paths, &SETTINGS, &[]);
+        let (a, b) = (edges(&paths[0]), edges(&paths[1]));
+        assert!(
+            (a.0 + 0.2).abs() < 1e-6 && (b.1 - 0.72).abs() < 1e-6,
+            "{a:?} {b:?}"
+        );
+        assert!(
+            (a.1 - 0.26).abs() < 1e-6 && (b.0 - 0.26).abs() < 1e-6,
+            "{a:?} {b:?}"
+        );
+        let mid = paths[0].width_factors[paths[0].points.len() / 2];
+        assert!((mid - 1.15).abs() < 1e-6, "{mid}");
+        // Touching roads stay nominal and in place; a wide gap is capped.
+        let mut touching = vec![line(0.0), line(0.4)];
+        raise(&mut touching, &SETTINGS, &[]);
+        assert!(touching[0].width_factors.iter().all(|&f| f == 1.0));
+        assert!(touching[0].points.iter().all(|q| q.y == 0.0));
+        let mut wide = vec![line(0.0), line(0.9)];
+        raise(&mut wide, &SETTINGS, &[]);
+        let f = wide[0].width_factors[5];
+        assert!((f - 1.5).abs() < 1e-4, "{f}");
+    }
+
+    #[test]
+    fn a_road_between_two_roads_fills_the_space_between_their_edges() {
+        // Neighbours at 0.5 below and 0.6 above (w = 0.4): the middle bead spans from
+        // the lower bead's edge to the upper one's, off centre (the 1.3 x road of Fig.
+        // 4(a) (iii) when the gap is even). The outer beads meet it half way.
+        let mut paths = vec![line(0.0), line(0.5), line(1.1)];
+        raise(&mut paths, &SETTINGS, &[]);
+        let e: Vec<(f64, f64)> = paths.iter().map(edges).collect();
+        assert!(
+            (e[0].0 + 0.2).abs() < 1e-6 && (e[2].1 - 1.3).abs() < 1e-6,
+            "{e:?}"
+        );
+        for k in 0..2 {
+            assert!((e[k].1 - e[k + 1].0).abs() < 2e-3, "{e:?}");
+        }
+    }
+
+    #[test]
+    fn roads_closer_than_a_road_width_are_narrowed_to_share_the_space() {
         let mut paths = vec![line(0.0), line(0.3), line(0.6), line(0.9)];
-        raise(&mut paths, &s);
-        let mid = |p: &ToolPath| p.width_factors[p.points.len() / 2];
-        // Inner roads: neighbours 0.3 away on both sides: 0.3 wide.
-        assert!((mid(&paths[1]) - 0.75).abs() < 0.02, "{}", mid(&paths[1]));
-        assert!((mid(&paths[2]) - 0.75).abs() < 0.02, "{}", mid(&paths[2]));
-        // Outer roads keep their far edge where it was: not narrowed.
-        assert_eq!(mid(&paths[0]), 1.0);
-        assert_eq!(mid(&paths[3]), 1.0);
+        raise(&mut paths, &SETTINGS, &[]);
+        let e: Vec<(f64, f64)> = paths.iter().map(edges).collect();
+        // The outer beads keep their far edges where nozzle radius compensation put
+        // them; the four share the 1.3 mm between (0.325 each on average), edge to edge.
+        assert!(
+            (e[0].0 + 0.2).abs() < 1e-6 && (e[3].1 - 1.1).abs() < 1e-6,
+            "{e:?}"
+        );
+        for k in 0..3 {
+            assert!((e[k].1 - e[k + 1].0).abs() < 0.01, "{e:?}");
+        }
+        for p in &paths {
+            let f = p.width_factors[p.points.len() / 2];
+            assert!((0.6..0.95).contains(&f), "{f}");
+        }
         // Never below the floor.
         let mut tight = vec![line(0.0), line(0.12), line(0.24)];
-        raise(&mut tight, &s);
+        raise(&mut tight, &SETTINGS, &[]);
         assert!(tight[1].width_factors.iter().all(|&f| f >= 0.6 - 1e-12));
+    }
+
+    #[test]
+    fn no_road_widens_across_the_part_boundary() {
+        // Two roads 1.5 w apart with the part's edge between them (a slot), each a road
+        // width from the edges: each stays nominal; without the boundary they would
+        // widen into the slot.
+        let slot = Region::new(
+            vec![
+                DVec2::new(-5.0, -0.2),
+                DVec2::new(15.0, -0.2),
+                DVec2::new(15.0, 0.8),
+                DVec2::new(-5.0, 0.8),
+            ],
+            vec![vec![
+                DVec2::new(-1.0, 0.2),
+                DVec2::new(-1.0, 0.4),
+                DVec2::new(11.0, 0.4),
+                DVec2::new(11.0, 0.2),
+            ]],
+        );
+        let mut paths = vec![line(0.0), line(0.6)];
+        raise(&mut paths, &SETTINGS, &[slot]);
+        for p in &paths {
+            assert!(
+                p.width_factors.iter().all(|&f| f == 1.0),
+                "{:?}",
+                p.width_factors
+            );
+        }
+        let mut open = vec![line(0.0), line(0.6)];
+        raise(&mut open, &SETTINGS, &[]);
+        assert!(open[0].width_factors[5] > 1.2);
+    }
+
+    #[test]
+    fn a_widened_open_road_ends_no_further_than_a_nominal_one() {
+        // Two short roads 1.5 w apart, ending at x = 0 and x = 10: the beads widen to
+        // 1.25, but their round ends reach no further than x = -0.2 and 10.2.
+        let mut paths = vec![line(0.0), line(0.6)];
+        raise(&mut paths, &SETTINGS, &[]);
+        for p in &paths {
+            let n = p.points.len();
+            let r = |a: usize, b: usize| 0.1 * (p.width_factors[a] + p.width_factors[b]);
+            assert!(p.points[0].x - r(0, 1) >= -0.2 - 1e-9, "{:?}", p.points[0]);
+            assert!(p.points[n - 1].x + r(n - 1, n - 2) <= 10.2 + 1e-9);
+        }
     }
 
     #[test]
@@ -443,7 +720,7 @@ mod tests {
             )
         };
         let mut paths = vec![square(3.0), square(3.4)];
-        raise(&mut paths, &SETTINGS);
+        raise(&mut paths, &SETTINGS, &[]);
         for p in &paths {
             assert!(
                 p.width_factors.iter().all(|&f| f == 1.0),
@@ -468,10 +745,15 @@ mod tests {
                     .collect(),
             )
         };
+        // Its inner edge stays and it gives up half the 0.1 mm overlap to the outer
+        // ring (factor about 0.875); its own edges would have narrowed it further.
         let mut paths = vec![ring(1.2), ring(1.5)];
-        raise(&mut paths, &SETTINGS);
+        raise(&mut paths, &SETTINGS, &[]);
         assert!(
-            paths[0].width_factors.iter().all(|&f| f == 1.0),
+            paths[0]
+                .width_factors
+                .iter()
+                .all(|&f| (f - 0.875).abs() < 0.02),
             "{:?}",
             paths[0].width_factors
         );
