@@ -29,6 +29,7 @@ fn coverage_pair(
 ) -> (Coverage, Coverage) {
     let mut plain = s.clone();
     plain.flow_raise = false;
+    plain.gap_fill = false;
     let st = StreamState::new();
     let a = measure(
         islands,

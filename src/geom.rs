@@ -304,6 +304,18 @@ pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
         .collect()
 }
 
+/// Bounding box (min, max) of several regions (infinite and inverted when empty).
+pub fn bounds_of(regions: &[Region]) -> (DVec2, DVec2) {
+    let mut lo = DVec2::splat(f64::INFINITY);
+    let mut hi = DVec2::splat(f64::NEG_INFINITY);
+    for r in regions {
+        let (a, b) = r.bounds();
+        lo = lo.min(a);
+        hi = hi.max(b);
+    }
+    (lo, hi)
+}
+
 /// One connected area of a layer: an outer loop (the paper's external boundary Ce)
 /// and zero or more holes (internal boundaries Ci).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
@@ -472,6 +484,10 @@ pub struct SegmentIndex {
     cells: Vec<Vec<u32>>,
 }
 
+/// Sphere-tracing steps of [`SegmentIndex::ray_hit`] and the distance that counts as a hit.
+const RAY_STEPS: usize = 32;
+const RAY_HIT_MM: f64 = 1e-4;
+
 impl SegmentIndex {
     /// Index the edges of closed `loops` and open `polylines`.
     pub fn new(loops: &[&[DVec2]], polylines: &[&[DVec2]]) -> Self {
@@ -582,6 +598,27 @@ impl SegmentIndex {
                     hit(c, d)
                 })
         })
+    }
+
+    /// How far along the ray from `origin` in direction `dir` (unit) the nearest indexed
+    /// segment is, up to `limit` (sphere tracing: step by the distance to the nearest
+    /// segment until within 0.1 µm); none beyond the limit or when empty.
+    pub fn ray_hit(&self, origin: DVec2, dir: DVec2, limit: f64) -> Option<f64> {
+        if self.segments.is_empty() {
+            return None;
+        }
+        let mut t = 0.0;
+        for _ in 0..RAY_STEPS {
+            let d = self.distance(origin + dir * t);
+            if d <= RAY_HIT_MM {
+                return Some(t);
+            }
+            t += d;
+            if t > limit {
+                return None;
+            }
+        }
+        None
     }
 
     /// Distance from `p` to the nearest indexed segment (infinity when empty).

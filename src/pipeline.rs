@@ -93,6 +93,12 @@ pub struct ProcessSettings {
     /// gap needs a non-integer number of roads (§4, Fig. 4(a) (i)–(iii)), lower it where
     /// roads are closer than a road width. Default true.
     pub flow_raise: bool,
+    /// Fill what the flow raise leaves with thin roads along the gaps' centrelines
+    /// (`toolpath::gapfill`, Arachne / PrusaSlicer gap fill). Default true.
+    pub gap_fill: bool,
+    /// Narrowest gap-fill road relative to the road width (gaps narrower are left).
+    /// Default 0.25. The widest is `max_flow_factor`.
+    pub gap_fill_min_factor: f64,
     /// Width changes smaller than this fraction of the road width are left (noise:
     /// 2 µm on a 0.4 mm road). Default 0.005.
     pub flow_min_gap_fraction: f64,
@@ -143,6 +149,8 @@ impl Default for ProcessSettings {
             min_flow_factor: 0.6,
             flow_raise: true,
             flow_min_gap_fraction: 0.005,
+            gap_fill: true,
+            gap_fill_min_factor: 0.25,
             v_dead_ul: 0.0,
             mixing_lead: true,
             purge_xy_mm: None,
@@ -261,18 +269,18 @@ impl ProcessSettings {
                 message: format!("must be 1 or more, got {}", self.max_flow_factor),
             });
         }
-        if !(self.min_flow_factor.is_finite()
-            && self.min_flow_factor > 0.0
-            && self.min_flow_factor <= 1.0)
-        {
-            return Err(PipelineError::Setting {
-                field: "min_flow_factor",
-                message: format!(
-                    "must be more than 0 and at most 1, got {}",
-                    self.min_flow_factor
-                ),
-            });
-        }
+        let fraction = |v: f64, field: &'static str| {
+            if v.is_finite() && v > 0.0 && v <= 1.0 {
+                Ok(())
+            } else {
+                Err(PipelineError::Setting {
+                    field,
+                    message: format!("must be more than 0 and at most 1, got {v}"),
+                })
+            }
+        };
+        fraction(self.min_flow_factor, "min_flow_factor")?;
+        fraction(self.gap_fill_min_factor, "gap_fill_min_factor")?;
         if !(self.flow_min_gap_fraction.is_finite() && self.flow_min_gap_fraction >= 0.0) {
             return Err(PipelineError::Setting {
                 field: "flow_min_gap_fraction",
@@ -426,6 +434,19 @@ pub fn layer_paths(
             },
             &layer.islands,
         );
+    }
+    if settings.gap_fill {
+        let w = settings.road_width();
+        let fill = toolpath::gapfill::gap_fill(
+            &layer.islands,
+            &paths,
+            &toolpath::gapfill::GapFillSettings {
+                road_width_mm: w,
+                min_width_mm: w * settings.gap_fill_min_factor,
+                max_width_mm: w * settings.max_flow_factor,
+            },
+        );
+        paths = toolpath::gapfill::insert(paths, fill);
     }
     paths
 }
@@ -1018,5 +1039,16 @@ mod tests {
                 ..
             })
         ));
+        for bad in ["0.0", "1.5", "nan"] {
+            assert!(matches!(
+                ProcessSettings::from_toml(&format!("gap_fill_min_factor = {bad}\n"), "t"),
+                Err(PipelineError::Setting {
+                    field: "gap_fill_min_factor",
+                    ..
+                })
+            ));
+        }
+        let off = ProcessSettings::from_toml("gap_fill = false\n", "t").unwrap();
+        assert!(!off.gap_fill);
     }
 }

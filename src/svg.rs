@@ -68,13 +68,7 @@ impl Frame {
         points: impl Iterator<Item = DVec2>,
         road_width_mm: f64,
     ) -> Frame {
-        let mut lo = DVec2::splat(f64::INFINITY);
-        let mut hi = DVec2::splat(f64::NEG_INFINITY);
-        for r in islands {
-            let (a, b) = r.bounds();
-            lo = lo.min(a);
-            hi = hi.max(b);
-        }
+        let (mut lo, mut hi) = crate::geom::bounds_of(islands);
         for q in points {
             lo = lo.min(q);
             hi = hi.max(q);

@@ -372,6 +372,7 @@ fn measure_coverage(
     // The same plan without the flow raise: nominal widths on the unshifted centrelines.
     let mut plain = process.clone();
     plain.flow_raise = false;
+    plain.gap_fill = false;
     let out = toolpaths
         .par_iter()
         .zip(layers)

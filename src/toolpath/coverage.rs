@@ -77,142 +77,179 @@ pub fn measure_with_voids(
     cell_mm: f64,
     max_void_points: usize,
 ) -> (Coverage, Vec<DVec2>) {
-    let mut lo = DVec2::splat(f64::INFINITY);
-    let mut hi = DVec2::splat(f64::NEG_INFINITY);
-    for r in islands {
-        let (a, b) = r.bounds();
-        lo = lo.min(a);
-        hi = hi.max(b);
-    }
-    let mut r_max: f64 = 0.0;
-    for p in paths {
-        for (q, f) in p.points.iter().zip(&p.width_factors) {
-            lo = lo.min(*q);
-            hi = hi.max(*q);
-            r_max = r_max.max(0.5 * road_width_mm * f);
-        }
-    }
-    if !(lo.x.is_finite() && hi.x.is_finite() && cell_mm.is_finite() && cell_mm > 0.0) {
+    let Some(raster) = Raster::of_roads(islands, paths, road_width_mm, cell_mm) else {
         return (Coverage::default(), Vec::new());
-    }
-    lo -= DVec2::splat(r_max + cell_mm) + DVec2::from(SAMPLE_PHASE) * cell_mm;
-    hi += DVec2::splat(r_max + cell_mm);
-    let mut cell = cell_mm;
-    let size = |c: f64| {
-        (
-            ((hi.x - lo.x) / c).ceil() as usize + 1,
-            ((hi.y - lo.y) / c).ceil() as usize + 1,
-        )
     };
-    while size(cell).0.saturating_mul(size(cell).1) > MAX_CELLS {
-        cell *= 2.0;
-    }
-    let (nx, ny) = size(cell);
-    let centre_x = |i: usize| lo.x + (i as f64 + 0.5) * cell;
-    let centre_y = |j: usize| lo.y + (j as f64 + 0.5) * cell;
-
-    // Roads: count of different roads covering each cell.
-    let mut count = vec![0u8; nx * ny];
-    let mut last = vec![0u32; nx * ny];
-    for (pid, p) in paths.iter().enumerate() {
-        let id = pid as u32 + 1;
-        let n = p.points.len();
-        if n == 0 {
-            continue;
-        }
-        let edges = if p.closed { n } else { n.saturating_sub(1) };
-        let mut stamp = |a: DVec2, b: DVec2, r: f64| {
-            let j0 = (((a.y.min(b.y) - r - lo.y) / cell - 0.5).ceil().max(0.0)) as usize;
-            let j1 = (((a.y.max(b.y) + r - lo.y) / cell - 0.5).floor()) as isize;
-            if j1 < 0 {
-                return;
-            }
-            let j1 = (j1 as usize).min(ny - 1);
-            for j in j0..=j1 {
-                let y = centre_y(j);
-                if let Some((x0, x1)) = capsule_row(a, b, r, y) {
-                    let i0 = (((x0 - lo.x) / cell - 0.5).ceil().max(0.0)) as usize;
-                    let i1 = ((x1 - lo.x) / cell - 0.5).floor();
-                    if i1 < 0.0 {
-                        continue;
-                    }
-                    let i1 = (i1 as usize).min(nx - 1);
-                    let row = j * nx;
-                    for i in i0..=i1 {
-                        let c = row + i;
-                        if last[c] != id {
-                            last[c] = id;
-                            count[c] = count[c].saturating_add(1);
-                        }
-                    }
-                }
-            }
-        };
-        if n == 1 {
-            stamp(
-                p.points[0],
-                p.points[0],
-                0.5 * road_width_mm * p.width_factors[0],
-            );
-        }
-        for k in 0..edges {
-            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-            let f = 0.5 * (p.width_factors[k] + p.width_factors[(k + 1) % n]);
-            stamp(a, b, 0.5 * road_width_mm * f);
-        }
-    }
-    drop(last);
-
-    // Part: even-odd scanline over all loops of all islands.
     let mut cov = Coverage {
-        cell_mm: cell,
+        cell_mm: raster.cell_mm,
         ..Default::default()
     };
     let mut voids = Vec::new();
-    let mut xs: Vec<f64> = Vec::new();
-    let loops: Vec<&Vec<DVec2>> = islands.iter().flat_map(|r| r.loops()).collect();
-    for j in 0..ny {
-        let y = centre_y(j);
-        xs.clear();
-        for l in &loops {
-            let m = l.len();
-            for k in 0..m {
-                let (a, b) = (l[k], l[(k + 1) % m]);
-                if (a.y <= y) != (b.y <= y) {
-                    xs.push(a.x + (y - a.y) / (b.y - a.y) * (b.x - a.x));
+    raster.scan_part(islands, |c, centre, inside| {
+        let roads = raster.count[c];
+        if inside {
+            cov.part_cells += 1;
+            if roads == 0 {
+                cov.void_cells += 1;
+                if voids.len() < max_void_points {
+                    voids.push(centre);
                 }
+            } else if roads >= 2 {
+                cov.overlap_cells += 1;
+            }
+        } else if roads > 0 {
+            cov.outside_cells += 1;
+        }
+    });
+    (cov, voids)
+}
+
+/// A square grid over a layer with, per cell, how many different roads cover its centre
+/// (saturating at 255).
+pub(crate) struct Raster {
+    /// Corner of cell (0, 0); cell centres are half a cell in from it.
+    pub lo: DVec2,
+    pub cell_mm: f64,
+    pub nx: usize,
+    pub ny: usize,
+    pub count: Vec<u8>,
+}
+
+impl Raster {
+    /// Rasterise `paths` over the bounds of `islands` and the roads at `cell_mm`
+    /// (coarsened by doubling past [`MAX_CELLS`]); none when nothing is finite.
+    pub fn of_roads(
+        islands: &[Region],
+        paths: &[ToolPath],
+        road_width_mm: f64,
+        cell_mm: f64,
+    ) -> Option<Raster> {
+        let (mut lo, mut hi) = crate::geom::bounds_of(islands);
+        let mut r_max: f64 = 0.0;
+        for p in paths {
+            for (q, f) in p.points.iter().zip(&p.width_factors) {
+                lo = lo.min(*q);
+                hi = hi.max(*q);
+                r_max = r_max.max(0.5 * road_width_mm * f);
             }
         }
-        xs.sort_by(f64::total_cmp);
-        let row = j * nx;
-        let mut inside_spans = xs.chunks_exact(2).peekable();
-        for i in 0..nx {
-            let x = centre_x(i);
-            while let Some(s) = inside_spans.peek() {
-                if s[1] < x {
-                    inside_spans.next();
-                } else {
-                    break;
+        if !(lo.x.is_finite()
+            && hi.x.is_finite()
+            && r_max.is_finite()
+            && cell_mm.is_finite()
+            && cell_mm > 0.0)
+        {
+            return None;
+        }
+        lo -= DVec2::splat(r_max + cell_mm) + DVec2::from(SAMPLE_PHASE) * cell_mm;
+        hi += DVec2::splat(r_max + cell_mm);
+        let mut cell = cell_mm;
+        let size = |c: f64| {
+            (
+                ((hi.x - lo.x) / c).ceil() as usize + 1,
+                ((hi.y - lo.y) / c).ceil() as usize + 1,
+            )
+        };
+        while size(cell).0.saturating_mul(size(cell).1) > MAX_CELLS {
+            cell *= 2.0;
+        }
+        let (nx, ny) = size(cell);
+        let centre_y = |j: usize| lo.y + (j as f64 + 0.5) * cell;
+
+        // Roads: count of different roads covering each cell.
+        let mut count = vec![0u8; nx * ny];
+        let mut last = vec![0u32; nx * ny];
+        for (pid, p) in paths.iter().enumerate() {
+            let id = pid as u32 + 1;
+            let n = p.points.len();
+            if n == 0 {
+                continue;
+            }
+            let edges = if p.closed { n } else { n.saturating_sub(1) };
+            let mut stamp = |a: DVec2, b: DVec2, r: f64| {
+                let j0 = (((a.y.min(b.y) - r - lo.y) / cell - 0.5).ceil().max(0.0)) as usize;
+                let j1 = (((a.y.max(b.y) + r - lo.y) / cell - 0.5).floor()) as isize;
+                if j1 < 0 {
+                    return;
+                }
+                let j1 = (j1 as usize).min(ny - 1);
+                for j in j0..=j1 {
+                    let y = centre_y(j);
+                    if let Some((x0, x1)) = capsule_row(a, b, r, y) {
+                        let i0 = (((x0 - lo.x) / cell - 0.5).ceil().max(0.0)) as usize;
+                        let i1 = ((x1 - lo.x) / cell - 0.5).floor();
+                        if i1 < 0.0 {
+                            continue;
+                        }
+                        let i1 = (i1 as usize).min(nx - 1);
+                        let row = j * nx;
+                        for i in i0..=i1 {
+                            let c = row + i;
+                            if last[c] != id {
+                                last[c] = id;
+                                count[c] = count[c].saturating_add(1);
+                            }
+                        }
+                    }
+                }
+            };
+            if n == 1 {
+                stamp(
+                    p.points[0],
+                    p.points[0],
+                    0.5 * road_width_mm * p.width_factors[0],
+                );
+            }
+            for k in 0..edges {
+                let (a, b) = (p.points[k], p.points[(k + 1) % n]);
+                let f = 0.5 * (p.width_factors[k] + p.width_factors[(k + 1) % n]);
+                stamp(a, b, 0.5 * road_width_mm * f);
+            }
+        }
+        Some(Raster {
+            lo,
+            cell_mm: cell,
+            nx,
+            ny,
+            count,
+        })
+    }
+
+    /// Visit every cell with its centre and whether that lies inside the part `islands`
+    /// (even-odd scanline over all their loops).
+    pub fn scan_part(&self, islands: &[Region], mut visit: impl FnMut(usize, DVec2, bool)) {
+        let (nx, ny, cell, lo) = (self.nx, self.ny, self.cell_mm, self.lo);
+        let mut xs: Vec<f64> = Vec::new();
+        let loops: Vec<&Vec<DVec2>> = islands.iter().flat_map(|r| r.loops()).collect();
+        for j in 0..ny {
+            let y = lo.y + (j as f64 + 0.5) * cell;
+            xs.clear();
+            for l in &loops {
+                let m = l.len();
+                for k in 0..m {
+                    let (a, b) = (l[k], l[(k + 1) % m]);
+                    if (a.y <= y) != (b.y <= y) {
+                        xs.push(a.x + (y - a.y) / (b.y - a.y) * (b.x - a.x));
+                    }
                 }
             }
-            let inside = inside_spans.peek().is_some_and(|s| s[0] <= x && x <= s[1]);
-            let c = count[row + i];
-            if inside {
-                cov.part_cells += 1;
-                if c == 0 {
-                    cov.void_cells += 1;
-                    if voids.len() < max_void_points {
-                        voids.push(DVec2::new(x, y));
+            xs.sort_by(f64::total_cmp);
+            let row = j * nx;
+            let mut inside_spans = xs.chunks_exact(2).peekable();
+            for i in 0..nx {
+                let x = lo.x + (i as f64 + 0.5) * cell;
+                while let Some(s) = inside_spans.peek() {
+                    if s[1] < x {
+                        inside_spans.next();
+                    } else {
+                        break;
                     }
-                } else if c >= 2 {
-                    cov.overlap_cells += 1;
                 }
-            } else if c > 0 {
-                cov.outside_cells += 1;
+                let inside = inside_spans.peek().is_some_and(|s| s[0] <= x && x <= s[1]);
+                visit(row + i, DVec2::new(x, y), inside);
             }
         }
     }
-    (cov, voids)
 }
 
 /// The x interval of the capsule {p : dist(p, segment ab) ≤ r} on the line at height y.

@@ -99,47 +99,27 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
         subdivide(p, w);
     }
     // Step 2: one index over every road.
-    let loops: Vec<&[DVec2]> = paths
-        .iter()
-        .filter(|p| p.closed)
-        .map(|p| p.points.as_slice())
-        .collect();
-    let lines: Vec<&[DVec2]> = paths
-        .iter()
-        .filter(|p| !p.closed)
-        .map(|p| p.points.as_slice())
-        .collect();
-    let index = SegmentIndex::new(&loops, &lines);
+    let roads = super::RoadIndex::new(paths);
+    let (index, owner, first_segment) = (&roads.index, &roads.owner, &roads.first_segment);
     let boundary_loops: Vec<&[DVec2]> = islands
         .iter()
         .flat_map(|r| r.loops())
         .map(|l| l.as_slice())
         .collect();
     let boundary = SegmentIndex::new(&boundary_loops, &[]);
-    // Segment ids of each path in the index (loops first, then open paths) and the arc
-    // length at each of its vertices, so a probe can skip the path's own nearby edges:
-    // on the concave side of a curve (a loop's inside) they come nearer than the probe
-    // distance and would pass for a neighbour.
-    let mut first_segment = vec![0u32; paths.len()];
-    let mut owner: Vec<u32> = Vec::new(); // path of each segment id
-    for closed in [true, false] {
-        for (i, p) in paths.iter().enumerate().filter(|(_, p)| p.closed == closed) {
-            first_segment[i] = owner.len() as u32;
-            let n = p.points.len();
-            let edges = if closed { n } else { n.saturating_sub(1) };
-            owner.extend(std::iter::repeat_n(i as u32, edges));
-        }
-    }
+    // Segment ids of each path in the index (loops first, then open paths) let a probe
+    // skip the path's own nearby edges: on the concave side of a curve (a loop's inside)
+    // they come nearer than the probe distance and would pass for a neighbour.
     let facing: Vec<Vec<[Side; 2]>> = paths
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let ids = Ids {
                 base: first_segment[i],
-                owner: &owner,
-                first_segment: &first_segment,
+                owner,
+                first_segment,
             };
-            probe_path(paths, p, &ids, &index, &boundary, w)
+            probe_path(paths, p, &ids, index, &boundary, w)
         })
         .collect();
 
@@ -310,30 +290,6 @@ struct Ids<'a> {
     first_segment: &'a [u32],
 }
 
-/// How far along the ray from `origin` in direction `dir` (unit) the part boundary is,
-/// up to `limit` (sphere tracing: step by the distance to the nearest boundary edge).
-fn wall_along(boundary: &SegmentIndex, origin: DVec2, dir: DVec2, limit: f64) -> Option<f64> {
-    if boundary.is_empty() {
-        return None;
-    }
-    let mut t = 0.0;
-    for _ in 0..WALL_STEPS {
-        let d = boundary.distance(origin + dir * t);
-        if d <= WALL_HIT_MM {
-            return Some(t);
-        }
-        t += d;
-        if t > limit {
-            return None;
-        }
-    }
-    None
-}
-
-/// Sphere-tracing steps and the distance that counts as on the boundary.
-const WALL_STEPS: usize = 32;
-const WALL_HIT_MM: f64 = 1e-4;
-
 /// Step 2 for one path: what faces each vertex on its left and right.
 fn probe_path(
     paths: &[ToolPath],
@@ -455,7 +411,7 @@ fn probe_path(
         for (facing, side) in sides.iter_mut().zip([1.0, -1.0]) {
             for (origin, nrm) in &probes {
                 let dir = *nrm * side;
-                let wall = wall_along(boundary, *origin, dir, limit);
+                let wall = boundary.ray_hit(*origin, dir, limit);
                 let mut found = wall.map_or(Side::Open, Side::Wall);
                 // Half the centre-to-centre gap: where another centreline becomes nearer
                 // than our own. Neighbours closer than w/2 are not roads of this plan.

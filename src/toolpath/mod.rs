@@ -25,6 +25,7 @@
 
 pub mod coverage;
 pub mod flow;
+pub mod gapfill;
 
 use crate::edo::shapes::Path;
 use crate::edo::{offset_composition_eq6, LayerPlan};
@@ -106,6 +107,42 @@ impl ToolPath {
             self.points[0]
         } else {
             self.points[self.points.len() - 1]
+        }
+    }
+}
+
+/// One segment index over every road of a layer (loops' edges first, then open paths'),
+/// with the path each segment id belongs to and each path's first segment id.
+pub(crate) struct RoadIndex {
+    pub index: crate::geom::SegmentIndex,
+    pub owner: Vec<u32>,
+    pub first_segment: Vec<u32>,
+}
+
+impl RoadIndex {
+    pub fn new(paths: &[ToolPath]) -> Self {
+        let of = |closed: bool| -> Vec<&[DVec2]> {
+            paths
+                .iter()
+                .filter(|p| p.closed == closed)
+                .map(|p| p.points.as_slice())
+                .collect()
+        };
+        let index = crate::geom::SegmentIndex::new(&of(true), &of(false));
+        let mut first_segment = vec![0u32; paths.len()];
+        let mut owner: Vec<u32> = Vec::new();
+        for closed in [true, false] {
+            for (i, p) in paths.iter().enumerate().filter(|(_, p)| p.closed == closed) {
+                first_segment[i] = owner.len() as u32;
+                let n = p.points.len();
+                let edges = if closed { n } else { n.saturating_sub(1) };
+                owner.extend(std::iter::repeat_n(i as u32, edges));
+            }
+        }
+        RoadIndex {
+            index,
+            owner,
+            first_segment,
         }
     }
 }
