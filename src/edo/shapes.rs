@@ -541,27 +541,46 @@ pub fn keep_clear_of(
         // a near pass between their ends is seen; the rest are clear whole.
         let m = road.points.len();
         let edges = if road.closed { m } else { m.saturating_sub(1) };
+        // Whether each point is at least the clearance from the contour, known at once
+        // for the ends of clear edges (a point within the clearance of an edge's middle
+        // plus half its length decides most of them without the segment distances).
         let mut pts = Vec::with_capacity(m);
+        let mut known: Vec<Option<bool>> = Vec::with_capacity(m);
+        let mut clear_before = false;
         for k in 0..edges {
             let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            if index.any_within(a, b, clearance_mm) {
+            let reach = clearance_mm + 0.5 * a.distance(b);
+            let clear =
+                !index.within(a.lerp(b, 0.5), reach) || !index.any_within(a, b, clearance_mm);
+            if clear {
+                pts.push(a);
+                known.push(Some(true));
+            } else {
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
                 pts.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
-            } else {
-                pts.push(a);
+                known.extend((0..pieces).map(|q| (q == 0 && clear_before).then_some(true)));
             }
+            clear_before = clear;
         }
-        if !road.closed {
+        if road.closed {
+            // The first point also ends the last edge.
+            if let Some(k) = known.first_mut() {
+                if clear_before {
+                    *k = Some(true);
+                }
+            }
+        } else {
             pts.extend(road.points.last().copied());
+            known.push(clear_before.then_some(true));
         }
         let n = pts.len();
         if n < 2 {
             continue;
         }
-        // Is each point at least the clearance from the contour?
         let far: Vec<bool> = pts
             .iter()
-            .map(|p| !index.within(*p, clearance_mm))
+            .zip(&known)
+            .map(|(p, k)| k.unwrap_or_else(|| !index.within(*p, clearance_mm)))
             .collect();
         let Some(first_near) = far.iter().position(|&f| !f) else {
             out.push(road);
