@@ -16,12 +16,28 @@
 //! beside edges: 48.2–53.8 ms (criterion medians of two runs, machine otherwise idle;
 //! the same code with the clearance 0: 55.8 ms in a noisier run).
 //!
-//! The 5 ms target is out of reach while the offsets are i_overlay outlines: one costs
-//! about 10k instructions per vertex (1.8M for a typical 180-vertex contour, most of it
-//! splitting the raw outline's self-crossings), so the 68 offsets alone take about 18 ms.
-//! The contours are already near the fewest vertices the chord tolerance allows, and a
-//! coarser distance-field cell (R_mach / 2 instead of / 3, 30 % faster) moves the
-//! contours by 10–20 µm, beyond the chord tolerance.
+//! 2026-12-01, speed branch: 180M instructions per layer (callgrind), from 300M with
+//! the clearance; criterion median 37.0 and 40.8 ms (two runs, machine loaded by another
+//! build, load average 3.3 on 2 cores; the old code measured 64.3 ms in the same session
+//! at load 2). Alternating runs of a 20-layer driver under the same load: 29–37 ms
+//! against 46–66 ms before. What changed: the equal distance offsets no longer go
+//! through the i_overlay outline where the raw offset (edges moved, mitred where they
+//! meet, round joins where they part, swallowtails cut) is certifiably the offset (no
+//! crossing, orientation kept, every vertex at the offset distance from the source);
+//! 8 of the 70 offsets still fall back to the outline. Growth-ring offsets are trimmed
+//! to the end clearance whole and kept on the sub-region's side of the facing contour,
+//! with no clipper. Where the 180M go (inclusive, so nested parts overlap): offsets
+//! 27 % (48M: the outline fallback 12M, crossing checks 10M, distance certificate and
+//! simplification the rest); the distance field 22 % (39M); level-set extraction 14 %
+//! (25M); trimming offsets to the end clearance 14 % (25M); sub-region differences 6 %
+//! (12M); the rest is validation, boundary runs, contour clipping and D_max.
+//!
+//! The 5 ms target (about 30M instructions) is still out of reach: the distance field
+//! alone (two vector distance transforms over 82k nodes, about 240 instructions a
+//! node) takes 39M, and a coarser cell moves the contours by 10–20 µm, beyond the
+//! chord tolerance. cavalier_contours 0.9 parallel_offset was measured too (offsets
+//! 132M -> 54.5M) and not taken: a debug assertion in it fails on an example job (a
+//! 0.06 mm sliver eroded by 0.4 mm) and its offset path has expect()s.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};

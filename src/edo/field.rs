@@ -159,11 +159,9 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
             }
         }
     }
-    // Offer node `k` (at `p`) the nearest point of node `from`. A neighbour with the
+    // Offer a node (at `p`) the nearest point `q` of a neighbour. A neighbour with the
     // same nearest point has nothing to offer (and a NaN point, none yet, never equals).
-    let relax = |near: &mut [Nearest], k: usize, p: DVec2, from: usize| {
-        let q = near[from].q;
-        let here = &mut near[k];
+    fn relax(here: &mut Nearest, p: DVec2, q: DVec2) {
         if q == here.q || q.x.is_nan() {
             return;
         }
@@ -171,50 +169,62 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         if d2 < here.d2 {
             *here = Nearest { q, d2 };
         }
-    };
+    }
+    let node = |c: usize, y: f64| DVec2::new(grid.origin.x + c as f64 * grid.h, y);
     // Forward pass: rows upwards, each from the left (left, lower-left, below,
-    // lower-right), then back from the right (right).
+    // lower-right), then back from the right (right). Rows are split off so the
+    // neighbours are plain slice reads.
     for r in 0..ny {
+        let y = grid.origin.y + r as f64 * grid.h;
+        let (done, rest) = near.split_at_mut(r * nx);
+        let row = &mut rest[..nx];
+        let below = r.checked_sub(1).map(|b| &done[b * nx..(b + 1) * nx]);
         for c in 0..nx {
-            let (k, p) = (r * nx + c, grid.node(c, r));
+            let p = node(c, y);
             if c > 0 {
-                relax(&mut near, k, p, k - 1);
+                let q = row[c - 1].q;
+                relax(&mut row[c], p, q);
             }
-            if r > 0 {
+            if let Some(below) = below {
                 if c > 0 {
-                    relax(&mut near, k, p, k - nx - 1);
+                    relax(&mut row[c], p, below[c - 1].q);
                 }
-                relax(&mut near, k, p, k - nx);
+                relax(&mut row[c], p, below[c].q);
                 if c + 1 < nx {
-                    relax(&mut near, k, p, k - nx + 1);
+                    relax(&mut row[c], p, below[c + 1].q);
                 }
             }
         }
         for c in (0..nx.saturating_sub(1)).rev() {
-            let k = r * nx + c;
-            relax(&mut near, k, grid.node(c, r), k + 1);
+            let q = row[c + 1].q;
+            relax(&mut row[c], node(c, y), q);
         }
     }
     // Backward pass, mirrored.
     for r in (0..ny).rev() {
+        let y = grid.origin.y + r as f64 * grid.h;
+        let (head, done) = near.split_at_mut((r + 1) * nx);
+        let row = &mut head[r * nx..];
+        let above = (r + 1 < ny).then(|| &done[..nx]);
         for c in (0..nx).rev() {
-            let (k, p) = (r * nx + c, grid.node(c, r));
+            let p = node(c, y);
             if c + 1 < nx {
-                relax(&mut near, k, p, k + 1);
+                let q = row[c + 1].q;
+                relax(&mut row[c], p, q);
             }
-            if r + 1 < ny {
+            if let Some(above) = above {
                 if c + 1 < nx {
-                    relax(&mut near, k, p, k + nx + 1);
+                    relax(&mut row[c], p, above[c + 1].q);
                 }
-                relax(&mut near, k, p, k + nx);
+                relax(&mut row[c], p, above[c].q);
                 if c > 0 {
-                    relax(&mut near, k, p, k + nx - 1);
+                    relax(&mut row[c], p, above[c - 1].q);
                 }
             }
         }
         for c in 1..nx {
-            let k = r * nx + c;
-            relax(&mut near, k, grid.node(c, r), k - 1);
+            let q = row[c - 1].q;
+            relax(&mut row[c], node(c, y), q);
         }
     }
     near.into_iter().map(|n| n.d2.sqrt()).collect()

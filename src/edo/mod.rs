@@ -542,6 +542,15 @@ pub fn plan_region(
         if area <= tol.min_loop_area_mm2 {
             continue;
         }
+        let (lower_shape, upper_shape) =
+            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
+        // The offsets stop `offset_end_clearance_mm` short of the contour they run
+        // towards (C_n inward, C_n+1 outward).
+        let facing = match opts.direction {
+            OffsetDirection::Inward => lower_shape,
+            OffsetDirection::Outward => upper_shape,
+        };
+        let facing_index = shapes::boundary_index(facing);
         let d_max_mm = match (lower, upper) {
             // Parallel lines: the gap between them, as far as the part reaches (where
             // the boundary-offset C_m+1 or C1 misses the interior near a corner, the
@@ -560,12 +569,17 @@ pub fn plan_region(
                     });
                 (s_upper.min(hi) - s_lower.max(lo)).max(0.0)
             }
-            _ => gap_along_gradient(
-                &contours[n as usize].roads,
-                pre.centre,
-                &level_shapes[(n - 1) as usize],
-                opts,
-            ),
+            _ => {
+                let built;
+                let lower_index = match opts.direction {
+                    OffsetDirection::Inward => &facing_index,
+                    OffsetDirection::Outward => {
+                        built = shapes::boundary_index(&level_shapes[(n - 1) as usize]);
+                        &built
+                    }
+                };
+                gap_along_gradient(&contours[n as usize].roads, pre.centre, lower_index, opts)
+            }
         };
         let n_max = offset_count(d_max_mm, opts.nozzle_mm);
         let (m_n, m_n1) = (&compositions[(n - 1) as usize], &compositions[n as usize]);
@@ -583,29 +597,24 @@ pub fn plan_region(
         // outline cheap where a contour has many vertices.
         let step = d_max_mm / n_max.max(1) as f64;
         let mut offsets = Vec::new();
-        let (lower_shape, upper_shape) =
-            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
         // Growth-ring offsets of one bounding contour already lie on the sub-region's
         // side of it, so only the other contour can cut them: clip against that
         // contour's area alone (half the edges of the sub-region).
-        let s_area = match (pre.method, opts.direction) {
-            (SubdivisionMethod::Radial | SubdivisionMethod::Distance, OffsetDirection::Inward) => {
-                ClipArea::outside(lower_shape, tol.clip_margin_mm)
-            }
-            (SubdivisionMethod::Radial | SubdivisionMethod::Distance, OffsetDirection::Outward) => {
-                ClipArea::inside(upper_shape, tol.clip_margin_mm)
-            }
-            _ => ClipArea::inside(&s, tol.clip_margin_mm),
-        };
-        // The offsets then stop `offset_end_clearance_mm` short of the contour they
-        // run towards (C_n inward, C_n+1 outward).
-        let facing = match opts.direction {
-            OffsetDirection::Inward => lower_shape,
-            OffsetDirection::Outward => upper_shape,
-        };
-        let facing_loops: Vec<&[DVec2]> = shapes::loops(facing).map(|l| l.as_slice()).collect();
-        let facing_index = SegmentIndex::new(&facing_loops, &[]);
+        let growth = matches!(
+            pre.method,
+            SubdivisionMethod::Radial | SubdivisionMethod::Distance
+        );
         let clearance = opts.offset_end_clearance_mm;
+        // Trimmed to the clearance, a growth-ring offset's pieces each lie wholly on one
+        // side of the facing contour: trim the whole offset and keep the pieces on the
+        // sub-region's side, which is the clip then the trim without the clipper.
+        let trim_only = growth && clearance > 0.0;
+        let keep_inside_facing = opts.direction == OffsetDirection::Outward;
+        let s_area = (!trim_only).then(|| match (growth, opts.direction) {
+            (true, OffsetDirection::Inward) => ClipArea::outside(lower_shape, tol.clip_margin_mm),
+            (true, OffsetDirection::Outward) => ClipArea::inside(upper_shape, tol.clip_margin_mm),
+            _ => ClipArea::inside(&s, tol.clip_margin_mm),
+        });
         let mut level = match opts.direction {
             OffsetDirection::Inward => upper.clone(),
             OffsetDirection::Outward => lower.clone(),
@@ -621,12 +630,28 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            let roads = level.roads(&s_area, false, eps);
-            offsets.push(if clearance > 0.0 {
-                shapes::keep_clear_of(roads, &facing_index, clearance)
-            } else {
-                roads
-            });
+            let roads = match &s_area {
+                None => {
+                    let whole = shapes::loops(&level.to_shapes())
+                        .map(|l| Path {
+                            points: l.clone(),
+                            closed: true,
+                        })
+                        .collect();
+                    let mut kept = shapes::keep_clear_of(whole, &facing_index, clearance);
+                    kept.retain(|p| {
+                        p.points
+                            .get(p.points.len() / 2)
+                            .is_some_and(|q| shapes::contains(facing, *q) == keep_inside_facing)
+                    });
+                    kept
+                }
+                Some(area) if clearance > 0.0 => {
+                    shapes::keep_clear_of(level.roads(area, false, eps), &facing_index, clearance)
+                }
+                Some(area) => level.roads(area, false, eps),
+            };
+            offsets.push(roads);
         }
         sub_regions.push(SubRegion {
             n,
@@ -806,11 +831,9 @@ pub fn plan_layers(
 fn gap_along_gradient(
     upper_roads: &[Path],
     centre: Option<DVec2>,
-    lower_shapes: &Shapes,
+    index: &SegmentIndex,
     opts: &PlanOptions,
 ) -> f64 {
-    let lower_loops: Vec<&[DVec2]> = shapes::loops(lower_shapes).map(|l| l.as_slice()).collect();
-    let index = SegmentIndex::new(&lower_loops, &[]);
     let step = opts.nozzle_mm.max(1e-3);
     let mut best: f64 = 0.0;
     // Raise `best` to the distance of `p`; a point with a segment within `best` cannot

@@ -51,6 +51,12 @@ pub fn loops(shapes: &Shapes) -> impl Iterator<Item = &Vec<DVec2>> {
     shapes.iter().flat_map(|s| s.iter())
 }
 
+/// The edges of every loop of `shapes`, indexed for distance queries.
+pub fn boundary_index(shapes: &Shapes) -> SegmentIndex {
+    let boundary: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
+    SegmentIndex::new(&boundary, &[])
+}
+
 /// Clean loops into valid shapes (even-odd: a loop inside another is a hole).
 pub fn from_loops(loops: &[Vec<DVec2>]) -> Shapes {
     if loops.is_empty() {
@@ -76,9 +82,11 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
     if delta_mm == 0.0 {
         return shapes.clone();
     }
-    let style =
-        OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
-    let mut out = shapes.outline(&style);
+    let mut out = offset_direct(shapes, delta_mm, chord_mm).unwrap_or_else(|| {
+        let style =
+            OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
+        shapes.outline(&style)
+    });
     for shape in &mut out {
         for l in shape.iter_mut() {
             // Round joins leave runs of micro-edges; later booleans and offsets slow
@@ -91,6 +99,171 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
     }
     out.retain(|s| !s.is_empty());
     out
+}
+
+/// The offset of [`offset`] without the general outline, where the raw offset already
+/// is the answer (the common case of a small step from a smooth contour):
+///
+/// 1. **Raw offset**: every edge moved `delta_mm` to its right (the material lies left of
+///    every loop, outer loops counter-clockwise and holes clockwise), consecutive moved
+///    edges cut off where they meet (mitre: exact for the corners the offset turns
+///    into) or joined by a round arc about the vertex where they part, sampled as the
+///    outline's round join is.
+/// 2. **Certificate**: the raw loops are the offset's boundary when no two of their
+///    edges touch or cross, each keeps the orientation (so the area it bounds) of its
+///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
+///    nearest source edge. A vanishing loop, a neck that pinches off or an edge the
+///    offset swallows fails one of these, and the caller runs the general outline.
+fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes> {
+    let reach = delta_mm.abs();
+    let step = arc_angle(delta_mm, chord_mm);
+    let mut out: Shapes = Vec::with_capacity(shapes.len());
+    for shape in shapes {
+        let mut loops = Vec::with_capacity(shape.len());
+        for l in shape {
+            let raw = raw_offset_loop(l, delta_mm, step)?;
+            let (a0, a1) = (
+                crate::geom::signed_area2(l),
+                crate::geom::signed_area2(&raw),
+            );
+            if a0 == 0.0 || (a0 > 0.0) != (a1 > 0.0) {
+                return None;
+            }
+            loops.push(raw);
+        }
+        out.push(loops);
+    }
+    // Little reversed loops (swallowtails) where the offset swallows a short edge
+    // between two corners it turns into are cut off at their crossing; any other
+    // crossing leaves the work to the outline.
+    let mut cuts = 0;
+    loop {
+        let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
+        let Some(c) = crate::geom::first_crossing(&raw) else {
+            break;
+        };
+        cuts += 1;
+        if cuts > MAX_SWALLOWTAIL_CUTS || !cut_swallowtail(&mut out, &c) {
+            return None;
+        }
+    }
+    let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
+    let index = boundary_index(shapes);
+    let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
+    let far = reach * (1.0 + DIRECT_OFFSET_SLACK);
+    if raw
+        .iter()
+        .flat_map(|l| l.iter())
+        .any(|p| index.within(*p, near) || !index.within(*p, far))
+    {
+        return None;
+    }
+    Some(out)
+}
+
+/// Cut the loop crossing `c` closes off, if it is a swallowtail: both edges of one loop,
+/// at most [`SWALLOWTAIL_EDGES`] apart along it, and the piece between them turning
+/// the other way round from the loop. Returns whether it cut.
+fn cut_swallowtail(shapes: &mut Shapes, c: &crate::geom::Crossing) -> bool {
+    let ((la, i), (lb, j)) = (c.first, c.second);
+    if la != lb {
+        return false;
+    }
+    let (i, j) = (i.min(j), i.max(j));
+    let Some(l) = shapes.iter_mut().flat_map(|s| s.iter_mut()).nth(la) else {
+        return false;
+    };
+    let n = l.len();
+    let inner = j - i;
+    let outer = n - inner;
+    let piece: Vec<DVec2> = if inner <= outer {
+        std::iter::once(c.at)
+            .chain(l[i + 1..=j].iter().copied())
+            .collect()
+    } else {
+        std::iter::once(c.at)
+            .chain(l[j + 1..].iter().copied())
+            .chain(l[..=i].iter().copied())
+            .collect()
+    };
+    if piece.len() > SWALLOWTAIL_EDGES + 1
+        || (crate::geom::signed_area2(&piece) > 0.0) == (crate::geom::signed_area2(l) > 0.0)
+    {
+        return false;
+    }
+    let kept: Vec<DVec2> = if inner <= outer {
+        l[..=i]
+            .iter()
+            .copied()
+            .chain(std::iter::once(c.at))
+            .chain(l[j + 1..].iter().copied())
+            .collect()
+    } else {
+        std::iter::once(c.at)
+            .chain(l[i + 1..=j].iter().copied())
+            .collect()
+    };
+    if kept.len() < 3 {
+        return false;
+    }
+    *l = kept;
+    true
+}
+
+/// How many edges a swallowtail [`cut_swallowtail`] cuts may span.
+const SWALLOWTAIL_EDGES: usize = 16;
+
+/// How many swallowtails [`offset_direct`] cuts before leaving the work to the outline.
+const MAX_SWALLOWTAIL_CUTS: usize = 64;
+
+/// Relative slack of the distance certificate of [`offset_direct`]: raw vertices lie at
+/// the offset distance from their own edge up to rounding.
+const DIRECT_OFFSET_SLACK: f64 = 1e-9;
+
+/// Step 1 of [`offset_direct`] for one loop; None where an edge is degenerate or a
+/// corner turns back on itself (the mitre would run off far away).
+fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> {
+    let n = l.len();
+    if n < 3 {
+        return None;
+    }
+    // Unit directions of the edges; the right-hand normal of `u` is `-u.perp()`.
+    let mut dirs = Vec::with_capacity(n);
+    for k in 0..n {
+        let e = l[(k + 1) % n] - l[k];
+        let len = e.length();
+        if len <= 1e-12 {
+            return None;
+        }
+        dirs.push(e / len);
+    }
+    let mut raw = Vec::with_capacity(n + n / 2);
+    for k in 0..n {
+        let (u0, u1) = (dirs[(k + n - 1) % n], dirs[k]);
+        let p = l[k];
+        let (n0, n1) = (-u0.perp() * delta_mm, -u1.perp() * delta_mm);
+        let (cross, dot) = (u0.perp_dot(u1), u0.dot(u1));
+        // Does the offset turn into the corner (the moved edges meet) or away from it?
+        let meets = cross * delta_mm < 0.0;
+        if cross == 0.0 && dot > 0.0 {
+            raw.push(p + n1);
+        } else if meets {
+            if 1.0 + dot <= 1e-6 {
+                return None;
+            }
+            raw.push(p + (n0 + n1) / (1.0 + dot));
+        } else {
+            let turn = cross.atan2(dot);
+            let pieces = ((turn.abs() / step).ceil() as usize).max(1);
+            raw.push(p + n0);
+            for q in 1..pieces {
+                raw.push(p + DVec2::from_angle(turn * q as f64 / pieces as f64).rotate(n0));
+            }
+            raw.push(p + n1);
+        }
+    }
+    let raw = crate::geom::dedup_loop(&raw, 1e-9);
+    (raw.len() >= 3).then_some(raw)
 }
 
 /// Remove zero-area antennae (the path runs out and straight back) and repeated
@@ -225,11 +398,10 @@ impl<'a> ClipArea<'a> {
     }
 
     fn new(shapes: &'a Shapes, outside: bool, clear_mm: f64) -> Self {
-        let boundary: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
         ClipArea {
             shapes,
             outside,
-            boundary: SegmentIndex::new(&boundary, &[]),
+            boundary: boundary_index(shapes),
             clear_mm,
         }
     }
@@ -369,27 +541,46 @@ pub fn keep_clear_of(
         // a near pass between their ends is seen; the rest are clear whole.
         let m = road.points.len();
         let edges = if road.closed { m } else { m.saturating_sub(1) };
+        // Whether each point is at least the clearance from the contour, known at once
+        // for the ends of clear edges (a point within the clearance of an edge's middle
+        // plus half its length decides most of them without the segment distances).
         let mut pts = Vec::with_capacity(m);
+        let mut known: Vec<Option<bool>> = Vec::with_capacity(m);
+        let mut clear_before = false;
         for k in 0..edges {
             let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            if index.any_within(a, b, clearance_mm) {
+            let reach = clearance_mm + 0.5 * a.distance(b);
+            let clear =
+                !index.within(a.lerp(b, 0.5), reach) || !index.any_within(a, b, clearance_mm);
+            if clear {
+                pts.push(a);
+                known.push(Some(true));
+            } else {
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
                 pts.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
-            } else {
-                pts.push(a);
+                known.extend((0..pieces).map(|q| (q == 0 && clear_before).then_some(true)));
             }
+            clear_before = clear;
         }
-        if !road.closed {
+        if road.closed {
+            // The first point also ends the last edge.
+            if let Some(k) = known.first_mut() {
+                if clear_before {
+                    *k = Some(true);
+                }
+            }
+        } else {
             pts.extend(road.points.last().copied());
+            known.push(clear_before.then_some(true));
         }
         let n = pts.len();
         if n < 2 {
             continue;
         }
-        // Is each point at least the clearance from the contour?
         let far: Vec<bool> = pts
             .iter()
-            .map(|p| !index.within(*p, clearance_mm))
+            .zip(&known)
+            .map(|(p, k)| k.unwrap_or_else(|| !index.within(*p, clearance_mm)))
             .collect();
         let Some(first_near) = far.iter().position(|&f| !f) else {
             out.push(road);
