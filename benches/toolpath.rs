@@ -2,6 +2,9 @@
 //! planned (nozzle 0.4, r_mach 1.6, growth rings), ordered, flow-raised and turned into
 //! moves. Target: at most 10 s on 2 cores. Thin tips are planned with `thin_regions =
 //! "fill"` (m = 1, islands narrower than a road skipped), so every layer is built.
+//!
+//! 2026-12-01, with width matching traced against the part boundary and gap fill:
+//! 8.56 s criterion median (8.15–9.02 s), 484,507 moves (was 3.23 s before both).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_layer, GradientDesign, Pattern, PlanOptions};

@@ -600,6 +600,16 @@ impl SegmentIndex {
         })
     }
 
+    /// Index the boundary of `regions`: every outer loop and hole.
+    pub fn of_regions(regions: &[Region]) -> Self {
+        let loops: Vec<&[DVec2]> = regions
+            .iter()
+            .flat_map(|r| r.loops())
+            .map(|l| l.as_slice())
+            .collect();
+        Self::new(&loops, &[])
+    }
+
     /// How far along the ray from `origin` in direction `dir` (unit) the nearest indexed
     /// segment is, up to `limit` (sphere tracing: step by the distance to the nearest
     /// segment until within 0.1 µm); none beyond the limit or when empty.

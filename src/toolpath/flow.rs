@@ -101,12 +101,7 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
     // Step 2: one index over every road.
     let roads = super::RoadIndex::new(paths);
     let (index, owner, first_segment) = (&roads.index, &roads.owner, &roads.first_segment);
-    let boundary_loops: Vec<&[DVec2]> = islands
-        .iter()
-        .flat_map(|r| r.loops())
-        .map(|l| l.as_slice())
-        .collect();
-    let boundary = SegmentIndex::new(&boundary_loops, &[]);
+    let boundary = SegmentIndex::of_regions(islands);
     // Segment ids of each path in the index (loops first, then open paths) let a probe
     // skip the path's own nearby edges: on the concave side of a curve (a loop's inside)
     // they come nearer than the probe distance and would pass for a neighbour.

@@ -64,11 +64,13 @@ pub fn gap_fill(
     if gaps.is_empty() {
         return Vec::new();
     }
-    // Roads, to find the one nearest each gap-fill road.
+    // Roads, to find the one nearest each gap-fill road; the part boundary, which no
+    // gap-fill end may cross.
     let roads = super::RoadIndex::new(paths);
+    let part = SegmentIndex::of_regions(islands);
     let mut out = Vec::new();
     for gap in &gaps {
-        for (points, widths) in centrelines(gap, s) {
+        for (points, widths) in centrelines(gap, &part, s) {
             let mid = points[points.len() / 2];
             let Some((_, id)) = roads.index.nearest_skipping(mid, |_| false) else {
                 continue;
@@ -324,7 +326,11 @@ fn edge_bead(p: &ToolPath, k: usize, w: f64, out: &mut Shapes) {
 }
 
 /// Steps 2 and 3 for one gap: centrelines with the road width at each vertex.
-fn centrelines(gap: &[Vec<DVec2>], s: &GapFillSettings) -> Vec<(Vec<DVec2>, Vec<f64>)> {
+fn centrelines(
+    gap: &[Vec<DVec2>],
+    part: &SegmentIndex,
+    s: &GapFillSettings,
+) -> Vec<(Vec<DVec2>, Vec<f64>)> {
     let w = s.road_width_mm;
     let step = 0.25 * w;
     let shape: Vec<Vec<DVec2>> = gap.iter().map(|l| divide(l, step)).collect();
@@ -398,7 +404,7 @@ fn centrelines(gap: &[Vec<DVec2>], s: &GapFillSettings) -> Vec<(Vec<DVec2>, Vec<
         if axis.len() < 2 || crate::geom::polyline_length(&axis) < s.min_width_mm {
             continue;
         }
-        let (points, widths) = recentre(&axis, &boundary, s);
+        let (points, widths) = recentre(&axis, &boundary, part, s);
         if points.len() >= 2 {
             out.push((points, widths));
         }
@@ -411,6 +417,7 @@ fn centrelines(gap: &[Vec<DVec2>], s: &GapFillSettings) -> Vec<(Vec<DVec2>, Vec<
 fn recentre(
     axis: &[DVec2],
     boundary: &SegmentIndex,
+    part: &SegmentIndex,
     s: &GapFillSettings,
 ) -> (Vec<DVec2>, Vec<f64>) {
     let step = 0.25 * s.road_width_mm;
@@ -447,9 +454,13 @@ fn recentre(
     let mut sorted = widths.clone();
     sorted.sort_by(f64::total_cmp);
     let median = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0);
+    // Where the gap closes ahead, the round end reaches past it: into the road there by
+    // at most half its half-width (END_FIT), never out of the part.
     let fits = |k: usize| {
+        let h = 0.5 * widths[k];
         widths[k] >= HORN_FRACTION * median
-            && boundary.distance(points[k]) >= 0.5 * widths[k] * END_FIT
+            && boundary.distance(points[k]) >= h * END_FIT
+            && part.distance(points[k]) >= h
     };
     let first = (0..points.len()).find(|&k| fits(k));
     let last = (0..points.len()).rev().find(|&k| fits(k));
@@ -461,8 +472,9 @@ fn recentre(
 
 /// Ends narrower than this fraction of the median width are horns (dropped).
 const HORN_FRACTION: f64 = 0.5;
-/// How much of a gap-fill end's half-width must fit inside the gap.
-const END_FIT: f64 = 0.95;
+/// How much of a gap-fill end's half-width must fit inside the gap (the rest may ride
+/// on the road that closes it; not past the part boundary).
+const END_FIT: f64 = 0.5;
 
 /// The centreline roads of a chordal-axis graph: in each connected part the longest
 /// path (double sweep), then, with its nodes taken out, any branch left at least
