@@ -647,6 +647,65 @@ const CLEARANCE_BISECTIONS: usize = 12;
 mod tests {
     use super::*;
 
+    /// The outline alone, for comparison with [`offset`]'s shortcut.
+    fn outline_only(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
+        let style =
+            OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
+        shapes.outline(&style)
+    }
+
+    #[test]
+    fn the_direct_offset_agrees_with_the_outline_on_awkward_shapes() {
+        // A dumbbell (its neck pinches off when shrunk), a star (concave corners), and
+        // a plate with a small hole (which vanishes when grown), each offset both ways
+        // by small and large steps: same area (within the chord tolerance along the
+        // boundary) and the same number of loops.
+        let dumbbell = vec![
+            DVec2::new(0.0, 0.0),
+            DVec2::new(4.0, 0.0),
+            DVec2::new(4.0, 1.8),
+            DVec2::new(6.0, 1.8),
+            DVec2::new(6.0, 0.0),
+            DVec2::new(10.0, 0.0),
+            DVec2::new(10.0, 4.0),
+            DVec2::new(6.0, 4.0),
+            DVec2::new(6.0, 2.2),
+            DVec2::new(4.0, 2.2),
+            DVec2::new(4.0, 4.0),
+            DVec2::new(0.0, 4.0),
+        ];
+        let star: Vec<DVec2> = (0..10)
+            .map(|k| {
+                let a = std::f64::consts::TAU * k as f64 / 10.0;
+                let r = if k % 2 == 0 { 5.0 } else { 2.0 };
+                DVec2::new(a.cos(), a.sin()) * r
+            })
+            .collect();
+        let mut hole: Vec<DVec2> = circle(DVec2::new(0.0, 0.0), 0.3, 0.01);
+        if crate::geom::signed_area2(&hole) > 0.0 {
+            hole.reverse();
+        }
+        let plate = vec![square(3.0), hole];
+        let chord = 0.01;
+        for shape in [vec![dumbbell], vec![star], plate] {
+            let shapes = vec![shape];
+            let perimeter: f64 = loops(&shapes)
+                .map(|l| crate::geom::polyline_length(l) + l[0].distance(l[l.len() - 1]))
+                .sum();
+            for delta in [-0.5, -0.15, 0.05, 0.4, 1.0] {
+                let fast = offset(&shapes, delta, chord);
+                let slow = outline_only(&shapes, delta, chord);
+                let (a, b) = (area(&fast), area(&slow));
+                assert!(
+                    (a - b).abs() <= 2.0 * chord * (perimeter + 2.0 * std::f64::consts::PI),
+                    "delta {delta}: {a} against {b}"
+                );
+                let count = |s: &Shapes| loops(s).filter(|l| l.len() >= 3).count();
+                assert_eq!(count(&fast), count(&slow), "delta {delta}");
+            }
+        }
+    }
+
     fn square(h: f64) -> Vec<DVec2> {
         vec![
             DVec2::new(-h, -h),
