@@ -4,18 +4,22 @@
 //!
 //! Steps, per layer (after [`super::flow::raise`]):
 //!
-//! 1. **Gaps**: the part (the layer's islands) minus every bead (each edge as a
-//!    trapezoid of its two vertices' widths, each joint and end as a disc), by i_overlay;
-//!    then opened by half the narrowest gap-fill road (shrunk and grown back), so slivers
-//!    no road could build vanish.
+//! 1. **Gaps**: cells no bead covers, on a raster of half the narrowest gap-fill road
+//!    ([`Raster`], shared with the coverage measure), grouped into clusters; in a window
+//!    around each cluster, the part (the layer's islands) minus the beads that reach it
+//!    (each edge as a trapezoid of its two vertices' widths, each joint that turns and
+//!    each end as a disc), by i_overlay; then opened by half the narrowest gap-fill road
+//!    (shrunk and grown back), so slivers no road could build vanish.
 //! 2. **Centreline**: each gap is triangulated (constrained Delaunay, i_triangle, its
 //!    boundary first divided to a quarter road width) and its chordal axis taken: the
 //!    midpoints of the chords (edges shared by two triangles) joined across each
-//!    triangle, through the centroid where three chords meet. Walked into polylines
-//!    between ends and junctions; branches shorter than half a road width are dropped.
-//! 3. **Widths**: at each vertex the gap is twice the distance to its boundary; the road
-//!    takes that width, capped at `max_width`; where it would be narrower than
-//!    `min_width` the road is cut.
+//!    triangle, through the centroid where three chords meet. Per connected part the
+//!    longest path, then branches at least a road width long.
+//! 3. **Widths**: the path resampled to a quarter road width, each point moved to the
+//!    middle of the gap across the path and given the gap's width there, capped at
+//!    `max_width`; points narrower than `min_width` dropped. The ends stop where the
+//!    round end stays inside the part and rides at most half its radius on the road
+//!    that closes the gap, and thin horns (where the gap meets a road's round end) go.
 //! 4. **Composition and order**: each gap-fill road takes the composition of the road
 //!    nearest its middle and is built right after it, so it needs no composition change
 //!    (and no mixing-chamber lead).
