@@ -91,7 +91,8 @@ pub struct ProcessSettings {
     pub min_flow_factor: f64,
     /// Match road widths to their neighbours (`toolpath::flow`): raise the flow where a
     /// gap needs a non-integer number of roads (§4, Fig. 4(a) (i)–(iii)), lower it where
-    /// roads are closer than a road width. Default true.
+    /// roads are closer than a road width, moving centrelines so each bead meets the
+    /// facing edges on both sides (the part boundary edge stays). Default true.
     pub flow_raise: bool,
     /// Fill what the flow raise leaves with thin roads along the gaps' centrelines
     /// (`toolpath::gapfill`, Arachne / PrusaSlicer gap fill). Default true.

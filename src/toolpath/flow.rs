@@ -685,7 +685,7 @@ mod tests {
     fn a_loop_is_not_its_own_neighbour() {
         // On the inside of a polygonal circle the loop's own edges come nearer than the
         // probe distance; they must not count as a neighbour. The inner of two rings 0.3
-        // apart (w = 0.4) has a neighbour on one side only: it keeps its nominal width.
+        // apart (w = 0.4) has a neighbour on one side only (the outer ring).
         let ring = |r: f64| {
             closed_road(
                 (0..24)
