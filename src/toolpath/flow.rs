@@ -100,22 +100,12 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
     }
     // Step 2: one index over every road.
     let roads = super::RoadIndex::new(paths);
-    let (index, owner, first_segment) = (&roads.index, &roads.owner, &roads.first_segment);
     let boundary = SegmentIndex::of_regions(islands);
     // Segment ids of each path in the index (loops first, then open paths) let a probe
     // skip the path's own nearby edges: on the concave side of a curve (a loop's inside)
     // they come nearer than the probe distance and would pass for a neighbour.
-    let facing: Vec<Vec<[Side; 2]>> = paths
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let ids = Ids {
-                base: first_segment[i],
-                owner,
-                first_segment,
-            };
-            probe_path(paths, p, &ids, index, &boundary, w)
-        })
+    let facing: Vec<Vec<[Side; 2]>> = (0..paths.len())
+        .map(|i| probe_path(paths, i, &roads, &boundary, w))
         .collect();
 
     // Step 3: width matching. Each bead vertex has a half-width h and a shift s of its
@@ -277,24 +267,17 @@ fn vertex_normals(points: &[DVec2], closed: bool) -> Vec<DVec2> {
         .collect()
 }
 
-/// Segment numbering of the road index: the path of each segment id, and each path's
-/// first id (`base` for the path being probed).
-struct Ids<'a> {
-    base: u32,
-    owner: &'a [u32],
-    first_segment: &'a [u32],
-}
-
-/// Step 2 for one path: what faces each vertex on its left and right.
+/// Step 2 for path `i`: what faces each vertex on its left and right.
 fn probe_path(
     paths: &[ToolPath],
-    p: &ToolPath,
-    ids: &Ids,
-    index: &SegmentIndex,
+    i: usize,
+    roads: &super::RoadIndex,
     boundary: &SegmentIndex,
     w: f64,
 ) -> Vec<[Side; 2]> {
-    let (base, owner, first_segment) = (ids.base, ids.owner, ids.first_segment);
+    let p = &paths[i];
+    let (index, owner, first_segment) = (&roads.index, &roads.owner, &roads.first_segment);
+    let base = first_segment[i];
     let n = p.points.len();
     if n < 2 {
         return vec![[Side::Open, Side::Open]; n];

@@ -519,12 +519,11 @@ fn longest_paths(adj: &[Vec<usize>], nodes: &[DVec2], min_branch_mm: f64) -> Vec
             .max_by(|a, b| a.1.total_cmp(b.1))
             .map(|(k, &d)| (k, d))
     };
-    let mut first_of_part = true;
     for start in 0..n {
         if taken[start] {
             continue;
         }
-        first_of_part = true;
+        let mut first_of_part = true;
         // Up to a few branches per connected part.
         let mut seed = start;
         for _ in 0..MAX_BRANCHES {
@@ -560,7 +559,6 @@ fn longest_paths(adj: &[Vec<usize>], nodes: &[DVec2], min_branch_mm: f64) -> Vec
             }
         }
     }
-    let _ = first_of_part;
     out
 }
 
@@ -702,6 +700,11 @@ mod tests {
         assert!(gap_fill(&islands, &[], &S).is_empty());
         let mut nan = paths.clone();
         nan[0].points[1] = DVec2::new(f64::NAN, 0.0);
-        let _ = gap_fill(&islands, &nan, &S);
+        // A road with a NaN vertex: no panic, and whatever is filled is finite.
+        for (after, road) in gap_fill(&islands, &nan, &S) {
+            assert!(after < nan.len());
+            assert!(road.points.iter().all(|p| p.is_finite()), "{road:?}");
+            assert!(road.width_factors.iter().all(|f| f.is_finite() && *f > 0.0));
+        }
     }
 }
