@@ -94,8 +94,9 @@ pub struct ProcessSettings {
     /// roads are closer than a road width, moving centrelines so each bead meets the
     /// facing edges on both sides (the part boundary edge stays). Default true.
     pub flow_raise: bool,
-    /// Fill what the flow raise leaves with thin roads along the gaps' centrelines
-    /// (`toolpath::gapfill`, Arachne / PrusaSlicer gap fill). Default true.
+    /// Continue road ends that run into the boundary at a slant into their corners
+    /// (`toolpath::ends`), then fill what is left with thin roads along the gaps'
+    /// centrelines (`toolpath::gapfill`, Arachne / PrusaSlicer gap fill). Default true.
     pub gap_fill: bool,
     /// Narrowest gap-fill road relative to the road width (gaps narrower are left).
     /// Default 0.25. The widest is `max_flow_factor`.
@@ -438,6 +439,14 @@ pub fn layer_paths(
     }
     if settings.gap_fill {
         let w = settings.road_width();
+        toolpath::ends::continue_slanted_ends(
+            &mut paths,
+            &toolpath::ends::EndSettings {
+                road_width_mm: w,
+                min_width_mm: w * settings.gap_fill_min_factor,
+            },
+            &layer.islands,
+        );
         let fill = toolpath::gapfill::gap_fill(
             &layer.islands,
             &paths,

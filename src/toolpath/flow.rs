@@ -43,7 +43,9 @@
 //!    as its neighbour (on a loop's concave side they come nearer than the probe).
 //! 4. **Ends** of open roads are never widened, and are pulled back along the road
 //!    where the last edge's bead would reach further than a nominal end (along the
-//!    road, or sideways into the part boundary at a slant).
+//!    road, or sideways into the part boundary at a slant). Over the last two road
+//!    widths of an end that runs into the boundary at a slant ([`super::ends::slant`]),
+//!    the boundary does not count as a wall: [`super::ends`] fills that corner.
 
 use super::ToolPath;
 use crate::geom::{Region, SegmentIndex};
@@ -104,9 +106,22 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
     // Segment ids of each path in the index (loops first, then open paths) let a probe
     // skip the path's own nearby edges: on the concave side of a curve (a loop's inside)
     // they come nearer than the probe distance and would pass for a neighbour.
-    let facing: Vec<Vec<[Side; 2]>> = (0..paths.len())
+    let mut facing: Vec<Vec<[Side; 2]>> = (0..paths.len())
         .map(|i| probe_path(paths, i, &roads, &boundary, w))
         .collect();
+    // Over the last stretch of an open end that runs into the boundary at a slant, the
+    // boundary does not count as a wall: the slanted-end continuation ([`super::ends`])
+    // fills the corner there, and width matching against the slanting boundary would
+    // narrow and shift the bead away from it. Neighbouring roads still count.
+    for (p, sides) in paths.iter().zip(facing.iter_mut()) {
+        for k in slanted_end_stretch(p, w, &boundary, islands) {
+            for side in sides[k].iter_mut() {
+                if matches!(side, Side::Wall(_)) {
+                    *side = Side::Open;
+                }
+            }
+        }
+    }
 
     // Step 3: width matching. Each bead vertex has a half-width h and a shift s of its
     // centreline along its left normal (its edges are at s + h on the left and s − h on
@@ -181,6 +196,46 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
             keep_end_caps(p, w, &boundary);
         }
     }
+}
+
+/// How far back along an open road from an end that runs into the boundary at a slant
+/// the boundary does not count as a wall, in road widths.
+const SLANTED_END_STRETCH: f64 = 2.0;
+
+/// The vertices of `p` within [`SLANTED_END_STRETCH`] of an end that runs into the part
+/// boundary at a slant ([`super::ends::slant`]).
+fn slanted_end_stretch(
+    p: &ToolPath,
+    w: f64,
+    boundary: &SegmentIndex,
+    islands: &[Region],
+) -> Vec<usize> {
+    let n = p.points.len();
+    let mut out = Vec::new();
+    if p.closed || n < 2 || boundary.is_empty() {
+        return out;
+    }
+    for (end, inner, step) in [(0usize, 1usize, 1isize), (n - 1, n - 2, -1)] {
+        let (e, q) = (p.points[end], p.points[inner]);
+        if super::ends::slant(e, q, 0.5 * w, w, boundary, islands).is_none() {
+            continue;
+        }
+        let mut k = end;
+        let mut along = 0.0;
+        loop {
+            out.push(k);
+            let next = k as isize + step;
+            if next < 0 || next as usize >= n {
+                break;
+            }
+            along += p.points[k].distance(p.points[next as usize]);
+            if along > SLANTED_END_STRETCH * w {
+                break;
+            }
+            k = next as usize;
+        }
+    }
+    out
 }
 
 /// An open road's ends were placed (clipped) so that a nominal bead's round end reaches

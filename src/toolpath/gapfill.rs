@@ -2,7 +2,7 @@
 //! gap fill and Arachne do): the part area no bead covers, where it is at least
 //! `min_width` wide, gets thin roads along its centreline whose width follows the gap.
 //!
-//! Steps, per layer (after [`super::flow::raise`]):
+//! Steps, per layer (after [`super::flow::raise`] and [`super::ends`]):
 //!
 //! 1. **Gaps**: cells no bead covers, on a raster of half the narrowest gap-fill road
 //!    ([`Raster`], shared with the coverage measure), grouped into clusters; in a window

@@ -24,6 +24,7 @@
 //! [`crate::pipeline`]; the coverage measure is [`coverage`].
 
 pub mod coverage;
+pub mod ends;
 pub mod flow;
 pub mod gapfill;
 
