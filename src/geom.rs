@@ -619,7 +619,13 @@ impl SegmentIndex {
         }
         let mut t = 0.0;
         for _ in 0..RAY_STEPS {
-            let d = self.distance(origin + dir * t);
+            let p = origin + dir * t;
+            // Nothing within what is left of the reach: no hit (a bounded look, where
+            // the nearest-segment search would widen its rings until it found one).
+            if !self.within(p, limit - t) {
+                return None;
+            }
+            let d = self.distance(p);
             if d <= RAY_HIT_MM {
                 return Some(t);
             }

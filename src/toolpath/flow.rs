@@ -451,7 +451,14 @@ fn probe_path(
                 let mut d = 0.25 * w + step;
                 while d <= 0.5 * w + reach && wall.is_none_or(|t| d < t) {
                     let q = *origin + dir * d;
-                    if let Some((other, id)) = index.nearest_skipping(q, own_nearby) {
+                    // Only a segment within d − ε of q can be a neighbour found here; the
+                    // bounded look rules most steps out before the nearest-segment search
+                    // (which widens until it finds one, however far).
+                    let near = index.within(q, d - 1e-3 * w);
+                    if let Some((other, id)) = near
+                        .then(|| index.nearest_skipping(q, own_nearby))
+                        .flatten()
+                    {
                         if other < d - 1e-3 * w {
                             // Parallel neighbour at g: other = g - d, so g = d + other.
                             let g = d + other;
