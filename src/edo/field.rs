@@ -69,6 +69,13 @@ impl Grid {
     fn node(&self, c: usize, r: usize) -> DVec2 {
         self.origin + DVec2::new(c as f64, r as f64) * self.h
     }
+
+    /// The x of every column of nodes, as [`Grid::node`] computes it.
+    fn xs(&self) -> Vec<f64> {
+        (0..self.nx)
+            .map(|c| self.origin.x + c as f64 * self.h)
+            .collect()
+    }
 }
 
 /// Scanline parity fill of closed loops over grid nodes.
@@ -160,17 +167,18 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         }
     }
     // Offer a node (at `p`) the nearest point `q` of a neighbour. A neighbour with the
-    // same nearest point has nothing to offer (and a NaN point, none yet, never equals).
+    // same nearest point offers the same distance, and a NaN point (none yet) a NaN
+    // distance, neither of which is smaller: no test for them is needed.
+    #[inline(always)]
     fn relax(here: &mut Nearest, p: DVec2, q: DVec2) {
-        if q == here.q || q.x.is_nan() {
-            return;
-        }
         let d2 = p.distance_squared(q);
         if d2 < here.d2 {
             *here = Nearest { q, d2 };
         }
     }
-    let node = |c: usize, y: f64| DVec2::new(grid.origin.x + c as f64 * grid.h, y);
+    // Node abscissae once (the same sums as `Grid::node`), not a conversion per relaxation.
+    let xs = grid.xs();
+    let node = |c: usize, y: f64| DVec2::new(xs[c], y);
     // Forward pass: rows upwards, each from the left (left, lower-left, below,
     // lower-right), then back from the right (right). Rows are split off so the
     // neighbours are plain slice reads.

@@ -154,7 +154,7 @@ fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes
     if raw
         .iter()
         .flat_map(|l| l.iter())
-        .any(|p| index.within(*p, near) || !index.within(*p, far))
+        .any(|p| index.within_both(*p, near, far) != (false, true))
     {
         return None;
     }
