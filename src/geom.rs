@@ -159,6 +159,13 @@ fn segments_within(a: DVec2, b: DVec2, c: DVec2, d: DVec2, r: f64) -> bool {
         || (r >= 0.0 && segments_intersect(a, b, c, d))
 }
 
+/// How far beyond a query radius a bounding-box gap must be before the box test rejects
+/// a segment: far more than the rounding of the exact distance test it saves.
+#[inline]
+fn reject_slack(r_mm: f64) -> f64 {
+    1e-9 * (1.0 + r_mm.abs())
+}
+
 /// `x.floor()` for the grid lookups: the same value wherever the result is clamped to
 /// a grid (it differs only for NaN, infinities and |x| ≥ 2⁶³, which give 0 or the
 /// clamped extreme either way), without the libm call the baseline x86-64 target makes
@@ -251,13 +258,20 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
             });
         }
     }
-    segs.sort_by(|s, t| s.a.x.min(s.b.x).total_cmp(&t.a.x.min(t.b.x)));
-    let mut active: Vec<usize> = Vec::new();
-    for (k, s) in segs.iter().enumerate() {
-        let min_x = s.a.x.min(s.b.x);
-        active.retain(|&j| segs[j].a.x.max(segs[j].b.x) >= min_x);
+    // Sweep order: by least x (a stable sort of the keys alone, not of the segments).
+    let mut order: Vec<(f64, u32)> = segs
+        .iter()
+        .enumerate()
+        .map(|(k, s)| (s.a.x.min(s.b.x), k as u32))
+        .collect();
+    order.sort_by(|p, q| p.0.total_cmp(&q.0));
+    let max_x: Vec<f64> = segs.iter().map(|s| s.a.x.max(s.b.x)).collect();
+    let mut active: Vec<u32> = Vec::new();
+    for &(min_x, k) in &order {
+        let s = &segs[k as usize];
+        active.retain(|&j| max_x[j as usize] >= min_x);
         for &j in &active {
-            let t = &segs[j];
+            let t = &segs[j as usize];
             if s.loop_index == t.loop_index {
                 let n = s.edge_count;
                 let (i, jj) = (s.edge_index, t.edge_index);
@@ -335,10 +349,18 @@ pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
         }
         let (pa, pb) = (pts[a], pts[b % n]);
         let mut worst = (0.0, a);
-        for (k, p) in pts.iter().enumerate().take(b).skip(a + 1) {
-            let d = point_segment_distance(*p, pa, pb);
+        // `point_segment_distance(p, pa, pb)` with the chord's terms computed once.
+        let ab = pb - pa;
+        let len2 = ab.length_squared();
+        for (k, p) in pts[a + 1..b].iter().enumerate() {
+            let d = if len2 <= 0.0 {
+                p.distance(pa)
+            } else {
+                let t = ((*p - pa).dot(ab) / len2).clamp(0.0, 1.0);
+                p.distance(pa + ab * t)
+            };
             if d > worst.0 {
-                worst = (d, k);
+                worst = (d, a + 1 + k);
             }
         }
         if worst.0 > tolerance_mm {
@@ -647,16 +669,23 @@ impl SegmentIndex {
 
     /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
     pub fn any_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
-        self.any_in_box(a.min(b), a.max(b), r_mm, |c, d| {
-            segments_within(a, b, c, d, r_mm)
+        let (lo, hi) = (a.min(b), a.max(b));
+        let reach = r_mm + reject_slack(r_mm);
+        self.any_in_box(lo, hi, r_mm, |c, d| {
+            // Boxes farther apart than the reach along an axis cannot be within it.
+            let (clo, chi) = (c.min(d), c.max(d));
+            let gap = (clo - hi).max(lo - chi);
+            gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
         })
     }
 
     /// Does any indexed segment come within `r_mm` of `p`? Looks only at the cells
     /// within that reach, so it answers a bounded question faster than [`Self::distance`].
     pub fn within(&self, p: DVec2, r_mm: f64) -> bool {
+        let reach = r_mm + reject_slack(r_mm);
         self.any_in_box(p, p, r_mm, |c, d| {
-            sqrt_within(point_segment_distance2(p, c, d), r_mm)
+            let gap = (c.min(d) - p).max(p - c.max(d));
+            gap.x <= reach && gap.y <= reach && sqrt_within(point_segment_distance2(p, c, d), r_mm)
         })
     }
 
@@ -670,9 +699,14 @@ impl SegmentIndex {
         let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p - pad);
         let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p + pad);
         let mut far = false;
+        let reach = far_mm + reject_slack(far_mm);
         for row in r0..=r1 {
             for &k in self.row_items(row, c0, c1) {
                 let (c, d) = self.segments[k as usize];
+                let gap = (c.min(d) - p).max(p - c.max(d));
+                if gap.x > reach || gap.y > reach {
+                    continue;
+                }
                 let d2 = point_segment_distance2(p, c, d);
                 if sqrt_within(d2, near_mm) {
                     return (true, true);
