@@ -16,7 +16,8 @@
 //! 5. Marching triangles (four triangles per cell around its mean) extract the level
 //!    sets of the piecewise-linear interpolant. Level sets of one continuous
 //!    piecewise-linear function never cross each other, so contours of different
-//!    levels never intersect, by construction.
+//!    levels never intersect, by construction. A level's segments are linked into
+//!    loops through the triangle edges they share, as the cells are visited.
 
 use crate::geom::{floor_clamped, Region};
 use glam::DVec2;

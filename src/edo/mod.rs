@@ -712,9 +712,21 @@ fn split_boundary_runs(interior: &Shapes, region: &Region) -> (Vec<Path>, Vec<Pa
         if n < 2 {
             continue;
         }
+        // `dist(p, outer) <= dist(p, holes)`, measuring first the boundary the previous
+        // vertex was nearer: the far one needs measuring only if it comes within that.
+        let mut last = true;
         let near_outer: Vec<bool> = l
             .iter()
-            .map(|p| to_outer.distance(*p) <= to_holes.distance(*p))
+            .map(|&p| {
+                last = if last {
+                    let d = to_outer.distance(p);
+                    !to_holes.within(p, d) || d <= to_holes.distance(p)
+                } else {
+                    let d = to_holes.distance(p);
+                    to_outer.within(p, d) && to_outer.distance(p) <= d
+                };
+                last
+            })
             .collect();
         let Some(start) = (0..n).find(|&k| near_outer[k] != near_outer[(k + n - 1) % n]) else {
             let path = Path {

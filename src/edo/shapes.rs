@@ -1,7 +1,9 @@
 //! Thin wrappers over i_overlay for the region algebra the EDO method needs: equal
 //! distance offsets of contours (outline with round joins), booleans between the areas
-//! enclosed by contours, and clipping of offset loops to a sub-region (which turns a
-//! loop cut by the neighbouring contour into the non-continuous segments of Fig. 4(a)).
+//! enclosed by contours (nested contour levels need none: their difference is their
+//! loops, [`nested_difference`]), and clipping of offset loops to a sub-region (which
+//! turns a loop cut by the neighbouring contour into the non-continuous segments of
+//! Fig. 4(a)).
 
 use crate::geom::{point_in_loop, SegmentIndex};
 use glam::DVec2;
