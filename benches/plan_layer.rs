@@ -32,7 +32,7 @@
 //! (25M); trimming offsets to the end clearance 14 % (25M); sub-region differences 6 %
 //! (12M); the rest is validation, boundary runs, contour clipping and D_max.
 //!
-//! 2026-12-01, speed2 branch: 134.1M instructions per layer (callgrind, from 180.2M),
+//! 2026-12-01, speed2 branch: 134.5M instructions per layer (callgrind, from 180.2M),
 //! with the plans byte-identical on this region and the example jobs (every contour
 //! and offset vertex the same; sub-region areas within 3e-9 relative, see below).
 //! Criterion medians, old and new binaries alternating, machine loaded by another

@@ -554,7 +554,7 @@ pub struct SegmentIndex {
     nx: usize,
     ny: usize,
     /// Segments of cell `k` are `items[starts[k]..starts[k + 1]]`, in increasing order.
-    starts: Vec<u32>,
+    starts: Vec<usize>,
     items: Vec<u32>,
 }
 
@@ -615,7 +615,7 @@ impl SegmentIndex {
                 [c0, r0, c1, r1]
             })
             .collect();
-        let mut starts = vec![0u32; nx * ny + 1];
+        let mut starts = vec![0usize; nx * ny + 1];
         for &[c0, r0, c1, r1] in &spans {
             for r in r0..=r1 {
                 for c in c0..=c1 {
@@ -626,13 +626,13 @@ impl SegmentIndex {
         for k in 1..starts.len() {
             starts[k] += starts[k - 1];
         }
-        let mut fill: Vec<u32> = starts[..nx * ny].to_vec();
-        let mut items = vec![0u32; starts[nx * ny] as usize];
+        let mut fill: Vec<usize> = starts[..nx * ny].to_vec();
+        let mut items = vec![0u32; starts[nx * ny]];
         for (k, &[c0, r0, c1, r1]) in spans.iter().enumerate() {
             for r in r0..=r1 {
                 for c in c0..=c1 {
                     let slot = &mut fill[r * nx + c];
-                    items[*slot as usize] = k as u32;
+                    items[*slot] = k as u32;
                     *slot += 1;
                 }
             }
@@ -660,7 +660,7 @@ impl SegmentIndex {
         // Cells of a row are consecutive, so their segments are one run of `items`
         // (a segment spanning several of them appears once per cell).
         let (k0, k1) = (row * self.nx + c0, row * self.nx + c1);
-        &self.items[self.starts[k0] as usize..self.starts[k1 + 1] as usize]
+        &self.items[self.starts[k0]..self.starts[k1 + 1]]
     }
 
     pub fn is_empty(&self) -> bool {
@@ -808,8 +808,7 @@ impl SegmentIndex {
                 while col <= pc + r {
                     if col >= 0 && col < self.nx as isize {
                         let cell = row as usize * self.nx + col as usize;
-                        let items =
-                            &self.items[self.starts[cell] as usize..self.starts[cell + 1] as usize];
+                        let items = &self.items[self.starts[cell]..self.starts[cell + 1]];
                         for &k in items {
                             if skip(k) {
                                 continue;
