@@ -32,10 +32,49 @@
 //! (25M); trimming offsets to the end clearance 14 % (25M); sub-region differences 6 %
 //! (12M); the rest is validation, boundary runs, contour clipping and D_max.
 //!
+//! 2026-12-01, speed2 branch: 134.5M instructions per layer (callgrind, from 180.2M),
+//! with the plans byte-identical on this region and the example jobs (every contour
+//! and offset vertex the same; sub-region areas within 3e-9 relative, see below).
+//! Criterion medians, old and new binaries alternating, machine loaded by another
+//! session's build (load average 2.5–3.2 on 2 cores): 44.8 and 43.8 ms before, 36.7
+//! and 34.4 ms after. Per stage (inclusive, before -> after): offsets 56.3M -> 44.2M
+//! (the outline fallback unchanged at 13.4M, crossing checks 11.1M -> 9.5M); distance
+//! field 42.9M -> 29.1M; level-set extraction 27.6M -> 25.6M (chaining 7.6M -> 3.4M)
+//! plus simplifying the contours 10.6M -> 9.8M; trimming offsets to the end
+//! clearance 29.2M -> 21.4M; sub-region differences 8.9M -> 1.9M; splitting the
+//! interior's boundary into hole and outer runs 6.0M less (140.1M -> 134.1M). What
+//! changed: `SegmentIndex` keeps its cells in
+//! one array, rejects segments by bounding box before the exact distance, and decides
+//! `within` on squared distances (the square root only at the rounding edge); grid
+//! lookups floor without the libm call; the distance transform relaxes without the
+//! equality and NaN tests (they cannot change the result) and reads precomputed node
+//! abscissae; level-set segments are linked as the cells are visited instead of
+//! through a HashMap; the direct offset's certificate looks at the index once per
+//! vertex; the sub-regions between two field (or radial) contours are those nested
+//! loops, without the overlay (only that representation changes: the overlay had
+//! snapped their areas by up to 3e-9 relative); the boundary runs measure the far
+//! boundary only when it comes within the near one's distance. `examples/
+//! plan_compare.rs` is the driver and the old/new geometry diff.
+//!
+//! Why not further: the plan is not stable under a change of the field grid at the
+//! 0.01 mm level, so the coarse-grid and banded fields cannot meet "within 0.01 mm of
+//! the previous output". Measured with `plan_compare diff` on this region, field cell
+//! R_mach/3 against R_mach/3.05 (1.6 % finer): contours move by up to 0.22 mm (C5,
+//! whose level d = 0.2 passes next to the saddle of d between the two holes, at d ≈
+//! 0.19) and by 0.011–0.073 mm on every other inner contour (medial-axis kinks, cut
+//! differently by the grid), and offsets by up to 0.87 mm (ends trimmed where an
+//! offset runs nearly parallel to the facing contour at the clearance). The same
+//! against R_mach/2: contours 0.059 mm. Tried and not taken (callgrind, per layer):
+//! deciding the clearance test for runs of 16 (or 4) offset edges at once, 26.6M ->
+//! 28.1M (28.9M) as offsets run within reach of the facing contour almost everywhere;
+//! an unstable key sort in `first_crossing`, 9.6M -> 12.8M; sweeping distance
+//! transform rows through one mirrored helper, 22.9M -> 39.6M; keeping the swept node
+//! in a local, 22.9M -> 30.1M.
+//!
 //! The 5 ms target (about 30M instructions) is still out of reach: the distance field
-//! alone (two vector distance transforms over 82k nodes, about 240 instructions a
-//! node) takes 39M, and a coarser cell moves the contours by 10–20 µm, beyond the
-//! chord tolerance. cavalier_contours 0.9 parallel_offset was measured too (offsets
+//! alone (two vector distance transforms over 82k nodes, about 140 instructions a
+//! node each) takes 29M, and a coarser cell moves the contours beyond the chord
+//! tolerance (above). cavalier_contours 0.9 parallel_offset was measured too (offsets
 //! 132M -> 54.5M) and not taken: a debug assertion in it fails on an example job (a
 //! 0.06 mm sliver eroded by 0.4 mm) and its offset path has expect()s.
 

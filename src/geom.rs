@@ -123,6 +123,63 @@ pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
     p.distance(a + ab * t)
 }
 
+/// Squared distance from `p` to the segment `a`–`b`: the square of
+/// [`point_segment_distance`] before its square root (same projection, same rounding).
+pub fn point_segment_distance2(p: DVec2, a: DVec2, b: DVec2) -> f64 {
+    let ab = b - a;
+    let len2 = ab.length_squared();
+    if len2 <= 0.0 {
+        return p.distance_squared(a);
+    }
+    let t = ((p - a).dot(ab) / len2).clamp(0.0, 1.0);
+    p.distance_squared(a + ab * t)
+}
+
+/// `d2.sqrt() <= r`, deciding without the square root unless `d2` is within rounding
+/// of `r²` (so it answers exactly as the square root would).
+#[inline]
+pub fn sqrt_within(d2: f64, r: f64) -> bool {
+    let r2 = r * r;
+    if r >= 0.0 && d2 < r2 * (1.0 - 4.0 * f64::EPSILON) {
+        true
+    } else if d2 > r2 * (1.0 + 4.0 * f64::EPSILON) {
+        false
+    } else {
+        d2.sqrt() <= r
+    }
+}
+
+/// `segment_segment_distance(a, b, c, d) <= r`, without square roots where they
+/// cannot change the answer.
+fn segments_within(a: DVec2, b: DVec2, c: DVec2, d: DVec2, r: f64) -> bool {
+    sqrt_within(point_segment_distance2(a, c, d), r)
+        || sqrt_within(point_segment_distance2(b, c, d), r)
+        || sqrt_within(point_segment_distance2(c, a, b), r)
+        || sqrt_within(point_segment_distance2(d, a, b), r)
+        || (r >= 0.0 && segments_intersect(a, b, c, d))
+}
+
+/// How far beyond a query radius a bounding-box gap must be before the box test rejects
+/// a segment: far more than the rounding of the exact distance test it saves.
+#[inline]
+fn reject_slack(r_mm: f64) -> f64 {
+    1e-9 * (1.0 + r_mm.abs())
+}
+
+/// `x.floor()` for the grid lookups: the same value wherever the result is clamped to
+/// a grid (it differs only for NaN, infinities and |x| ≥ 2⁶³, which give 0 or the
+/// clamped extreme either way), without the libm call the baseline x86-64 target makes
+/// for `floor`.
+#[inline]
+pub(crate) fn floor_clamped(x: f64) -> f64 {
+    let i = x as i64 as f64;
+    if i > x {
+        i - 1.0
+    } else {
+        i
+    }
+}
+
 /// Distance between the segments `a`–`b` and `c`–`d` (zero where they touch or cross).
 pub fn segment_segment_distance(a: DVec2, b: DVec2, c: DVec2, d: DVec2) -> f64 {
     if segments_intersect(a, b, c, d) {
@@ -201,13 +258,20 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
             });
         }
     }
-    segs.sort_by(|s, t| s.a.x.min(s.b.x).total_cmp(&t.a.x.min(t.b.x)));
-    let mut active: Vec<usize> = Vec::new();
-    for (k, s) in segs.iter().enumerate() {
-        let min_x = s.a.x.min(s.b.x);
-        active.retain(|&j| segs[j].a.x.max(segs[j].b.x) >= min_x);
+    // Sweep order: by least x (a stable sort of the keys alone, not of the segments).
+    let mut order: Vec<(f64, u32)> = segs
+        .iter()
+        .enumerate()
+        .map(|(k, s)| (s.a.x.min(s.b.x), k as u32))
+        .collect();
+    order.sort_by(|p, q| p.0.total_cmp(&q.0));
+    let max_x: Vec<f64> = segs.iter().map(|s| s.a.x.max(s.b.x)).collect();
+    let mut active: Vec<u32> = Vec::new();
+    for &(min_x, k) in &order {
+        let s = &segs[k as usize];
+        active.retain(|&j| max_x[j as usize] >= min_x);
         for &j in &active {
-            let t = &segs[j];
+            let t = &segs[j as usize];
             if s.loop_index == t.loop_index {
                 let n = s.edge_count;
                 let (i, jj) = (s.edge_index, t.edge_index);
@@ -285,10 +349,18 @@ pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
         }
         let (pa, pb) = (pts[a], pts[b % n]);
         let mut worst = (0.0, a);
-        for (k, p) in pts.iter().enumerate().take(b).skip(a + 1) {
-            let d = point_segment_distance(*p, pa, pb);
+        // `point_segment_distance(p, pa, pb)` with the chord's terms computed once.
+        let ab = pb - pa;
+        let len2 = ab.length_squared();
+        for (k, p) in pts[a + 1..b].iter().enumerate() {
+            let d = if len2 <= 0.0 {
+                p.distance(pa)
+            } else {
+                let t = ((*p - pa).dot(ab) / len2).clamp(0.0, 1.0);
+                p.distance(pa + ab * t)
+            };
             if d > worst.0 {
-                worst = (d, k);
+                worst = (d, a + 1 + k);
             }
         }
         if worst.0 > tolerance_mm {
@@ -481,7 +553,9 @@ pub struct SegmentIndex {
     cell_mm: f64,
     nx: usize,
     ny: usize,
-    cells: Vec<Vec<u32>>,
+    /// Segments of cell `k` are `items[starts[k]..starts[k + 1]]`, in increasing order.
+    starts: Vec<usize>,
+    items: Vec<u32>,
 }
 
 /// Sphere-tracing steps of [`SegmentIndex::ray_hit`] and the distance that counts as a hit.
@@ -518,7 +592,8 @@ impl SegmentIndex {
                 cell_mm: 1.0,
                 nx: 0,
                 ny: 0,
-                cells: Vec::new(),
+                starts: vec![0],
+                items: Vec::new(),
             };
         }
         let extent = (hi - lo).max(DVec2::splat(1e-9));
@@ -531,13 +606,34 @@ impl SegmentIndex {
         let nx = ((extent.x / cell_mm).ceil() as usize).clamp(1, 4096);
         let ny = ((extent.y / cell_mm).ceil() as usize).clamp(1, 4096);
         let cell_mm = (extent.x / nx as f64).max(extent.y / ny as f64);
-        let mut cells = vec![Vec::new(); nx * ny];
-        for (k, (a, b)) in segments.iter().enumerate() {
-            let (c0, r0) = Self::cell_of(lo, cell_mm, nx, ny, a.min(*b));
-            let (c1, r1) = Self::cell_of(lo, cell_mm, nx, ny, a.max(*b));
+        // Counting sort into cells: count, prefix sums, fill (in segment order).
+        let spans: Vec<[usize; 4]> = segments
+            .iter()
+            .map(|(a, b)| {
+                let (c0, r0) = Self::cell_of(lo, cell_mm, nx, ny, a.min(*b));
+                let (c1, r1) = Self::cell_of(lo, cell_mm, nx, ny, a.max(*b));
+                [c0, r0, c1, r1]
+            })
+            .collect();
+        let mut starts = vec![0usize; nx * ny + 1];
+        for &[c0, r0, c1, r1] in &spans {
             for r in r0..=r1 {
                 for c in c0..=c1 {
-                    cells[r * nx + c].push(k as u32);
+                    starts[r * nx + c + 1] += 1;
+                }
+            }
+        }
+        for k in 1..starts.len() {
+            starts[k] += starts[k - 1];
+        }
+        let mut fill: Vec<usize> = starts[..nx * ny].to_vec();
+        let mut items = vec![0u32; starts[nx * ny]];
+        for (k, &[c0, r0, c1, r1]) in spans.iter().enumerate() {
+            for r in r0..=r1 {
+                for c in c0..=c1 {
+                    let slot = &mut fill[r * nx + c];
+                    items[*slot] = k as u32;
+                    *slot += 1;
                 }
             }
         }
@@ -547,15 +643,24 @@ impl SegmentIndex {
             cell_mm,
             nx,
             ny,
-            cells,
+            starts,
+            items,
         }
     }
 
     fn cell_of(origin: DVec2, cell: f64, nx: usize, ny: usize, p: DVec2) -> (usize, usize) {
         let q = (p - origin) / cell;
-        let c = (q.x.floor().max(0.0) as usize).min(nx - 1);
-        let r = (q.y.floor().max(0.0) as usize).min(ny - 1);
+        let c = (floor_clamped(q.x).max(0.0) as usize).min(nx - 1);
+        let r = (floor_clamped(q.y).max(0.0) as usize).min(ny - 1);
         (c, r)
+    }
+
+    /// The segments of the cells `c0..=c1` of row `row`.
+    fn row_items(&self, row: usize, c0: usize, c1: usize) -> &[u32] {
+        // Cells of a row are consecutive, so their segments are one run of `items`
+        // (a segment spanning several of them appears once per cell).
+        let (k0, k1) = (row * self.nx + c0, row * self.nx + c1);
+        &self.items[self.starts[k0]..self.starts[k1 + 1]]
     }
 
     pub fn is_empty(&self) -> bool {
@@ -564,15 +669,52 @@ impl SegmentIndex {
 
     /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
     pub fn any_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
-        self.any_in_box(a.min(b), a.max(b), r_mm, |c, d| {
-            segment_segment_distance(a, b, c, d) <= r_mm
+        let (lo, hi) = (a.min(b), a.max(b));
+        let reach = r_mm + reject_slack(r_mm);
+        self.any_in_box(lo, hi, r_mm, |c, d| {
+            // Boxes farther apart than the reach along an axis cannot be within it.
+            let (clo, chi) = (c.min(d), c.max(d));
+            let gap = (clo - hi).max(lo - chi);
+            gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
         })
     }
 
     /// Does any indexed segment come within `r_mm` of `p`? Looks only at the cells
     /// within that reach, so it answers a bounded question faster than [`Self::distance`].
     pub fn within(&self, p: DVec2, r_mm: f64) -> bool {
-        self.any_in_box(p, p, r_mm, |c, d| point_segment_distance(p, c, d) <= r_mm)
+        let reach = r_mm + reject_slack(r_mm);
+        self.any_in_box(p, p, r_mm, |c, d| {
+            let gap = (c.min(d) - p).max(p - c.max(d));
+            gap.x <= reach && gap.y <= reach && sqrt_within(point_segment_distance2(p, c, d), r_mm)
+        })
+    }
+
+    /// `(self.within(p, near_mm), self.within(p, far_mm))` in one look at the cells,
+    /// for `near_mm <= far_mm`.
+    pub fn within_both(&self, p: DVec2, near_mm: f64, far_mm: f64) -> (bool, bool) {
+        if self.segments.is_empty() {
+            return (false, false);
+        }
+        let pad = DVec2::splat(far_mm);
+        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p - pad);
+        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p + pad);
+        let mut far = false;
+        let reach = far_mm + reject_slack(far_mm);
+        for row in r0..=r1 {
+            for &k in self.row_items(row, c0, c1) {
+                let (c, d) = self.segments[k as usize];
+                let gap = (c.min(d) - p).max(p - c.max(d));
+                if gap.x > reach || gap.y > reach {
+                    continue;
+                }
+                let d2 = point_segment_distance2(p, c, d);
+                if sqrt_within(d2, near_mm) {
+                    return (true, true);
+                }
+                far = far || sqrt_within(d2, far_mm);
+            }
+        }
+        (false, far)
     }
 
     /// Does `hit` hold for any segment in the cells over the box `lo`–`hi` grown by `pad`?
@@ -590,13 +732,10 @@ impl SegmentIndex {
         let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
         let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
         (r0..=r1).any(|row| {
-            self.cells[row * self.nx + c0..=row * self.nx + c1]
-                .iter()
-                .flatten()
-                .any(|&k| {
-                    let (c, d) = self.segments[k as usize];
-                    hit(c, d)
-                })
+            self.row_items(row, c0, c1).iter().any(|&k| {
+                let (c, d) = self.segments[k as usize];
+                hit(c, d)
+            })
         })
     }
 
@@ -674,7 +813,9 @@ impl SegmentIndex {
                 let mut col = pc - r;
                 while col <= pc + r {
                     if col >= 0 && col < self.nx as isize {
-                        for &k in &self.cells[row as usize * self.nx + col as usize] {
+                        let cell = row as usize * self.nx + col as usize;
+                        let items = &self.items[self.starts[cell]..self.starts[cell + 1]];
+                        for &k in items {
                             if skip(k) {
                                 continue;
                             }

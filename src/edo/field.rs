@@ -16,12 +16,11 @@
 //! 5. Marching triangles (four triangles per cell around its mean) extract the level
 //!    sets of the piecewise-linear interpolant. Level sets of one continuous
 //!    piecewise-linear function never cross each other, so contours of different
-//!    levels never intersect, by construction.
+//!    levels never intersect, by construction. A level's segments are linked into
+//!    loops through the triangle edges they share, as the cells are visited.
 
-use crate::geom::Region;
+use crate::geom::{floor_clamped, Region};
 use glam::DVec2;
-use std::collections::HashMap;
-use std::hash::{BuildHasherDefault, Hasher};
 
 /// Sampled normalised distance over a region.
 pub struct DistanceField {
@@ -68,6 +67,13 @@ impl Grid {
 
     fn node(&self, c: usize, r: usize) -> DVec2 {
         self.origin + DVec2::new(c as f64, r as f64) * self.h
+    }
+
+    /// The x of every column of nodes, as [`Grid::node`] computes it.
+    fn xs(&self) -> Vec<f64> {
+        (0..self.nx)
+            .map(|c| self.origin.x + c as f64 * self.h)
+            .collect()
     }
 }
 
@@ -160,17 +166,18 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         }
     }
     // Offer a node (at `p`) the nearest point `q` of a neighbour. A neighbour with the
-    // same nearest point has nothing to offer (and a NaN point, none yet, never equals).
+    // same nearest point offers the same distance, and a NaN point (none yet) a NaN
+    // distance, neither of which is smaller: no test for them is needed.
+    #[inline(always)]
     fn relax(here: &mut Nearest, p: DVec2, q: DVec2) {
-        if q == here.q || q.x.is_nan() {
-            return;
-        }
         let d2 = p.distance_squared(q);
         if d2 < here.d2 {
             *here = Nearest { q, d2 };
         }
     }
-    let node = |c: usize, y: f64| DVec2::new(grid.origin.x + c as f64 * grid.h, y);
+    // Node abscissae once (the same sums as `Grid::node`), not a conversion per relaxation.
+    let xs = grid.xs();
+    let node = |c: usize, y: f64| DVec2::new(xs[c], y);
     // Forward pass: rows upwards, each from the left (left, lower-left, below,
     // lower-right), then back from the right (right). Rows are split off so the
     // neighbours are plain slice reads.
@@ -338,17 +345,35 @@ impl DistanceField {
 
     /// Level sets at `d = k / m` for k = 1..m−1 (contours C2..Cm), each a list of closed
     /// loops, extracted by marching triangles.
+    ///
+    /// Every crossing point lies on a triangle edge, named by its two end nodes (the
+    /// cell centres numbered after the grid nodes); the two segments of a level through
+    /// one edge join there. They are linked as the cells are visited row by row: a
+    /// cell's own triangles meet on its diagonals, its bottom edge is the top edge of
+    /// the cell below (kept from the previous row) and its left edge the right edge of
+    /// the cell before it.
     pub fn level_sets(&self, m: u32) -> Vec<Vec<Vec<DVec2>>> {
         let levels = m.saturating_sub(1) as usize;
-        let mut segs: Vec<Vec<(u64, u64, DVec2, DVec2)>> = vec![Vec::new(); levels];
         if levels == 0 {
             return Vec::new();
         }
+        let mut segs: Vec<Vec<Segment>> = vec![Vec::new(); levels];
         let (nx, ny) = (self.nx, self.ny);
         let nodes = (nx * ny) as u64;
         let mf = m as f64;
-        let node_pos = |c: usize, r: usize| self.origin + DVec2::new(c as f64, r as f64) * self.h;
+        // Node coordinates once, the same sums as `origin + (c, r) · h`.
+        let xs: Vec<f64> = (0..nx).map(|c| self.origin.x + c as f64 * self.h).collect();
+        let ys: Vec<f64> = (0..ny).map(|r| self.origin.y + r as f64 * self.h).collect();
+        // Per level: the segment ending on each cell's top edge in the previous and the
+        // current row, and on the right edge of the cell just visited, with that
+        // edge's key (entries of cells that did not cross the level are stale, and
+        // the key tells them apart).
+        let none = (u64::MAX, NO_SEGMENT);
+        let mut top_below = vec![none; levels * nx];
+        let mut top_here = vec![none; levels * nx];
+        let mut right = vec![none; levels];
         for r in 0..ny - 1 {
+            std::mem::swap(&mut top_below, &mut top_here);
             for c in 0..nx - 1 {
                 let ids = [
                     (r * nx + c) as u64,
@@ -362,26 +387,31 @@ impl DistanceField {
                     self.d[ids[2] as usize],
                     self.d[ids[3] as usize],
                 ];
-                let lo = val.iter().copied().fold(f64::INFINITY, f64::min);
-                let hi = val.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+                let lo = val[0].min(val[1]).min(val[2]).min(val[3]);
+                let hi = val[0].max(val[1]).max(val[2]).max(val[3]);
                 // Level k/m is crossed when lo < k/m <= hi.
-                let k_lo = ((lo * mf).floor() as i64 + 1).max(1);
-                let k_hi = ((hi * mf).floor() as i64).min(m as i64 - 1);
+                let k_lo = (floor_clamped(lo * mf) as i64 + 1).max(1);
+                let k_hi = (floor_clamped(hi * mf) as i64).min(m as i64 - 1);
                 if k_lo > k_hi {
                     continue;
                 }
                 let pos = [
-                    node_pos(c, r),
-                    node_pos(c + 1, r),
-                    node_pos(c + 1, r + 1),
-                    node_pos(c, r + 1),
+                    DVec2::new(xs[c], ys[r]),
+                    DVec2::new(xs[c + 1], ys[r]),
+                    DVec2::new(xs[c + 1], ys[r + 1]),
+                    DVec2::new(xs[c], ys[r + 1]),
                 ];
                 let centre_id = nodes + (r * (nx - 1) + c) as u64;
                 let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
                 let centre_pos = 0.25 * (pos[0] + pos[1] + pos[2] + pos[3]);
                 for k in k_lo..=k_hi {
                     let t = k as f64 / mf;
-                    let out = &mut segs[(k - 1) as usize];
+                    let level = (k - 1) as usize;
+                    let out = &mut segs[level];
+                    let first = out.len();
+                    // The right edge of the cell before (this cell's left edge), before
+                    // this cell's right edge replaces it.
+                    let mut left = right[level];
                     for e in 0..4 {
                         let f = (e + 1) % 4;
                         let tri = [
@@ -389,7 +419,53 @@ impl DistanceField {
                             (ids[f], pos[f], val[f]),
                             (centre_id, centre_pos, centre_val),
                         ];
-                        triangle_crossing(&tri, t, out);
+                        let Some(mut seg) = triangle_crossing(&tri, t) else {
+                            continue;
+                        };
+                        let i = out.len() as u32;
+                        // The cell's outer edge of this triangle: bottom, right, top, left.
+                        let outer = edge_key(ids[e], ids[f]);
+                        for end in 0..2 {
+                            if seg.keys[end] != outer {
+                                continue;
+                            }
+                            let slot = match e {
+                                0 => &mut top_below[level * nx + c],
+                                1 => &mut right[level],
+                                2 => &mut top_here[level * nx + c],
+                                _ => &mut left,
+                            };
+                            match e {
+                                // Edges shared with cells already visited: link.
+                                0 | 3 => {
+                                    if slot.0 == outer && slot.1 != NO_SEGMENT {
+                                        let j = slot.1;
+                                        seg.links[end] = j;
+                                        let other = &mut out[j as usize];
+                                        let back = usize::from(other.keys[1] == outer);
+                                        other.links[back] = i;
+                                    }
+                                }
+                                // Edges the next cells share: leave the segment there.
+                                _ => *slot = (outer, i),
+                            }
+                        }
+                        // Diagonals, shared with this cell's other triangles.
+                        for end in 0..2 {
+                            let key = seg.keys[end];
+                            if key == outer {
+                                continue;
+                            }
+                            for (j, other) in out.iter_mut().enumerate().skip(first) {
+                                for back in 0..2 {
+                                    if other.keys[back] == key {
+                                        seg.links[end] = j as u32;
+                                        other.links[back] = i;
+                                    }
+                                }
+                            }
+                        }
+                        out.push(seg);
                     }
                 }
             }
@@ -398,21 +474,30 @@ impl DistanceField {
     }
 }
 
+/// No segment (an end whose edge no other segment of the level crosses).
+const NO_SEGMENT: u32 = u32::MAX;
+
+/// One piece of a level set inside one triangle: its end points, the keys of the
+/// triangle edges they lie on (see [`edge_key`]), and the segments of the same level
+/// through those edges.
+#[derive(Clone, Copy)]
+struct Segment {
+    keys: [u64; 2],
+    points: [DVec2; 2],
+    links: [u32; 2],
+}
+
 fn edge_key(a: u64, b: u64) -> u64 {
     let (lo, hi) = if a < b { (a, b) } else { (b, a) };
     // Node ids stay far below 2^32 (the grid is capped), so the pair packs into a u64.
     (lo << 32) | hi
 }
 
-fn triangle_crossing(
-    tri: &[(u64, DVec2, f64); 3],
-    t: f64,
-    out: &mut Vec<(u64, u64, DVec2, DVec2)>,
-) {
+fn triangle_crossing(tri: &[(u64, DVec2, f64); 3], t: f64) -> Option<Segment> {
     let above = [tri[0].2 >= t, tri[1].2 >= t, tri[2].2 >= t];
     let n_above = above.iter().filter(|a| **a).count();
     if n_above == 0 || n_above == 3 {
-        return;
+        return None;
     }
     let mut pts: [(u64, DVec2); 2] = [(0, DVec2::ZERO); 2];
     let mut n = 0;
@@ -425,46 +510,15 @@ fn triangle_crossing(
             n += 1;
         }
     }
-    if n == 2 {
-        out.push((pts[0].0, pts[1].0, pts[0].1, pts[1].1));
-    }
+    (n == 2).then_some(Segment {
+        keys: [pts[0].0, pts[1].0],
+        points: [pts[0].1, pts[1].1],
+        links: [NO_SEGMENT; 2],
+    })
 }
 
-/// Hasher for edge keys (packed node-id pairs, see [`edge_key`]): one multiply spreads
-/// them well enough, and chaining hashes every crossing twice, so SipHash's cost shows.
-#[derive(Default)]
-struct EdgeKeyHasher(u64);
-
-impl Hasher for EdgeKeyHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(u64::from(b));
-        }
-    }
-
-    fn write_u64(&mut self, key: u64) {
-        // Fibonacci hashing (2^64 / golden ratio), high bits folded down for the table index.
-        let h = (self.0 ^ key).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        self.0 = h ^ (h >> 32);
-    }
-}
-
-/// Chain crossing segments into closed loops through their shared edge keys.
-fn chain_segments(segs: Vec<(u64, u64, DVec2, DVec2)>) -> Vec<Vec<DVec2>> {
-    let mut by_key: HashMap<u64, [usize; 2], BuildHasherDefault<EdgeKeyHasher>> =
-        HashMap::with_capacity_and_hasher(segs.len() * 2, Default::default());
-    for (i, s) in segs.iter().enumerate() {
-        for key in [s.0, s.1] {
-            by_key
-                .entry(key)
-                .and_modify(|e| e[1] = i)
-                .or_insert([i, usize::MAX]);
-        }
-    }
+/// Chain linked segments into closed loops.
+fn chain_segments(segs: Vec<Segment>) -> Vec<Vec<DVec2>> {
     let mut used = vec![false; segs.len()];
     let mut loops = Vec::new();
     for start in 0..segs.len() {
@@ -472,31 +526,25 @@ fn chain_segments(segs: Vec<(u64, u64, DVec2, DVec2)>) -> Vec<Vec<DVec2>> {
             continue;
         }
         used[start] = true;
-        let mut pts = vec![segs[start].2];
-        let first_key = segs[start].0;
-        let mut key = segs[start].1;
-        let mut point = segs[start].3;
-        let mut cur = start;
+        let mut pts = vec![segs[start].points[0]];
+        let first_key = segs[start].keys[0];
+        let mut key = segs[start].keys[1];
+        let mut point = segs[start].points[1];
+        let mut next = segs[start].links[1];
         loop {
             pts.push(point);
             if key == first_key {
                 break;
             }
-            let Some(pair) = by_key.get(&key) else { break };
-            let next = if pair[0] == cur { pair[1] } else { pair[0] };
-            if next == usize::MAX || used[next] {
+            if next == NO_SEGMENT || used[next as usize] {
                 break;
             }
-            used[next] = true;
-            let s = segs[next];
-            if s.0 == key {
-                key = s.1;
-                point = s.3;
-            } else {
-                key = s.0;
-                point = s.2;
-            }
-            cur = next;
+            used[next as usize] = true;
+            let s = &segs[next as usize];
+            let enter = usize::from(s.keys[0] != key);
+            key = s.keys[1 - enter];
+            point = s.points[1 - enter];
+            next = s.links[1 - enter];
         }
         let l = crate::geom::dedup_loop(&pts, 1e-12);
         if l.len() >= 3 {

@@ -530,20 +530,31 @@ pub fn plan_region(
         let (lower, upper) = (&levels[(n - 1) as usize], &levels[n as usize]);
         // Growth-ring levels nest between the offset boundaries, so their difference
         // already lies in the interior; crown and fiber levels are cut to it.
-        let between =
-            shapes::difference(&level_shapes[n as usize], &level_shapes[(n - 1) as usize]);
+        let (lower_shape, upper_shape) =
+            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
         let s = match pre.method {
-            SubdivisionMethod::Radial | SubdivisionMethod::Distance => between,
+            SubdivisionMethod::Radial | SubdivisionMethod::Distance => {
+                // Two contour levels of the subdivision (neither boundary offset) are
+                // nested and at least about L_short / m apart: far enough apart
+                // (beyond what simplifying each by the chord tolerance moves them),
+                // their difference is their loops, without the overlay.
+                let nested = n >= 2
+                    && n < m
+                    && pre.l_short_mm / m as f64 > NESTED_GAP_CHORDS * chord
+                    && !lower_shape.is_empty();
+                nested
+                    .then(|| shapes::nested_difference(upper_shape, lower_shape))
+                    .flatten()
+                    .unwrap_or_else(|| shapes::difference(upper_shape, lower_shape))
+            }
             SubdivisionMethod::Offset | SubdivisionMethod::Parallel => {
-                shapes::intersection(&between, &interior)
+                shapes::intersection(&shapes::difference(upper_shape, lower_shape), &interior)
             }
         };
         let area = shapes::area(&s);
         if area <= tol.min_loop_area_mm2 {
             continue;
         }
-        let (lower_shape, upper_shape) =
-            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
         // The offsets stop `offset_end_clearance_mm` short of the contour they run
         // towards (C_n inward, C_n+1 outward).
         let facing = match opts.direction {
@@ -683,6 +694,10 @@ pub fn plan_region(
     })
 }
 
+/// How many chord tolerances apart consecutive contour levels must be (L_short / m)
+/// for [`plan_region`] to take their difference as nested loops.
+const NESTED_GAP_CHORDS: f64 = 4.0;
+
 /// Split the loops of the interior (the region shrunk by the boundary offset) into
 /// runs nearer a hole and runs nearer the outer loop. A loop wholly on one side stays
 /// one closed path; otherwise each run ends on the first vertex of the next, so the
@@ -697,9 +712,21 @@ fn split_boundary_runs(interior: &Shapes, region: &Region) -> (Vec<Path>, Vec<Pa
         if n < 2 {
             continue;
         }
+        // `dist(p, outer) <= dist(p, holes)`, measuring first the boundary the previous
+        // vertex was nearer: the far one needs measuring only if it comes within that.
+        let mut last = true;
         let near_outer: Vec<bool> = l
             .iter()
-            .map(|p| to_outer.distance(*p) <= to_holes.distance(*p))
+            .map(|&p| {
+                last = if last {
+                    let d = to_outer.distance(p);
+                    !to_holes.within(p, d) || d <= to_holes.distance(p)
+                } else {
+                    let d = to_holes.distance(p);
+                    to_outer.within(p, d) && to_outer.distance(p) <= d
+                };
+                last
+            })
             .collect();
         let Some(start) = (0..n).find(|&k| near_outer[k] != near_outer[(k + n - 1) % n]) else {
             let path = Path {

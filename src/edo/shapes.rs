@@ -1,7 +1,9 @@
 //! Thin wrappers over i_overlay for the region algebra the EDO method needs: equal
 //! distance offsets of contours (outline with round joins), booleans between the areas
-//! enclosed by contours, and clipping of offset loops to a sub-region (which turns a
-//! loop cut by the neighbouring contour into the non-continuous segments of Fig. 4(a)).
+//! enclosed by contours (nested contour levels need none: their difference is their
+//! loops, [`nested_difference`]), and clipping of offset loops to a sub-region (which
+//! turns a loop cut by the neighbouring contour into the non-continuous segments of
+//! Fig. 4(a)).
 
 use crate::geom::{point_in_loop, SegmentIndex};
 use glam::DVec2;
@@ -154,7 +156,7 @@ fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes
     if raw
         .iter()
         .flat_map(|l| l.iter())
-        .any(|p| index.within(*p, near) || !index.within(*p, far))
+        .any(|p| index.within_both(*p, near, far) != (false, true))
     {
         return None;
     }
@@ -324,6 +326,50 @@ pub fn difference(a: &Shapes, b: &Shapes) -> Shapes {
         return a.clone();
     }
     boolean(a, b, OverlayRule::Difference)
+}
+
+/// `upper` minus `lower` for nested areas: `lower` strictly inside `upper`, their
+/// boundaries nowhere near each other (consecutive contour levels further apart than
+/// the simplification moves them). The difference is then the loops of both, those of
+/// `lower` reversed (its outer loops become holes, its holes islands), each hole with
+/// the smallest outer loop around it, and needs no overlay. None where a hole finds no
+/// outer loop around it (the areas were not nested after all).
+pub fn nested_difference(upper: &Shapes, lower: &Shapes) -> Option<Shapes> {
+    let mut outers: Vec<Vec<DVec2>> = Vec::new();
+    let mut holes: Vec<Vec<DVec2>> = Vec::new();
+    for shape in upper {
+        for (k, l) in shape.iter().enumerate() {
+            if k == 0 {
+                outers.push(l.clone());
+            } else {
+                holes.push(l.clone());
+            }
+        }
+    }
+    for shape in lower {
+        for (k, l) in shape.iter().enumerate() {
+            let mut r = l.clone();
+            r.reverse();
+            if k == 0 {
+                holes.push(r);
+            } else {
+                outers.push(r);
+            }
+        }
+    }
+    let areas: Vec<f64> = outers.iter().map(|l| crate::geom::signed_area(l)).collect();
+    let mut out: Shapes = outers.into_iter().map(|l| vec![l]).collect();
+    for h in holes {
+        let p = *h.first()?;
+        let around = out
+            .iter()
+            .enumerate()
+            .filter(|(_, shape)| point_in_loop(p, &shape[0]))
+            .min_by(|(a, _), (b, _)| areas[*a].total_cmp(&areas[*b]))
+            .map(|(k, _)| k)?;
+        out[around].push(h);
+    }
+    Some(out)
 }
 
 /// `a` and `b`.

@@ -1,0 +1,261 @@
+//! Planner speed and geometry checks (benches/plan_layer.rs quotes its figures):
+//!
+//! - `plan_compare bench N [OUT.json]`: plan the bench region (2,000 vertices, two
+//!   holes, m = 20) N times, for `valgrind --tool=callgrind` (instructions per layer
+//!   are the total over N less the total over 0, over N); OUT gets the plan.
+//! - `plan_compare job JOB.toml EVERY OUT.json`: plan every EVERY-th layer of a job and
+//!   write the plans.
+//! - `plan_compare diff A.json B.json`: the largest distance between the contours' roads
+//!   and between the equal distance offsets of two such files, both ways (a symmetric,
+//!   sampled Hausdorff distance per contour and per offset).
+
+use edo::edo::{plan_layers, plan_region, GradientDesign, LayerPlan, Pattern, PlanOptions};
+use edo::geom::{Region, SegmentIndex};
+use edo::material::{Composition, GradientFunction};
+use glam::DVec2;
+use std::path::Path;
+
+/// The region of benches/plan_layer.rs.
+fn bench_region() -> Region {
+    let outer: Vec<DVec2> = (0..2000)
+        .map(|k| {
+            let a = std::f64::consts::TAU * k as f64 / 2000.0;
+            let r = 30.0 + 1.5 * (5.0 * a).sin() + 0.6 * (13.0 * a).cos();
+            DVec2::new(a.cos(), a.sin()) * r
+        })
+        .collect();
+    let hole = |c: DVec2| -> Vec<DVec2> {
+        (0..96)
+            .rev()
+            .map(|k| {
+                let a = std::f64::consts::TAU * k as f64 / 96.0;
+                c + DVec2::new(a.cos(), a.sin()) * 4.0
+            })
+            .collect()
+    };
+    Region::new(
+        outer,
+        vec![hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0))],
+    )
+}
+
+fn bench(n: usize, out: Option<&str>) -> anyhow::Result<()> {
+    let region = bench_region();
+    let design = GradientDesign {
+        pattern: Pattern::GrowthRings,
+        inner: Composition::new(vec![1.0, 0.0], 1e-9)?,
+        outer: Composition::new(vec![0.0, 1.0], 1e-9)?,
+        function: GradientFunction::LINEAR,
+    };
+    let probe = plan_region(&region, 0, &design, &PlanOptions::new(1.0, 0.4))?;
+    let mut opts = PlanOptions::new(probe.l_short_mm / 20.0, 0.4);
+    if let Some(div) = std::env::var("EDO_CELL_DIV")
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+    {
+        opts.field_cell_mm = Some(opts.r_mach_mm / div);
+    }
+    let mut last = None;
+    for _ in 0..n {
+        last = Some(plan_region(&region, 0, &design, &opts)?);
+    }
+    if let (Some(path), Some(plan)) = (out, last) {
+        let layer = LayerPlan {
+            index: 0,
+            z_mm: 0.0,
+            thickness_mm: 0.0,
+            area_mm2: plan.area_mm2,
+            regions: vec![plan],
+            islands: vec![region],
+        };
+        std::fs::write(path, serde_json::to_string(&vec![layer])?)?;
+    }
+    Ok(())
+}
+
+fn job(path: &str, every: usize, out: &str) -> anyhow::Result<()> {
+    let job_path = Path::new(path);
+    let job = edo::cli::plan::load_job(job_path)?;
+    let (slices, _) = edo::cli::plan::job_layers(&job, job_path, None, true)?;
+    let picked: Vec<_> = slices.into_iter().step_by(every.max(1)).collect();
+    let started = std::time::Instant::now();
+    let layers = plan_layers(&picked, &job.plan, None)?;
+    eprintln!(
+        "{path}: {} layers planned in {:.1} ms",
+        layers.len(),
+        started.elapsed().as_secs_f64() * 1e3
+    );
+    std::fs::write(out, serde_json::to_string(&layers)?)?;
+    Ok(())
+}
+
+/// Points along the paths, at most `step` apart.
+fn samples(paths: &[&edo::edo::shapes::Path], step: f64) -> Vec<DVec2> {
+    let mut out = Vec::new();
+    for p in paths {
+        let n = p.points.len();
+        let edges = if p.closed { n } else { n.saturating_sub(1) };
+        out.extend(p.points.first().copied());
+        for k in 0..edges {
+            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
+            let pieces = ((a.distance(b) / step).ceil() as usize).max(1);
+            out.extend((1..=pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
+        }
+    }
+    out
+}
+
+/// Sampled symmetric Hausdorff distance between two sets of paths, and the length (mm,
+/// both ways) of the samples farther than `tol` from the other set.
+fn hausdorff(a: &[&edo::edo::shapes::Path], b: &[&edo::edo::shapes::Path], tol: f64) -> (f64, f64) {
+    let index = |ps: &[&edo::edo::shapes::Path]| {
+        let loops: Vec<&[DVec2]> = ps
+            .iter()
+            .filter(|p| p.closed)
+            .map(|p| p.points.as_slice())
+            .collect();
+        let lines: Vec<&[DVec2]> = ps
+            .iter()
+            .filter(|p| !p.closed)
+            .map(|p| p.points.as_slice())
+            .collect();
+        SegmentIndex::new(&loops, &lines)
+    };
+    let (ia, ib) = (index(a), index(b));
+    let step = 0.02;
+    let one_way = |from: &[&edo::edo::shapes::Path], to: &SegmentIndex| {
+        samples(from, step)
+            .into_iter()
+            .map(|p| to.distance(p))
+            .fold((0.0, 0.0), |(m, far): (f64, f64), d| {
+                (m.max(d), far + if d > tol { step } else { 0.0 })
+            })
+    };
+    let (x, y) = (one_way(a, &ib), one_way(b, &ia));
+    (x.0.max(y.0), x.1 + y.1)
+}
+
+fn diff(a: &str, b: &str) -> anyhow::Result<()> {
+    let read = |p: &str| -> anyhow::Result<Vec<LayerPlan>> {
+        Ok(serde_json::from_str(&std::fs::read_to_string(p)?)?)
+    };
+    let (la, lb) = (read(a)?, read(b)?);
+    anyhow::ensure!(la.len() == lb.len(), "layer counts differ");
+    let (mut worst_contour, mut worst_offset) = ((0.0f64, String::new()), (0.0f64, String::new()));
+    let mut structure = 0;
+    let tol = 0.01;
+    let verbose = std::env::var("VERBOSE").is_ok();
+    let (mut far_len, mut total_len) = ((0.0, 0.0), (0.0, 0.0));
+    let mut compared = (0, 0);
+    for (x, y) in la.iter().zip(&lb) {
+        anyhow::ensure!(x.regions.len() == y.regions.len(), "layer {}", x.index);
+        for (rx, ry) in x.regions.iter().zip(&y.regions) {
+            if rx.m != ry.m || rx.sub_regions.len() != ry.sub_regions.len() {
+                structure += 1;
+                eprintln!(
+                    "layer {} island {}: m {} / {}, sub-regions {} / {}",
+                    x.index,
+                    rx.island,
+                    rx.m,
+                    ry.m,
+                    rx.sub_regions.len(),
+                    ry.sub_regions.len()
+                );
+                continue;
+            }
+            for (cx, cy) in rx.contours.iter().zip(&ry.contours) {
+                let (h, far) = hausdorff(
+                    &cx.roads.iter().collect::<Vec<_>>(),
+                    &cy.roads.iter().collect::<Vec<_>>(),
+                    tol,
+                );
+                far_len.0 += far;
+                total_len.0 += cx.roads.iter().map(|p| p.length_mm()).sum::<f64>();
+                if verbose && h > tol {
+                    println!(
+                        "  layer {} island {} C{}: {h:.4} mm, {far:.2} mm beyond",
+                        x.index, rx.island, cx.j
+                    );
+                }
+                compared.0 += 1;
+                if h > worst_contour.0 {
+                    worst_contour = (
+                        h,
+                        format!("layer {} island {} C{}", x.index, rx.island, cx.j),
+                    );
+                }
+            }
+            for (sx, sy) in rx.sub_regions.iter().zip(&ry.sub_regions) {
+                if sx.n_max != sy.n_max || sx.offsets.len() != sy.offsets.len() {
+                    structure += 1;
+                    eprintln!(
+                        "layer {} island {} S{}: N_max {} / {}, offsets {} / {}, D_max {:.4} / {:.4}",
+                        x.index,
+                        rx.island,
+                        sx.n,
+                        sx.n_max,
+                        sy.n_max,
+                        sx.offsets.len(),
+                        sy.offsets.len(),
+                        sx.d_max_mm,
+                        sy.d_max_mm
+                    );
+                    continue;
+                }
+                for (i, (ox, oy)) in sx.offsets.iter().zip(&sy.offsets).enumerate() {
+                    let (h, far) = hausdorff(
+                        &ox.iter().collect::<Vec<_>>(),
+                        &oy.iter().collect::<Vec<_>>(),
+                        tol,
+                    );
+                    far_len.1 += far;
+                    total_len.1 += ox.iter().map(|p| p.length_mm()).sum::<f64>();
+                    if verbose && h > tol {
+                        println!(
+                            "  layer {} island {} S{} offset {}: {h:.4} mm, {far:.2} mm beyond",
+                            x.index,
+                            rx.island,
+                            sx.n,
+                            i + 1
+                        );
+                    }
+                    compared.1 += 1;
+                    if h > worst_offset.0 {
+                        worst_offset = (
+                            h,
+                            format!(
+                                "layer {} island {} S{} offset {}",
+                                x.index,
+                                rx.island,
+                                sx.n,
+                                i + 1
+                            ),
+                        );
+                    }
+                }
+            }
+        }
+    }
+    println!(
+        "{} contours ({:.0} mm), {} offsets ({:.0} mm) compared; largest contour distance {:.5} mm ({}), largest offset distance {:.5} mm ({}); beyond {tol} mm (both ways): contours {:.2} mm, offsets {:.2} mm; {structure} structural differences",
+        compared.0, total_len.0, compared.1, total_len.1, worst_contour.0, worst_contour.1, worst_offset.0, worst_offset.1, far_len.0, far_len.1
+    );
+    Ok(())
+}
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let arg = |k: usize| args.get(k).map(String::as_str);
+    match arg(0) {
+        Some("bench") => bench(arg(1).and_then(|s| s.parse().ok()).unwrap_or(1), arg(2)),
+        Some("job") => match (arg(1), arg(2).and_then(|s| s.parse().ok()), arg(3)) {
+            (Some(p), Some(every), Some(out)) => job(p, every, out),
+            _ => anyhow::bail!("usage: plan_compare job JOB.toml EVERY OUT.json"),
+        },
+        Some("diff") => match (arg(1), arg(2)) {
+            (Some(a), Some(b)) => diff(a, b),
+            _ => anyhow::bail!("usage: plan_compare diff A.json B.json"),
+        },
+        _ => anyhow::bail!("usage: plan_compare bench N [OUT.json] | job JOB.toml EVERY OUT.json | diff A.json B.json"),
+    }
+}
