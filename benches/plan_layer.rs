@@ -37,7 +37,7 @@
 //! and offset vertex the same; sub-region areas within 3e-9 relative, see below).
 //! Criterion medians, old and new binaries alternating, machine loaded by another
 //! session's build (load average 2.5–3.2 on 2 cores): 44.8 and 43.8 ms before, 36.7
-//! and 34.4 ms after. Per stage (inclusive, before -> after): offsets 56.3M -> 44.2M
+//! and 34.4 ms after; 34.8 ms (33.8–36.1) on the idle machine after the merge. Per stage (inclusive, before -> after): offsets 56.3M -> 44.2M
 //! (the outline fallback unchanged at 13.4M, crossing checks 11.1M -> 9.5M); distance
 //! field 42.9M -> 29.1M; level-set extraction 27.6M -> 25.6M (chaining 7.6M -> 3.4M)
 //! plus simplifying the contours 10.6M -> 9.8M; trimming offsets to the end

@@ -5,6 +5,10 @@
 //!
 //! 2026-12-01, with width matching traced against the part boundary and gap fill:
 //! 8.56 s criterion median (8.15–9.02 s), 484,507 moves (was 3.23 s before both).
+//! Later that day, with slanted road ends continued into their corners and boundary rays
+//! and road probes bounded by their reach: 8.53 s (7.89–9.16 s, machine idle), 484,509
+//! moves. On one core over Benchy's layers the flow raise takes 2.65 s (4.39 s before
+//! the bounded probes), the slanted ends 0.09 s (no Benchy end qualifies), gap fill 4.6 s.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_layer, GradientDesign, Pattern, PlanOptions};
