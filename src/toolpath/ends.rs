@@ -409,6 +409,37 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig {
+            cases: 24,
+            rng_seed: proptest::test_runner::RngSeed::Fixed(0xED0_E4D5),
+            ..proptest::prelude::ProptestConfig::default()
+        })]
+
+        /// At any slant the continuation stays inside the part, overlaps nothing it did
+        /// not overlap before and never adds void.
+        #[test]
+        fn continuations_fit_at_any_slant(deg in 1.0f64..89.0) {
+            let (part, mut paths) = fibers(deg);
+            let islands = vec![part];
+            let before = measure(&islands, &paths, W, 0.01);
+            continue_slanted_ends(&mut paths, &S, &islands);
+            let after = measure(&islands, &paths, W, 0.01);
+            proptest::prop_assert!(after.void_fraction() <= before.void_fraction() + 1e-4);
+            proptest::prop_assert!(after.overlap_fraction() <= before.overlap_fraction() + 1e-3);
+            proptest::prop_assert!(after.outside_fraction() <= before.outside_fraction() + 1e-4);
+            let boundary = SegmentIndex::of_regions(&islands);
+            for p in &paths {
+                for k in 0..p.points.len() - 1 {
+                    let f = 0.5 * (p.width_factors[k] + p.width_factors[k + 1]);
+                    for q in [p.points[k], p.points[k + 1]] {
+                        proptest::prop_assert!(boundary.distance(q) >= 0.5 * W * f - 1e-6);
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn square_ends_are_left_alone() {
         let (part, mut paths) = fibers(90.0);
