@@ -80,34 +80,12 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};
-use edo::geom::Region;
 use edo::material::{Composition, GradientFunction};
-use glam::DVec2;
 use std::hint::black_box;
 
-/// A wavy outline of 2,000 vertices around two round holes.
-pub fn bench_region() -> Region {
-    let outer: Vec<DVec2> = (0..2000)
-        .map(|k| {
-            let a = std::f64::consts::TAU * k as f64 / 2000.0;
-            let r = 30.0 + 1.5 * (5.0 * a).sin() + 0.6 * (13.0 * a).cos();
-            DVec2::new(a.cos(), a.sin()) * r
-        })
-        .collect();
-    let hole = |c: DVec2| -> Vec<DVec2> {
-        (0..96)
-            .rev()
-            .map(|k| {
-                let a = std::f64::consts::TAU * k as f64 / 96.0;
-                c + DVec2::new(a.cos(), a.sin()) * 4.0
-            })
-            .collect()
-    };
-    Region::new(
-        outer,
-        vec![hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0))],
-    )
-}
+#[path = "common/region.rs"]
+mod region;
+use region::bench_region;
 
 fn bench(c: &mut Criterion) {
     let region = bench_region();

@@ -10,34 +10,14 @@
 //!   sampled Hausdorff distance per contour and per offset).
 
 use edo::edo::{plan_layers, plan_region, GradientDesign, LayerPlan, Pattern, PlanOptions};
-use edo::geom::{Region, SegmentIndex};
+use edo::geom::SegmentIndex;
 use edo::material::{Composition, GradientFunction};
 use glam::DVec2;
 use std::path::Path;
 
-/// The region of benches/plan_layer.rs.
-fn bench_region() -> Region {
-    let outer: Vec<DVec2> = (0..2000)
-        .map(|k| {
-            let a = std::f64::consts::TAU * k as f64 / 2000.0;
-            let r = 30.0 + 1.5 * (5.0 * a).sin() + 0.6 * (13.0 * a).cos();
-            DVec2::new(a.cos(), a.sin()) * r
-        })
-        .collect();
-    let hole = |c: DVec2| -> Vec<DVec2> {
-        (0..96)
-            .rev()
-            .map(|k| {
-                let a = std::f64::consts::TAU * k as f64 / 96.0;
-                c + DVec2::new(a.cos(), a.sin()) * 4.0
-            })
-            .collect()
-    };
-    Region::new(
-        outer,
-        vec![hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0))],
-    )
-}
+#[path = "../benches/common/region.rs"]
+mod region;
+use region::bench_region;
 
 fn bench(n: usize, out: Option<&str>) -> anyhow::Result<()> {
     let region = bench_region();

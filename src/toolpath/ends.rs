@@ -87,11 +87,9 @@ pub fn continue_slanted_ends(paths: &mut [ToolPath], s: &EndSettings, islands: &
         })
         .collect();
     for (p, [head, tail]) in paths.iter_mut().zip(added) {
-        if !tail.is_empty() {
-            for (q, f) in tail {
-                p.points.push(q);
-                p.width_factors.push(f);
-            }
+        for (q, f) in tail {
+            p.points.push(q);
+            p.width_factors.push(f);
         }
         if !head.is_empty() {
             let (mut pts, mut fs): (Vec<DVec2>, Vec<f64>) = head.into_iter().rev().unzip();
