@@ -8,6 +8,10 @@
 //! - `plan_compare diff A.json B.json`: the largest distance between the contours' roads
 //!   and between the equal distance offsets of two such files, both ways (a symmetric,
 //!   sampled Hausdorff distance per contour and per offset).
+//! - `plan_compare levels PLAN.json`: how far the contours C2..Cm of the distance
+//!   method lie from the exact level sets `d = d_j` of the normalised distance, sampled
+//!   every 0.02 mm along their roads: `|d(p) − d_j| · (dist(p, Ci) + dist(p, Ce))`, which
+//!   is the distance to the level set where the wall's two sides face each other.
 
 use edo::edo::{plan_layers, plan_region, GradientDesign, LayerPlan, Pattern, PlanOptions};
 use edo::geom::SegmentIndex;
@@ -223,6 +227,73 @@ fn diff(a: &str, b: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn levels(path: &str) -> anyhow::Result<()> {
+    let layers: Vec<LayerPlan> = serde_json::from_str(&std::fs::read_to_string(path)?)?;
+    let tol = edo::geom::Tolerances::default();
+    let mut errors: Vec<f64> = Vec::new();
+    let mut worst = (0.0f64, String::new());
+    for layer in &layers {
+        for plan in &layer.regions {
+            if plan.method != edo::edo::SubdivisionMethod::Distance {
+                continue;
+            }
+            let Some(island) = layer.islands.get(plan.island) else {
+                continue;
+            };
+            // The planner's own boundary: normalised and simplified by the chord.
+            let region = island.normalised(&tol);
+            let simple = |l: &Vec<DVec2>| edo::geom::simplify_loop(l, tol.chord_mm);
+            let outer = simple(&region.outer);
+            let holes: Vec<Vec<DVec2>> = region.holes.iter().map(simple).collect();
+            let ie = SegmentIndex::new(&[outer.as_slice()], &[]);
+            let hole_refs: Vec<&[DVec2]> = holes.iter().map(|h| h.as_slice()).collect();
+            let ii = SegmentIndex::new(&hole_refs, &[]);
+            for c in &plan.contours {
+                if c.j == 1 || c.j == plan.m + 1 {
+                    continue;
+                }
+                let roads: Vec<&edo::edo::shapes::Path> = c.roads.iter().collect();
+                for p in samples(&roads, 0.02) {
+                    let (a, e) = match plan.centre {
+                        Some(centre) if holes.is_empty() => (p.distance(centre), ie.distance(p)),
+                        _ => (ii.distance(p), ie.distance(p)),
+                    };
+                    let err = ((a / (a + e)) - c.d).abs() * (a + e);
+                    if err > worst.0 {
+                        worst = (
+                            err,
+                            format!(
+                                "layer {} island {} C{} at ({:.3}, {:.3})",
+                                layer.index, plan.island, c.j, p.x, p.y
+                            ),
+                        );
+                    }
+                    errors.push(err);
+                }
+            }
+        }
+    }
+    errors.sort_by(f64::total_cmp);
+    let at = |q: f64| {
+        errors
+            .get(((errors.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
+    let mean = errors.iter().sum::<f64>() / errors.len().max(1) as f64;
+    println!(
+        "{} samples: mean {:.5} mm, median {:.5}, p99 {:.5}, p99.9 {:.5}, max {:.5} mm ({})",
+        errors.len(),
+        mean,
+        at(0.5),
+        at(0.99),
+        at(0.999),
+        worst.0,
+        worst.1
+    );
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let arg = |k: usize| args.get(k).map(String::as_str);
@@ -236,6 +307,10 @@ fn main() -> anyhow::Result<()> {
             (Some(a), Some(b)) => diff(a, b),
             _ => anyhow::bail!("usage: plan_compare diff A.json B.json"),
         },
-        _ => anyhow::bail!("usage: plan_compare bench N [OUT.json] | job JOB.toml EVERY OUT.json | diff A.json B.json"),
+        Some("levels") => match arg(1) {
+            Some(p) => levels(p),
+            None => anyhow::bail!("usage: plan_compare levels PLAN.json"),
+        },
+        _ => anyhow::bail!("usage: plan_compare bench N [OUT.json] | job JOB.toml EVERY OUT.json | diff A.json B.json | levels PLAN.json"),
     }
 }

@@ -795,9 +795,10 @@ impl SegmentIndex {
             return None;
         }
         let (pc, pr) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p);
-        // Distance from p to the grid box, so rings are counted from where p projects.
+        // How far p lies outside the grid box along each axis: rings are counted from
+        // the cell p projects to.
         let box_hi = self.origin + DVec2::new(self.nx as f64, self.ny as f64) * self.cell_mm;
-        let outside = (self.origin - p).max(p - box_hi).max(DVec2::ZERO).length();
+        let outside = (self.origin - p).max(p - box_hi).max(DVec2::ZERO);
         let mut best = f64::INFINITY;
         let mut best_k = None;
         let max_ring = self.nx.max(self.ny);
@@ -830,8 +831,15 @@ impl SegmentIndex {
                     col += step as isize;
                 }
             }
-            // Everything not yet visited is at least `ring` cells away from p's cell.
-            if best <= outside + ring as f64 * self.cell_mm {
+            // A cell not yet visited lies more than `ring` columns or more than `ring`
+            // rows from p's cell: at least `ring` cells beyond p along that axis (on
+            // top of p's distance outside the box along it), and at least p's distance
+            // outside the box along the other.
+            let beyond = ring as f64 * self.cell_mm;
+            let unvisited = DVec2::new(outside.x + beyond, outside.y)
+                .length()
+                .min(DVec2::new(outside.x, outside.y + beyond).length());
+            if best <= unvisited {
                 break;
             }
         }
@@ -842,6 +850,31 @@ impl SegmentIndex {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Nearest distances from points far outside the index's box, where the nearest
+    /// segment lies off to the side of the cell the point projects to, match the brute
+    /// force answer (the ring search once stopped early there).
+    #[test]
+    fn nearest_from_outside_the_box_is_exact() {
+        let hole = |c: DVec2| -> Vec<DVec2> {
+            (0..96)
+                .map(|k| c + DVec2::from_angle(std::f64::consts::TAU * k as f64 / 96.0) * 4.0)
+                .collect()
+        };
+        let (a, b) = (hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0)));
+        let index = SegmentIndex::new(&[a.as_slice(), b.as_slice()], &[]);
+        let mut worst: f64 = 0.0;
+        for k in 0..720 {
+            let p = DVec2::from_angle(std::f64::consts::TAU * k as f64 / 720.0) * 15.0
+                + DVec2::new(0.3, -0.2);
+            let brute = [&a, &b]
+                .iter()
+                .map(|l| point_loop_distance(p, l))
+                .fold(f64::INFINITY, f64::min);
+            worst = worst.max((index.distance(p) - brute).abs());
+        }
+        assert!(worst < 1e-12, "largest difference {worst}");
+    }
 
     fn square(c: DVec2, h: f64) -> Vec<DVec2> {
         vec![
