@@ -13,11 +13,23 @@
 //!    vector distance transform seeded with exact nearest points near each boundary.
 //! 4. d per node, extended continuously outside the material (negative in holes, above
 //!    1 outside Ce) so every level set is a closed loop.
-//! 5. Marching triangles (four triangles per cell around its mean) extract the level
-//!    sets of the piecewise-linear interpolant. Level sets of one continuous
-//!    piecewise-linear function never cross each other, so contours of different
-//!    levels never intersect, by construction. A level's segments are linked into
-//!    loops through the triangle edges they share, as the cells are visited.
+//! 5. Marching triangles (four triangles per cell around its mean) trace the level
+//!    sets of the piecewise-linear interpolant: which cell sides each level crosses
+//!    and how the crossings connect. Level sets of one continuous piecewise-linear
+//!    function never cross each other. A level's segments are linked into loops
+//!    through the triangle edges they share, as the cells are visited.
+//! 6. Each crossing of a cell side is moved along that side onto the exact level set
+//!    (Newton steps on d computed from the boundary edges nearest the side's two
+//!    nodes), within its own stretch of the side, so levels keep their order along
+//!    every side; the piece of a level through a cell runs straight from side to side,
+//!    and pieces whose ends keep their order do not cross. Where the exact normal
+//!    turns sharply between two crossings (a corner of the level set on the medial
+//!    axis), a point of the exact level set is added between them.
+//!
+//! Measured on the `plan_layer` bench region against the exact level sets
+//! (`examples/plan_compare.rs levels`): mean 0.0032 mm, 99th percentile 0.011 mm,
+//! after the chord-tolerance simplification the planner applies, as close as the
+//! linear interpolant on a grid twice as fine, with a quarter of the nodes.
 
 use crate::geom::{floor_clamped, Region};
 use glam::DVec2;
@@ -36,6 +48,22 @@ pub struct DistanceField {
     di: Vec<f64>,
     /// Node inside the material (inside Ce, outside every hole).
     inside: Vec<bool>,
+    /// Ce's edges and each node's nearest one.
+    outer: Boundary,
+    outer_seg: Vec<u32>,
+    /// Ci: the holes' edges and each node's nearest one, or the centre point.
+    inner: Inner,
+}
+
+/// Ci of a [`DistanceField`].
+enum Inner {
+    Holes {
+        holes: Boundary,
+        seg: Vec<u32>,
+    },
+    Centre(DVec2),
+    /// [`DistanceField::outer_only`]: no Ci.
+    None,
 }
 
 struct Grid {
@@ -112,32 +140,119 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
     inside
 }
 
-/// A node's nearest boundary point so far (NaN: none yet) and its squared distance.
+/// A node's nearest boundary point so far (NaN: none yet), its squared distance and the
+/// boundary segment it lies on (see [`Boundary`]).
 #[derive(Clone, Copy)]
 struct Nearest {
     q: DVec2,
     d2: f64,
+    seg: u32,
+}
+
+/// The edges of a set of closed loops, numbered loop after loop, with each edge's loop
+/// (to reach its neighbours along the loop).
+struct Boundary {
+    segs: Vec<(DVec2, DVec2)>,
+    /// First edge and edge count of the loop of each edge.
+    loop_of: Vec<(u32, u32)>,
+}
+
+impl Boundary {
+    fn of(loops: &[&Vec<DVec2>]) -> Boundary {
+        let mut segs = Vec::new();
+        let mut loop_of = Vec::new();
+        for l in loops {
+            let (start, n) = (segs.len() as u32, l.len() as u32);
+            for i in 0..l.len() {
+                segs.push((l[i], l[(i + 1) % l.len()]));
+                loop_of.push((start, n));
+            }
+        }
+        Boundary { segs, loop_of }
+    }
+
+    /// The distance from `p` to the boundary and the nearest point, for `p` near two
+    /// grid nodes whose nearest edges are `s0` and `s1`: from each of those edges, walk
+    /// along its loop while the distance falls. The nearest point of a point between
+    /// the two nodes lies along the loop from one of theirs (it moves continuously,
+    /// except across the medial axis, where it jumps from near one to near the other).
+    fn near(&self, s0: u32, s1: u32, p: DVec2) -> (f64, DVec2) {
+        let mut best = self.descend(s0, p);
+        if s1 != s0 {
+            let other = self.descend(s1, p);
+            if other.0 < best.0 {
+                best = other;
+            }
+        }
+        (best.0.sqrt(), best.1)
+    }
+
+    /// Squared distance and nearest point of `p` on edge `k`.
+    fn to_edge(&self, k: u32, p: DVec2) -> (f64, DVec2) {
+        let (a, b) = self.segs[k as usize];
+        let ab = b - a;
+        let len2 = ab.length_squared();
+        let t = if len2 > 0.0 {
+            ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let q = a + ab * t;
+        (p.distance_squared(q), q)
+    }
+
+    /// From edge `s`, the local minimum of the squared distance to `p` along its loop.
+    fn descend(&self, s: u32, p: DVec2) -> (f64, DVec2) {
+        let Some(&(start, n)) = self.loop_of.get(s as usize) else {
+            return (f64::INFINITY, p);
+        };
+        let step = |k: u32, forward: bool| {
+            let i = k - start;
+            start
+                + if forward {
+                    (i + 1) % n
+                } else {
+                    (i + n - 1) % n
+                }
+        };
+        let mut best = self.to_edge(s, p);
+        for forward in [true, false] {
+            let mut k = s;
+            for _ in 1..n {
+                k = step(k, forward);
+                let here = self.to_edge(k, p);
+                if here.0 >= best.0 {
+                    break;
+                }
+                best = here;
+            }
+        }
+        best
+    }
 }
 
 /// Vector distance transform: distance from every node to the nearest point of the
 /// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere. Nodes
 /// carry their nearest boundary point and the squared distance to it: squared
 /// distances order the same as distances and spare a square root per relaxation.
-fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
+fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> (Vec<f64>, Vec<u32>) {
     let (nx, ny) = (grid.nx, grid.ny);
     let n = nx * ny;
     let mut near = vec![
         Nearest {
             q: DVec2::splat(f64::NAN),
             d2: f64::INFINITY,
+            seg: 0,
         };
         n
     ];
     let band = 1.5 * grid.h;
+    let mut seg = 0u32;
     for l in loops {
         let m = l.len();
         for i in 0..m {
             let (a, b) = (l[i], l[(i + 1) % m]);
+            seg += 1;
             let lo = (a.min(b) - DVec2::splat(band) - grid.origin) / grid.h;
             let hi = (a.max(b) + DVec2::splat(band) - grid.origin) / grid.h;
             let (c0, r0) = (lo.x.ceil().max(0.0) as usize, lo.y.ceil().max(0.0) as usize);
@@ -159,7 +274,11 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
                     let d2 = p.distance_squared(q);
                     let k = r * nx + c;
                     if d2 < near[k].d2 {
-                        near[k] = Nearest { q, d2 };
+                        near[k] = Nearest {
+                            q,
+                            d2,
+                            seg: seg - 1,
+                        };
                     }
                 }
             }
@@ -169,10 +288,14 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
     // same nearest point offers the same distance, and a NaN point (none yet) a NaN
     // distance, neither of which is smaller: no test for them is needed.
     #[inline(always)]
-    fn relax(here: &mut Nearest, p: DVec2, q: DVec2) {
-        let d2 = p.distance_squared(q);
+    fn relax(here: &mut Nearest, p: DVec2, there: &Nearest) {
+        let d2 = p.distance_squared(there.q);
         if d2 < here.d2 {
-            *here = Nearest { q, d2 };
+            *here = Nearest {
+                q: there.q,
+                d2,
+                seg: there.seg,
+            };
         }
     }
     // Node abscissae once (the same sums as `Grid::node`), not a conversion per relaxation.
@@ -189,22 +312,22 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         for c in 0..nx {
             let p = node(c, y);
             if c > 0 {
-                let q = row[c - 1].q;
-                relax(&mut row[c], p, q);
+                let q = row[c - 1];
+                relax(&mut row[c], p, &q);
             }
             if let Some(below) = below {
                 if c > 0 {
-                    relax(&mut row[c], p, below[c - 1].q);
+                    relax(&mut row[c], p, &below[c - 1]);
                 }
-                relax(&mut row[c], p, below[c].q);
+                relax(&mut row[c], p, &below[c]);
                 if c + 1 < nx {
-                    relax(&mut row[c], p, below[c + 1].q);
+                    relax(&mut row[c], p, &below[c + 1]);
                 }
             }
         }
         for c in (0..nx.saturating_sub(1)).rev() {
-            let q = row[c + 1].q;
-            relax(&mut row[c], node(c, y), q);
+            let q = row[c + 1];
+            relax(&mut row[c], node(c, y), &q);
         }
     }
     // Backward pass, mirrored.
@@ -216,25 +339,25 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<f64> {
         for c in (0..nx).rev() {
             let p = node(c, y);
             if c + 1 < nx {
-                let q = row[c + 1].q;
-                relax(&mut row[c], p, q);
+                let q = row[c + 1];
+                relax(&mut row[c], p, &q);
             }
             if let Some(above) = above {
                 if c + 1 < nx {
-                    relax(&mut row[c], p, above[c + 1].q);
+                    relax(&mut row[c], p, &above[c + 1]);
                 }
-                relax(&mut row[c], p, above[c].q);
+                relax(&mut row[c], p, &above[c]);
                 if c > 0 {
-                    relax(&mut row[c], p, above[c - 1].q);
+                    relax(&mut row[c], p, &above[c - 1]);
                 }
             }
         }
         for c in 1..nx {
-            let q = row[c - 1].q;
-            relax(&mut row[c], node(c, y), q);
+            let q = row[c - 1];
+            relax(&mut row[c], node(c, y), &q);
         }
     }
-    near.into_iter().map(|n| n.d2.sqrt()).collect()
+    near.into_iter().map(|n| (n.d2.sqrt(), n.seg)).unzip()
 }
 
 impl DistanceField {
@@ -249,7 +372,7 @@ impl DistanceField {
             .zip(&in_hole)
             .map(|(o, h)| *o && !*h)
             .collect();
-        let de = distance_to_loops(&grid, &[&region.outer]);
+        let (de, outer_seg) = distance_to_loops(&grid, &[&region.outer]);
         DistanceField {
             origin: grid.origin,
             h: grid.h,
@@ -259,6 +382,9 @@ impl DistanceField {
             de,
             di: Vec::new(),
             inside,
+            outer: Boundary::of(&[&region.outer]),
+            outer_seg,
+            inner: Inner::None,
         }
     }
 
@@ -274,15 +400,25 @@ impl DistanceField {
         let in_outer = fill_inside(&grid, &[&region.outer]);
         let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
         let in_hole = fill_inside(&grid, &holes);
-        let de = distance_to_loops(&grid, &[&region.outer]);
-        let di: Vec<f64> = if holes.is_empty() {
+        let (de, outer_seg) = distance_to_loops(&grid, &[&region.outer]);
+        let (di, inner): (Vec<f64>, Inner) = if holes.is_empty() {
             let c = centre.unwrap_or_else(|| crate::geom::centroid(&region.outer));
-            (0..grid.ny)
-                .flat_map(|r| (0..grid.nx).map(move |cc| (cc, r)))
-                .map(|(cc, r)| grid.node(cc, r).distance(c))
-                .collect()
+            (
+                (0..grid.ny)
+                    .flat_map(|r| (0..grid.nx).map(move |cc| (cc, r)))
+                    .map(|(cc, r)| grid.node(cc, r).distance(c))
+                    .collect(),
+                Inner::Centre(c),
+            )
         } else {
-            distance_to_loops(&grid, &holes)
+            let (di, seg) = distance_to_loops(&grid, &holes);
+            (
+                di,
+                Inner::Holes {
+                    holes: Boundary::of(&holes),
+                    seg,
+                },
+            )
         };
         let mut d = vec![0.0; grid.nx * grid.ny];
         let mut inside = vec![false; grid.nx * grid.ny];
@@ -308,7 +444,137 @@ impl DistanceField {
             de,
             di,
             inside,
+            outer: Boundary::of(&[&region.outer]),
+            outer_seg,
+            inner,
         }
+    }
+
+    /// The exact normalised distance at `p` on the grid edge between nodes `n0` and
+    /// `n1` (both in the material), from the boundary edges near theirs, with its
+    /// gradient; none where it is undefined.
+    fn exact_at(&self, n0: usize, n1: usize, p: DVec2) -> Option<(f64, DVec2)> {
+        let (e, qe) = self.outer.near(self.outer_seg[n0], self.outer_seg[n1], p);
+        let (a, qa) = match &self.inner {
+            Inner::Holes { holes, seg } => holes.near(seg[n0], seg[n1], p),
+            Inner::Centre(c) => (p.distance(*c), *c),
+            Inner::None => return None,
+        };
+        let s = a + e;
+        if !(a > 0.0 && e > 0.0 && s.is_finite()) {
+            return None;
+        }
+        let (ga, ge) = ((p - qa) / a, (p - qe) / e);
+        Some((a / s, (ga * e - ge * a) / (s * s)))
+    }
+
+    /// Where level `t` crosses the grid edge from node `n0` to node `n1` (values on
+    /// opposite sides of `t`): the crossing of the linear interpolant, moved by Newton
+    /// steps along the edge onto the exact level set. Each level keeps to its own
+    /// stretch of the edge, half the interpolant's spacing between levels either side
+    /// of its crossing, so levels keep their order along every edge, and level sets
+    /// that do not cross as interpolated do not cross as placed.
+    fn place(&self, n0: usize, n1: usize, t: f64, spacing: f64) -> Placed {
+        let (p0, p1) = (self.node_pos(n0), self.node_pos(n1));
+        let (v0, v1) = (self.d[n0], self.d[n1]);
+        let s_lin = (t - v0) / (v1 - v0);
+        let linear = Placed {
+            p: p0 + (p1 - p0) * s_lin,
+            grad: None,
+            node: n0,
+        };
+        if !(self.inside[n0] && self.inside[n1] && s_lin.is_finite()) {
+            return linear;
+        }
+        let half = (LEVEL_STRETCH * spacing / (v1 - v0).abs()).min(1.0);
+        let (lo, hi) = ((s_lin - half).max(0.0), (s_lin + half).min(1.0));
+        let edge = p1 - p0;
+        let mut s = s_lin;
+        let mut last_grad = None;
+        for _ in 0..NEWTON_STEPS {
+            let p = p0 + edge * s;
+            let Some((d, grad)) = self.exact_at(n0, n1, p) else {
+                break;
+            };
+            last_grad = Some(grad);
+            let slope = grad.dot(edge);
+            if slope.is_nan() || slope.abs() <= 1e-12 {
+                break;
+            }
+            let next = (s - (d - t) / slope).clamp(lo, hi);
+            let moved = (next - s).abs() * self.h;
+            s = next;
+            if moved < NEWTON_DONE_MM {
+                break;
+            }
+        }
+        Placed {
+            p: p0 + edge * s,
+            grad: last_grad,
+            node: n0,
+        }
+    }
+
+    /// The loop through placed crossings, with a point of the exact level set added
+    /// between two crossings where the level set bends enough between them to stray
+    /// [`BEND_MM`] from the straight piece (judged by how far its normal turns: the
+    /// medial axis, where the nearest boundary point jumps, puts a corner there).
+    fn bent(&self, placed: &[Placed], t: f64) -> Vec<DVec2> {
+        let n = placed.len();
+        let mut out = Vec::with_capacity(n + n / 4);
+        for k in 0..n {
+            let (a, b) = (&placed[k], &placed[(k + 1) % n]);
+            out.push(a.p);
+            self.bend_between(a, b, t, BEND_DEPTH, &mut out);
+        }
+        out
+    }
+
+    fn bend_between(&self, a: &Placed, b: &Placed, t: f64, depth: u32, out: &mut Vec<DVec2>) {
+        let (Some(ga), Some(gb)) = (a.grad, b.grad) else {
+            return;
+        };
+        let chord = a.p.distance(b.p);
+        let turn = ga.angle_to(gb).abs();
+        let bends = turn > BEND_TURN && chord * turn / 4.0 > BEND_MM;
+        if depth == 0 || !bends {
+            return;
+        }
+        // Newton steps from the middle of the piece along the gradient.
+        let mid = 0.5 * (a.p + b.p);
+        let mut x = mid;
+        let mut grad = None;
+        for _ in 0..NEWTON_STEPS {
+            let Some((d, g)) = self.exact_at(a.node, b.node, x) else {
+                return;
+            };
+            let g2 = g.length_squared();
+            if g2.is_nan() || g2 <= 1e-24 {
+                return;
+            }
+            grad = Some(g);
+            x -= g * ((d - t) / g2);
+        }
+        let moved = x.distance(mid);
+        if moved.is_nan() || moved > 0.5 * chord {
+            return;
+        }
+        let m = Placed {
+            p: x,
+            grad,
+            node: a.node,
+        };
+        self.bend_between(a, &m, t, depth - 1, out);
+        out.push(x);
+        self.bend_between(&m, b, t, depth - 1, out);
+    }
+
+    fn node_pos(&self, k: usize) -> DVec2 {
+        let (c, r) = (k % self.nx, k / self.nx);
+        DVec2::new(
+            self.origin.x + c as f64 * self.h,
+            self.origin.y + r as f64 * self.h,
+        )
     }
 
     /// The thinnest wall between Ci and Ce: the smallest `dist(p, Ci) + dist(p, Ce)`
@@ -361,9 +627,6 @@ impl DistanceField {
         let (nx, ny) = (self.nx, self.ny);
         let nodes = (nx * ny) as u64;
         let mf = m as f64;
-        // Node coordinates once, the same sums as `origin + (c, r) · h`.
-        let xs: Vec<f64> = (0..nx).map(|c| self.origin.x + c as f64 * self.h).collect();
-        let ys: Vec<f64> = (0..ny).map(|r| self.origin.y + r as f64 * self.h).collect();
         // Per level: the segment ending on each cell's top edge in the previous and the
         // current row, and on the right edge of the cell just visited, with that
         // edge's key (entries of cells that did not cross the level are stale, and
@@ -395,15 +658,8 @@ impl DistanceField {
                 if k_lo > k_hi {
                     continue;
                 }
-                let pos = [
-                    DVec2::new(xs[c], ys[r]),
-                    DVec2::new(xs[c + 1], ys[r]),
-                    DVec2::new(xs[c + 1], ys[r + 1]),
-                    DVec2::new(xs[c], ys[r + 1]),
-                ];
                 let centre_id = nodes + (r * (nx - 1) + c) as u64;
                 let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
-                let centre_pos = 0.25 * (pos[0] + pos[1] + pos[2] + pos[3]);
                 for k in k_lo..=k_hi {
                     let t = k as f64 / mf;
                     let level = (k - 1) as usize;
@@ -414,11 +670,7 @@ impl DistanceField {
                     let mut left = right[level];
                     for e in 0..4 {
                         let f = (e + 1) % 4;
-                        let tri = [
-                            (ids[e], pos[e], val[e]),
-                            (ids[f], pos[f], val[f]),
-                            (centre_id, centre_pos, centre_val),
-                        ];
+                        let tri = [(ids[e], val[e]), (ids[f], val[f]), (centre_id, centre_val)];
                         let Some(mut seg) = triangle_crossing(&tri, t) else {
                             continue;
                         };
@@ -470,20 +722,50 @@ impl DistanceField {
                 }
             }
         }
-        segs.into_iter().map(chain_segments).collect()
+        // Crossings on cell sides (between two grid nodes) are placed on the exact level
+        // set; those on cell diagonals (towards a cell's interpolated centre) only
+        // steer the marching through saddle cells and are left out. A level's piece
+        // through a cell then runs straight from side to side, and pieces of different
+        // levels, whose ends keep their order along every side, do not cross.
+        let spacing = 1.0 / mf;
+        segs.into_iter()
+            .enumerate()
+            .map(|(level, segs)| {
+                let t = (level + 1) as f64 / mf;
+                chain_segments(segs, |key| {
+                    let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
+                    (hi < nodes as usize).then(|| self.place(lo, hi, t, spacing))
+                })
+                .into_iter()
+                .filter_map(|placed| {
+                    let l = crate::geom::dedup_loop(&self.bent(&placed, t), 1e-12);
+                    (l.len() >= 3).then_some(l)
+                })
+                .collect()
+            })
+            .collect()
     }
 }
+
+/// The share of the interpolant's spacing between consecutive levels along an edge
+/// that a placed crossing may move either side of the interpolated one (under a half,
+/// so neighbouring levels never meet).
+const LEVEL_STRETCH: f64 = 0.49;
+
+/// Newton steps placing a crossing on the exact level set, and the move (mm) below
+/// which it has converged.
+const NEWTON_STEPS: usize = 2;
+const NEWTON_DONE_MM: f64 = 1e-4;
 
 /// No segment (an end whose edge no other segment of the level crosses).
 const NO_SEGMENT: u32 = u32::MAX;
 
-/// One piece of a level set inside one triangle: its end points, the keys of the
-/// triangle edges they lie on (see [`edge_key`]), and the segments of the same level
-/// through those edges.
+/// One piece of a level set inside one triangle: the keys of the triangle edges its
+/// ends lie on (see [`edge_key`]), and the segments of the same level through those
+/// edges.
 #[derive(Clone, Copy)]
 struct Segment {
     keys: [u64; 2],
-    points: [DVec2; 2],
     links: [u32; 2],
 }
 
@@ -493,32 +775,32 @@ fn edge_key(a: u64, b: u64) -> u64 {
     (lo << 32) | hi
 }
 
-fn triangle_crossing(tri: &[(u64, DVec2, f64); 3], t: f64) -> Option<Segment> {
-    let above = [tri[0].2 >= t, tri[1].2 >= t, tri[2].2 >= t];
+/// The piece of level `t` in the triangle of three (node id, value) corners, if it
+/// crosses it.
+fn triangle_crossing(tri: &[(u64, f64); 3], t: f64) -> Option<Segment> {
+    let above = [tri[0].1 >= t, tri[1].1 >= t, tri[2].1 >= t];
     let n_above = above.iter().filter(|a| **a).count();
     if n_above == 0 || n_above == 3 {
         return None;
     }
-    let mut pts: [(u64, DVec2); 2] = [(0, DVec2::ZERO); 2];
+    let mut keys = [0u64; 2];
     let mut n = 0;
     for i in 0..3 {
         let j = (i + 1) % 3;
         if above[i] != above[j] {
-            let (pa, pb) = (tri[i], tri[j]);
-            let s = (t - pa.2) / (pb.2 - pa.2);
-            pts[n] = (edge_key(pa.0, pb.0), pa.1 + (pb.1 - pa.1) * s);
+            keys[n] = edge_key(tri[i].0, tri[j].0);
             n += 1;
         }
     }
     (n == 2).then_some(Segment {
-        keys: [pts[0].0, pts[1].0],
-        points: [pts[0].1, pts[1].1],
+        keys,
         links: [NO_SEGMENT; 2],
     })
 }
 
-/// Chain linked segments into closed loops.
-fn chain_segments(segs: Vec<Segment>) -> Vec<Vec<DVec2>> {
+/// Chain linked segments into closed loops, each crossing placed by `place` (none:
+/// left out).
+fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> Option<T>) -> Vec<Vec<T>> {
     let mut used = vec![false; segs.len()];
     let mut loops = Vec::new();
     for start in 0..segs.len() {
@@ -526,16 +808,15 @@ fn chain_segments(segs: Vec<Segment>) -> Vec<Vec<DVec2>> {
             continue;
         }
         used[start] = true;
-        let mut pts = vec![segs[start].points[0]];
         let first_key = segs[start].keys[0];
+        let mut pts: Vec<T> = place(first_key).into_iter().collect();
         let mut key = segs[start].keys[1];
-        let mut point = segs[start].points[1];
         let mut next = segs[start].links[1];
         loop {
-            pts.push(point);
             if key == first_key {
                 break;
             }
+            pts.extend(place(key));
             if next == NO_SEGMENT || used[next as usize] {
                 break;
             }
@@ -543,16 +824,31 @@ fn chain_segments(segs: Vec<Segment>) -> Vec<Vec<DVec2>> {
             let s = &segs[next as usize];
             let enter = usize::from(s.keys[0] != key);
             key = s.keys[1 - enter];
-            point = s.points[1 - enter];
             next = s.links[1 - enter];
         }
-        let l = crate::geom::dedup_loop(&pts, 1e-12);
-        if l.len() >= 3 {
-            loops.push(l);
+        if pts.len() >= 3 {
+            loops.push(pts);
         }
     }
     loops
 }
+
+/// A level crossing placed on a grid edge: the point, the exact gradient of the
+/// normalised distance there (none where the linear interpolant placed it), and one
+/// end node of its edge (whose nearest boundary edges start the walks of
+/// [`Boundary::near`] for points nearby).
+struct Placed {
+    p: DVec2,
+    grad: Option<DVec2>,
+    node: usize,
+}
+
+/// How far (mm) the straight piece between two crossings may stray from the exact level
+/// set before [`DistanceField::bent`] adds a point between them, and how many times it
+/// halves a piece.
+const BEND_MM: f64 = 0.005;
+const BEND_DEPTH: u32 = 1;
+const BEND_TURN: f64 = 0.15;
 
 #[cfg(test)]
 mod tests {
