@@ -4,7 +4,7 @@
 //!   holes, m = 20) N times, for `valgrind --tool=callgrind` (instructions per layer
 //!   are the total over N less the total over 0, over N); OUT gets the plan.
 //! - `plan_compare job JOB.toml EVERY OUT.json`: plan every EVERY-th layer of a job and
-//!   write the plans.
+//!   write the plans (`EDO_CELL_DIV=k`: field cell R_mach / k, here and in `bench`).
 //! - `plan_compare diff A.json B.json`: the largest distance between the contours' roads
 //!   and between the equal distance offsets of two such files, both ways (a symmetric,
 //!   sampled Hausdorff distance per contour and per offset).
@@ -59,7 +59,13 @@ fn bench(n: usize, out: Option<&str>) -> anyhow::Result<()> {
 
 fn job(path: &str, every: usize, out: &str) -> anyhow::Result<()> {
     let job_path = Path::new(path);
-    let job = edo::cli::plan::load_job(job_path)?;
+    let mut job = edo::cli::plan::load_job(job_path)?;
+    if let Some(div) = std::env::var("EDO_CELL_DIV")
+        .ok()
+        .and_then(|s| s.parse::<f64>().ok())
+    {
+        job.plan.field_cell_mm = Some(job.plan.r_mach_mm / div);
+    }
     let (slices, _) = edo::cli::plan::job_layers(&job, job_path, None, true)?;
     let picked: Vec<_> = slices.into_iter().step_by(every.max(1)).collect();
     let started = std::time::Instant::now();
@@ -232,6 +238,7 @@ fn levels(path: &str) -> anyhow::Result<()> {
     let tol = edo::geom::Tolerances::default();
     let mut errors: Vec<f64> = Vec::new();
     let mut worst = (0.0f64, String::new());
+    let verbose = std::env::var("VERBOSE").is_ok();
     for layer in &layers {
         for plan in &layer.regions {
             if plan.method != edo::edo::SubdivisionMethod::Distance {
@@ -269,6 +276,12 @@ fn levels(path: &str) -> anyhow::Result<()> {
                         );
                     }
                     errors.push(err);
+                    if verbose && err > 0.1 {
+                        println!(
+                            "  layer {} island {} C{} of m = {} at ({:.3}, {:.3}): {err:.3} mm, dist to Ci {a:.3}, to Ce {e:.3}",
+                            layer.index, plan.island, c.j, plan.m, p.x, p.y
+                        );
+                    }
                 }
             }
         }

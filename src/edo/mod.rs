@@ -127,9 +127,11 @@ pub struct PlanOptions {
     /// Radial lines at equal angular division (§3.1); doubled up to twice when the
     /// splines would cross.
     pub radial_lines: usize,
-    /// Grid cell of the distance method, mm. Default R_mach / 1.5: contours R_mach
-    /// apart are resolved by one and a half cells, which settles how the level sets
-    /// connect; their points are then placed on the exact level sets (see `field`).
+    /// Grid cell of the distance method, mm. Default R_mach / 2: contours R_mach apart
+    /// are resolved by two cells, which settles how the level sets connect; their
+    /// points are then placed on the exact level sets (see `field`). A coarser cell
+    /// plans faster but rounds off more of the sharp tips level sets have where they
+    /// cross the medial axis.
     pub field_cell_mm: Option<f64>,
     /// Cap on distance-field grid nodes (the cell grows to respect it).
     pub max_field_nodes: usize,
@@ -155,7 +157,7 @@ impl PlanOptions {
     }
 
     fn cell_mm(&self) -> f64 {
-        self.field_cell_mm.unwrap_or(self.r_mach_mm / 1.5)
+        self.field_cell_mm.unwrap_or(self.r_mach_mm / 2.0)
     }
 }
 
