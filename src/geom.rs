@@ -159,6 +159,77 @@ fn segments_within(a: DVec2, b: DVec2, c: DVec2, d: DVec2, r: f64) -> bool {
         || (r >= 0.0 && segments_intersect(a, b, c, d))
 }
 
+/// One segment's part of [`SegmentIndex::within`]: is `c`–`d` within `r_mm` of `p`?
+/// (`reach` is `r_mm` plus [`reject_slack`]: boxes farther apart are not looked at.)
+#[inline]
+fn point_hit(p: DVec2, c: DVec2, d: DVec2, r_mm: f64, reach: f64) -> bool {
+    let gap = (c.min(d) - p).max(p - c.max(d));
+    gap.x <= reach && gap.y <= reach && sqrt_within(point_segment_distance2(p, c, d), r_mm)
+}
+
+/// One segment's part of [`SegmentIndex::any_within`]: is `c`–`d` within `r_mm` of the
+/// segment `a`–`b`? (`reach` as in [`point_hit`].)
+/// `lo`–`hi` is the box of `a`–`b`.
+#[inline]
+fn segment_hit(
+    a: DVec2,
+    b: DVec2,
+    lo: DVec2,
+    hi: DVec2,
+    seg: (DVec2, DVec2),
+    r_mm: f64,
+    reach: f64,
+) -> bool {
+    let (c, d) = seg;
+    // Boxes farther apart than the reach along an axis cannot be within it.
+    let gap = (c.min(d) - hi).max(lo - c.max(d));
+    gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
+}
+
+/// Some segments of a [`SegmentIndex`] gathered by [`SegmentIndex::near_box`], for
+/// many questions about one small area: each answers as the index would, for points
+/// and segments inside the box they were gathered for and radii up to its reach.
+#[derive(Debug, Clone, Default)]
+pub struct NearSegments {
+    ids: Vec<u32>,
+    segments: Vec<(DVec2, DVec2)>,
+}
+
+impl NearSegments {
+    /// How many are gathered (a mark for [`Self::truncate`] and for the ranges the
+    /// questions take).
+    pub fn len(&self) -> usize {
+        self.segments.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.segments.is_empty()
+    }
+
+    /// Forget those gathered after the first `len`.
+    pub fn truncate(&mut self, len: usize) {
+        self.ids.truncate(len);
+        self.segments.truncate(len);
+    }
+
+    /// [`SegmentIndex::within`] over the segments `range` of those gathered.
+    pub fn within(&self, range: std::ops::Range<usize>, p: DVec2, r_mm: f64) -> bool {
+        let reach = r_mm + reject_slack(r_mm);
+        self.segments[range]
+            .iter()
+            .any(|&(c, d)| point_hit(p, c, d, r_mm, reach))
+    }
+
+    /// [`SegmentIndex::any_within`] over the segments `range` of those gathered.
+    pub fn any_within(&self, range: std::ops::Range<usize>, a: DVec2, b: DVec2, r_mm: f64) -> bool {
+        let (lo, hi) = (a.min(b), a.max(b));
+        let reach = r_mm + reject_slack(r_mm);
+        self.segments[range]
+            .iter()
+            .any(|&seg| segment_hit(a, b, lo, hi, seg, r_mm, reach))
+    }
+}
+
 /// How far beyond a query radius a bounding-box gap must be before the box test rejects
 /// a segment: far more than the rounding of the exact distance test it saves.
 #[inline]
@@ -672,10 +743,7 @@ impl SegmentIndex {
         let (lo, hi) = (a.min(b), a.max(b));
         let reach = r_mm + reject_slack(r_mm);
         self.any_in_box(lo, hi, r_mm, |c, d| {
-            // Boxes farther apart than the reach along an axis cannot be within it.
-            let (clo, chi) = (c.min(d), c.max(d));
-            let gap = (clo - hi).max(lo - chi);
-            gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
+            segment_hit(a, b, lo, hi, (c, d), r_mm, reach)
         })
     }
 
@@ -683,10 +751,33 @@ impl SegmentIndex {
     /// within that reach, so it answers a bounded question faster than [`Self::distance`].
     pub fn within(&self, p: DVec2, r_mm: f64) -> bool {
         let reach = r_mm + reject_slack(r_mm);
-        self.any_in_box(p, p, r_mm, |c, d| {
-            let gap = (c.min(d) - p).max(p - c.max(d));
-            gap.x <= reach && gap.y <= reach && sqrt_within(point_segment_distance2(p, c, d), r_mm)
-        })
+        self.any_in_box(p, p, r_mm, |c, d| point_hit(p, c, d, r_mm, reach))
+    }
+
+    /// Append to `out` (each once) the indexed segments [`Self::within`] and
+    /// [`Self::any_within`] could find for any point or segment inside the box `lo`–`hi`
+    /// and any radius up to `r_mm`: those in the cells over the box grown by `r_mm` whose
+    /// own boxes come within that reach of it. [`NearSegments`] asks those questions of
+    /// them alone, with the same answers.
+    pub fn near_box(&self, lo: DVec2, hi: DVec2, r_mm: f64, out: &mut NearSegments) {
+        if self.segments.is_empty() {
+            return;
+        }
+        let from = out.ids.len();
+        let reach = r_mm + reject_slack(r_mm);
+        let pad = DVec2::splat(r_mm);
+        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
+        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
+        for row in r0..=r1 {
+            for &k in self.row_items(row, c0, c1) {
+                let (c, d) = self.segments[k as usize];
+                let gap = (c.min(d) - hi).max(lo - c.max(d));
+                if gap.x <= reach && gap.y <= reach && !out.ids[from..].contains(&k) {
+                    out.ids.push(k);
+                    out.segments.push((c, d));
+                }
+            }
+        }
     }
 
     /// `(self.within(p, near_mm), self.within(p, far_mm))` in one look at the cells,

@@ -581,6 +581,10 @@ pub fn keep_clear_of(
     if index.is_empty() {
         return roads;
     }
+    // Gathered a hair beyond the clearance, so points a rounding off an edge are
+    // still covered.
+    let gather_mm = clearance_mm * (1.0 + 1e-6);
+    let mut near = crate::geom::NearSegments::default();
     let mut out = Vec::with_capacity(roads.len());
     for road in roads {
         // Edges that come within the clearance are split to at most the clearance, so
@@ -588,23 +592,36 @@ pub fn keep_clear_of(
         let m = road.points.len();
         let edges = if road.closed { m } else { m.saturating_sub(1) };
         // Whether each point is at least the clearance from the contour, known at once
-        // for the ends of clear edges (a point within the clearance of an edge's middle
-        // plus half its length decides most of them without the segment distances).
+        // for the ends of clear edges and, for the points splitting the others, from
+        // the contour's segments near that edge (gathered once per edge, they answer
+        // every question about points on it as the whole index would).
         let mut pts = Vec::with_capacity(m);
         let mut known: Vec<Option<bool>> = Vec::with_capacity(m);
+        // The range of `near` that holds the segments near the edge each point starts.
+        let mut spans: Vec<std::ops::Range<usize>> = Vec::with_capacity(m);
+        near.truncate(0);
         let mut clear_before = false;
         for k in 0..edges {
             let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            let reach = clearance_mm + 0.5 * a.distance(b);
-            let clear =
-                !index.within(a.lerp(b, 0.5), reach) || !index.any_within(a, b, clearance_mm);
+            let from = near.len();
+            index.near_box(a.min(b), a.max(b), gather_mm, &mut near);
+            let span = from..near.len();
+            let clear = !near.any_within(span.clone(), a, b, clearance_mm);
             if clear {
+                near.truncate(from);
                 pts.push(a);
                 known.push(Some(true));
+                spans.push(from..from);
             } else {
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
-                pts.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
-                known.extend((0..pieces).map(|q| (q == 0 && clear_before).then_some(true)));
+                for q in 0..pieces {
+                    let p = a.lerp(b, q as f64 / pieces as f64);
+                    pts.push(p);
+                    known.push(Some(
+                        (q == 0 && clear_before) || !near.within(span.clone(), p, clearance_mm),
+                    ));
+                    spans.push(span.clone());
+                }
             }
             clear_before = clear;
         }
@@ -618,6 +635,7 @@ pub fn keep_clear_of(
         } else {
             pts.extend(road.points.last().copied());
             known.push(clear_before.then_some(true));
+            spans.push(near.len()..near.len());
         }
         let n = pts.len();
         if n < 2 {
@@ -633,11 +651,12 @@ pub fn keep_clear_of(
             continue;
         };
         // Where the distance crosses the clearance between a (far) and b (near).
-        let cross = |a: DVec2, b: DVec2| {
+        // Both lie on the edge point `k` starts, so its near segments answer.
+        let cross = |a: DVec2, b: DVec2, k: usize| {
             let (mut lo, mut hi) = (0.0, 1.0);
             for _ in 0..CLEARANCE_BISECTIONS {
                 let mid = 0.5 * (lo + hi);
-                if !index.within(a.lerp(b, mid), clearance_mm) {
+                if !near.within(spans[k].clone(), a.lerp(b, mid), clearance_mm) {
                     lo = mid;
                 } else {
                     hi = mid;
@@ -671,11 +690,11 @@ pub fn keep_clear_of(
             match (far[i], far[j]) {
                 (true, true) => run.push(pts[j]),
                 (true, false) => {
-                    run.push(cross(pts[i], pts[j]));
+                    run.push(cross(pts[i], pts[j], i));
                     flush(&mut run);
                 }
                 (false, true) => {
-                    run.push(cross(pts[j], pts[i]));
+                    run.push(cross(pts[j], pts[i], i));
                     run.push(pts[j]);
                 }
                 (false, false) => {}
