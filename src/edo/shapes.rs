@@ -78,13 +78,24 @@ fn arc_angle(radius: f64, chord_mm: f64) -> f64 {
 /// Offset every boundary of `shapes` by `delta_mm` (positive grows the area, negative
 /// shrinks it), with round joins: the equal distance offset of §3.2.
 pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
+    offset_indexed(shapes, None, delta_mm, chord_mm)
+}
+
+/// [`offset`] where the caller already has the [`boundary_index`] of `shapes` (`index`),
+/// so the direct offset's distance certificate need not build it again.
+pub fn offset_indexed(
+    shapes: &Shapes,
+    index: Option<&SegmentIndex>,
+    delta_mm: f64,
+    chord_mm: f64,
+) -> Shapes {
     if shapes.is_empty() {
         return Vec::new();
     }
     if delta_mm == 0.0 {
         return shapes.clone();
     }
-    let mut out = offset_direct(shapes, delta_mm, chord_mm).unwrap_or_else(|| {
+    let mut out = offset_direct(shapes, index, delta_mm, chord_mm).unwrap_or_else(|| {
         let style =
             OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
         shapes.outline(&style)
@@ -116,7 +127,14 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
 ///    nearest source edge. A vanishing loop, a neck that pinches off or an edge the
 ///    offset swallows fails one of these, and the caller runs the general outline.
-fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes> {
+///
+/// `index` is the [`boundary_index`] of `shapes` where the caller has it.
+fn offset_direct(
+    shapes: &Shapes,
+    index: Option<&SegmentIndex>,
+    delta_mm: f64,
+    chord_mm: f64,
+) -> Option<Shapes> {
     let reach = delta_mm.abs();
     let step = arc_angle(delta_mm, chord_mm);
     let mut out: Shapes = Vec::with_capacity(shapes.len());
@@ -150,7 +168,14 @@ fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes
         }
     }
     let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
-    let index = boundary_index(shapes);
+    let built;
+    let index = match index {
+        Some(index) => index,
+        None => {
+            built = boundary_index(shapes);
+            &built
+        }
+    };
     let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
     let far = reach * (1.0 + DIRECT_OFFSET_SLACK);
     if raw
