@@ -734,9 +734,10 @@ impl SegmentIndex {
 
     fn cell_of(origin: DVec2, cell: f64, nx: usize, ny: usize, p: DVec2) -> (usize, usize) {
         let q = (p - origin) / cell;
-        let c = (floor_clamped(q.x).max(0.0) as usize).min(nx - 1);
-        let r = (floor_clamped(q.y).max(0.0) as usize).min(ny - 1);
-        (c, r)
+        // `floor(x)` clamped to 0..n: truncation floors a positive x, saturates beyond
+        // the grid (infinities too), and a negative x or NaN is cell 0.
+        let clamp = |x: f64, n: usize| if x > 0.0 { (x as usize).min(n - 1) } else { 0 };
+        (clamp(q.x, nx), clamp(q.y, ny))
     }
 
     /// The segments of the cells `c0..=c1` of row `row`.
