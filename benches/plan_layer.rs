@@ -71,6 +71,30 @@
 //! transform rows through one mirrored helper, 22.9M -> 39.6M; keeping the swept node
 //! in a local, 22.9M -> 30.1M.
 //!
+//! 2026-12-01, speed3 branch: 123.1M instructions per layer (callgrind, from 133.9M),
+//! the plans byte-identical (`plan_compare` JSON of this region and of every
+//! `config/examples` job, the femur every 5th layer). Per stage (inclusive, before ->
+//! after): trimming offsets to the end clearance 18.2M -> 13.0M (the facing contour's
+//! segments near each offset edge are gathered once and answer the edge, split-point
+//! and bisection tests; the midpoint pre-test is gone: where it found an edge clear,
+//! the edge test does too); offsets 38.1M -> 34.4M, of which crossing checks 7.5M ->
+//! 5.7M (neighbour and y tests on precomputed boxes and edge numbers, one pass over
+//! the active edges); boundary index builds for the certificates and the facing
+//! contours 5.4M -> 4.4M (each contour level's index is built once: the level one
+//! sub-region's offsets face is the level the next starts them from); 2.0M more
+//! from `SegmentIndex` finding a point's cell by truncation (the same cell, fewer
+//! conversions). Trimming ends at 12.5M, offsets at 33.6M.
+//! Tried and not taken: carrying a lower bound on the distance to the facing contour
+//! along each offset (bounded nearest-distance lookups at vertices, an edge clear
+//! when the bound less its length stays above the clearance), 18.2M -> 20.2M with
+//! the bound radius 2 x the clearance (22.1M at 8 x): offset edges (about 1 mm) are
+//! long against the 0.2 mm clearance and most pass within reach of the contour, so the
+//! lookups decided only 43 % of the edges. Answering the offset certificate for runs
+//! of raw vertices close together (the two ends at a vertex the offset parts from)
+//! from segments gathered once per run: 125.1M -> 125.3M per layer (runs up to a
+//! quarter of the offset distance across; 125.2M up to the whole distance), the
+//! distance tests 6.3M -> 3.7M but the gathering cost more than it saved.
+//!
 //! The 5 ms target (about 30M instructions) is still out of reach: the distance field
 //! alone (two vector distance transforms over 82k nodes, about 140 instructions a
 //! node each) takes 29M, and a coarser cell moves the contours beyond the chord

@@ -159,6 +159,77 @@ fn segments_within(a: DVec2, b: DVec2, c: DVec2, d: DVec2, r: f64) -> bool {
         || (r >= 0.0 && segments_intersect(a, b, c, d))
 }
 
+/// One segment's part of [`SegmentIndex::within`]: is `c`–`d` within `r_mm` of `p`?
+/// (`reach` is `r_mm` plus [`reject_slack`]: boxes farther apart are not looked at.)
+#[inline]
+fn point_hit(p: DVec2, c: DVec2, d: DVec2, r_mm: f64, reach: f64) -> bool {
+    let gap = (c.min(d) - p).max(p - c.max(d));
+    gap.x <= reach && gap.y <= reach && sqrt_within(point_segment_distance2(p, c, d), r_mm)
+}
+
+/// One segment's part of [`SegmentIndex::any_within`]: is `c`–`d` within `r_mm` of the
+/// segment `a`–`b`? (`reach` as in [`point_hit`].)
+/// `lo`–`hi` is the box of `a`–`b`.
+#[inline]
+fn segment_hit(
+    a: DVec2,
+    b: DVec2,
+    lo: DVec2,
+    hi: DVec2,
+    seg: (DVec2, DVec2),
+    r_mm: f64,
+    reach: f64,
+) -> bool {
+    let (c, d) = seg;
+    // Boxes farther apart than the reach along an axis cannot be within it.
+    let gap = (c.min(d) - hi).max(lo - c.max(d));
+    gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
+}
+
+/// Some segments of a [`SegmentIndex`] gathered by [`SegmentIndex::near_box`], for
+/// many questions about one small area: each answers as the index would, for points
+/// and segments inside the box they were gathered for and radii up to its reach.
+#[derive(Debug, Clone, Default)]
+pub struct NearSegments {
+    ids: Vec<u32>,
+    segments: Vec<(DVec2, DVec2)>,
+}
+
+impl NearSegments {
+    /// How many are gathered (a mark for [`Self::truncate`] and for the ranges the
+    /// questions take).
+    pub fn len(&self) -> usize {
+        self.segments.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.segments.is_empty()
+    }
+
+    /// Forget those gathered after the first `len`.
+    pub fn truncate(&mut self, len: usize) {
+        self.ids.truncate(len);
+        self.segments.truncate(len);
+    }
+
+    /// [`SegmentIndex::within`] over the segments `range` of those gathered.
+    pub fn within(&self, range: std::ops::Range<usize>, p: DVec2, r_mm: f64) -> bool {
+        let reach = r_mm + reject_slack(r_mm);
+        self.segments[range]
+            .iter()
+            .any(|&(c, d)| point_hit(p, c, d, r_mm, reach))
+    }
+
+    /// [`SegmentIndex::any_within`] over the segments `range` of those gathered.
+    pub fn any_within(&self, range: std::ops::Range<usize>, a: DVec2, b: DVec2, r_mm: f64) -> bool {
+        let (lo, hi) = (a.min(b), a.max(b));
+        let reach = r_mm + reject_slack(r_mm);
+        self.segments[range]
+            .iter()
+            .any(|&seg| segment_hit(a, b, lo, hi, seg, r_mm, reach))
+    }
+}
+
 /// How far beyond a query radius a bounding-box gap must be before the box test rejects
 /// a segment: far more than the rounding of the exact distance test it saves.
 #[inline]
@@ -237,24 +308,34 @@ pub struct Crossing {
 struct TaggedSegment {
     a: DVec2,
     b: DVec2,
+    /// The box of `a`–`b`.
+    lo: DVec2,
+    hi: DVec2,
     loop_index: usize,
     edge_index: usize,
-    edge_count: usize,
+    /// The numbers (in the order of all loops' edges) of the edges before and after it
+    /// round its loop: the only ones it may touch.
+    prev: u32,
+    next: u32,
 }
 
 /// First pair of non-adjacent edges that touch or cross, over all `loops` together,
 /// found with a sweep over x (near-linear for ordinary outlines).
 pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
-    let mut segs: Vec<TaggedSegment> = Vec::new();
+    let mut segs: Vec<TaggedSegment> = Vec::with_capacity(loops.iter().map(|l| l.len()).sum());
     for (li, l) in loops.iter().enumerate() {
-        let n = l.len();
+        let (n, first) = (l.len(), segs.len());
         for i in 0..n {
+            let (a, b) = (l[i], l[if i + 1 == n { 0 } else { i + 1 }]);
             segs.push(TaggedSegment {
-                a: l[i],
-                b: l[(i + 1) % n],
+                a,
+                b,
+                lo: a.min(b),
+                hi: a.max(b),
                 loop_index: li,
                 edge_index: i,
-                edge_count: n,
+                prev: (first + if i == 0 { n - 1 } else { i - 1 }) as u32,
+                next: (first + if i + 1 == n { 0 } else { i + 1 }) as u32,
             });
         }
     }
@@ -262,26 +343,26 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
     let mut order: Vec<(f64, u32)> = segs
         .iter()
         .enumerate()
-        .map(|(k, s)| (s.a.x.min(s.b.x), k as u32))
+        .map(|(k, s)| (s.lo.x, k as u32))
         .collect();
     order.sort_by(|p, q| p.0.total_cmp(&q.0));
-    let max_x: Vec<f64> = segs.iter().map(|s| s.a.x.max(s.b.x)).collect();
+    let max_x: Vec<f64> = segs.iter().map(|s| s.hi.x).collect();
     let mut active: Vec<u32> = Vec::new();
     for &(min_x, k) in &order {
         let s = &segs[k as usize];
-        active.retain(|&j| max_x[j as usize] >= min_x);
-        for &j in &active {
-            let t = &segs[j as usize];
-            if s.loop_index == t.loop_index {
-                let n = s.edge_count;
-                let (i, jj) = (s.edge_index, t.edge_index);
-                if (i + 1) % n == jj || (jj + 1) % n == i || i == jj {
-                    continue;
-                }
+        // One pass over the active edges, in order: those the sweep has passed are
+        // dropped (kept ones move up), the others checked against `s`.
+        let mut kept = 0;
+        for q in 0..active.len() {
+            let j = active[q];
+            if max_x[j as usize] < min_x {
+                continue;
             }
-            let (sy0, sy1) = (s.a.y.min(s.b.y), s.a.y.max(s.b.y));
-            let (ty0, ty1) = (t.a.y.min(t.b.y), t.a.y.max(t.b.y));
-            if sy1 < ty0 || ty1 < sy0 {
+            active[kept] = j;
+            kept += 1;
+            let t = &segs[j as usize];
+            // Apart in y, or neighbours round a loop: these cannot count.
+            if s.hi.y < t.lo.y || t.hi.y < s.lo.y || j == s.next || j == s.prev {
                 continue;
             }
             if segments_intersect(s.a, s.b, t.a, t.b) {
@@ -293,6 +374,7 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
                 });
             }
         }
+        active.truncate(kept);
         active.push(k);
     }
     None
@@ -569,7 +651,7 @@ impl SegmentIndex {
         for l in loops {
             let n = l.len();
             for i in 0..n {
-                segments.push((l[i], l[(i + 1) % n]));
+                segments.push((l[i], l[if i + 1 == n { 0 } else { i + 1 }]));
             }
         }
         for l in polylines {
@@ -606,7 +688,9 @@ impl SegmentIndex {
         let nx = ((extent.x / cell_mm).ceil() as usize).clamp(1, 4096);
         let ny = ((extent.y / cell_mm).ceil() as usize).clamp(1, 4096);
         let cell_mm = (extent.x / nx as f64).max(extent.y / ny as f64);
-        // Counting sort into cells: count, prefix sums, fill (in segment order).
+        // Counting sort into cells: count, prefix sums, fill (in segment order). Cell
+        // ranges here and in the queries are half-open (`r0..r1 + 1`): they step with
+        // fewer instructions than inclusive ones.
         let spans: Vec<[usize; 4]> = segments
             .iter()
             .map(|(a, b)| {
@@ -617,8 +701,8 @@ impl SegmentIndex {
             .collect();
         let mut starts = vec![0usize; nx * ny + 1];
         for &[c0, r0, c1, r1] in &spans {
-            for r in r0..=r1 {
-                for c in c0..=c1 {
+            for r in r0..r1 + 1 {
+                for c in c0..c1 + 1 {
                     starts[r * nx + c + 1] += 1;
                 }
             }
@@ -629,8 +713,8 @@ impl SegmentIndex {
         let mut fill: Vec<usize> = starts[..nx * ny].to_vec();
         let mut items = vec![0u32; starts[nx * ny]];
         for (k, &[c0, r0, c1, r1]) in spans.iter().enumerate() {
-            for r in r0..=r1 {
-                for c in c0..=c1 {
+            for r in r0..r1 + 1 {
+                for c in c0..c1 + 1 {
                     let slot = &mut fill[r * nx + c];
                     items[*slot] = k as u32;
                     *slot += 1;
@@ -650,9 +734,10 @@ impl SegmentIndex {
 
     fn cell_of(origin: DVec2, cell: f64, nx: usize, ny: usize, p: DVec2) -> (usize, usize) {
         let q = (p - origin) / cell;
-        let c = (floor_clamped(q.x).max(0.0) as usize).min(nx - 1);
-        let r = (floor_clamped(q.y).max(0.0) as usize).min(ny - 1);
-        (c, r)
+        // `floor(x)` clamped to 0..n: truncation floors a positive x, saturates beyond
+        // the grid (infinities too), and a negative x or NaN is cell 0.
+        let clamp = |x: f64, n: usize| if x > 0.0 { (x as usize).min(n - 1) } else { 0 };
+        (clamp(q.x, nx), clamp(q.y, ny))
     }
 
     /// The segments of the cells `c0..=c1` of row `row`.
@@ -672,10 +757,7 @@ impl SegmentIndex {
         let (lo, hi) = (a.min(b), a.max(b));
         let reach = r_mm + reject_slack(r_mm);
         self.any_in_box(lo, hi, r_mm, |c, d| {
-            // Boxes farther apart than the reach along an axis cannot be within it.
-            let (clo, chi) = (c.min(d), c.max(d));
-            let gap = (clo - hi).max(lo - chi);
-            gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
+            segment_hit(a, b, lo, hi, (c, d), r_mm, reach)
         })
     }
 
@@ -683,10 +765,33 @@ impl SegmentIndex {
     /// within that reach, so it answers a bounded question faster than [`Self::distance`].
     pub fn within(&self, p: DVec2, r_mm: f64) -> bool {
         let reach = r_mm + reject_slack(r_mm);
-        self.any_in_box(p, p, r_mm, |c, d| {
-            let gap = (c.min(d) - p).max(p - c.max(d));
-            gap.x <= reach && gap.y <= reach && sqrt_within(point_segment_distance2(p, c, d), r_mm)
-        })
+        self.any_in_box(p, p, r_mm, |c, d| point_hit(p, c, d, r_mm, reach))
+    }
+
+    /// Append to `out` (each once) the indexed segments [`Self::within`] and
+    /// [`Self::any_within`] could find for any point or segment inside the box `lo`–`hi`
+    /// and any radius up to `r_mm`: those in the cells over the box grown by `r_mm` whose
+    /// own boxes come within that reach of it. [`NearSegments`] asks those questions of
+    /// them alone, with the same answers.
+    pub fn near_box(&self, lo: DVec2, hi: DVec2, r_mm: f64, out: &mut NearSegments) {
+        if self.segments.is_empty() {
+            return;
+        }
+        let from = out.ids.len();
+        let reach = r_mm + reject_slack(r_mm);
+        let pad = DVec2::splat(r_mm);
+        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
+        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
+        for row in r0..r1 + 1 {
+            for &k in self.row_items(row, c0, c1) {
+                let (c, d) = self.segments[k as usize];
+                let gap = (c.min(d) - hi).max(lo - c.max(d));
+                if gap.x <= reach && gap.y <= reach && !out.ids[from..].contains(&k) {
+                    out.ids.push(k);
+                    out.segments.push((c, d));
+                }
+            }
+        }
     }
 
     /// `(self.within(p, near_mm), self.within(p, far_mm))` in one look at the cells,
@@ -700,7 +805,7 @@ impl SegmentIndex {
         let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p + pad);
         let mut far = false;
         let reach = far_mm + reject_slack(far_mm);
-        for row in r0..=r1 {
+        for row in r0..r1 + 1 {
             for &k in self.row_items(row, c0, c1) {
                 let (c, d) = self.segments[k as usize];
                 let gap = (c.min(d) - p).max(p - c.max(d));
@@ -731,7 +836,7 @@ impl SegmentIndex {
         let pad = DVec2::splat(pad);
         let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
         let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
-        (r0..=r1).any(|row| {
+        (r0..r1 + 1).any(|row| {
             self.row_items(row, c0, c1).iter().any(|&k| {
                 let (c, d) = self.segments[k as usize];
                 hit(c, d)

@@ -285,9 +285,11 @@ enum Level {
 }
 
 impl Level {
-    fn offset(&self, delta: f64, chord_mm: f64) -> Level {
+    /// Offset by `delta`; `index` is the [`shapes::boundary_index`] of a shapes level
+    /// where the caller has it.
+    fn offset(&self, delta: f64, chord_mm: f64, index: Option<&SegmentIndex>) -> Level {
         match self {
-            Level::Shapes(s) => Level::Shapes(shapes::offset(s, delta, chord_mm)),
+            Level::Shapes(s) => Level::Shapes(shapes::offset_indexed(s, index, delta, chord_mm)),
             Level::HalfPlane { normal, s, lo, hi } => Level::HalfPlane {
                 normal: *normal,
                 s: s + delta,
@@ -465,14 +467,14 @@ pub fn plan_region(
     let mut levels = pre.levels;
     if pre.inner_is_boundary {
         levels[0] = if parallel {
-            levels[0].offset(b, chord)
+            levels[0].offset(b, chord, None)
         } else {
             Level::Shapes(holes_out)
         };
     }
     let last = levels.len() - 1;
     levels[last] = if parallel {
-        levels[last].offset(-b, chord)
+        levels[last].offset(-b, chord, None)
     } else {
         Level::Shapes(outer_in)
     };
@@ -528,6 +530,15 @@ pub fn plan_region(
             sub_regions.push(core);
         }
     }
+    // The boundary index of each level, built when first needed: the contour one
+    // sub-region's offsets face is the one the next (or previous) starts them from.
+    let level_indices: Vec<std::cell::OnceCell<SegmentIndex>> = level_shapes
+        .iter()
+        .map(|_| std::cell::OnceCell::new())
+        .collect();
+    let level_index = |j: u32| {
+        level_indices[j as usize].get_or_init(|| shapes::boundary_index(&level_shapes[j as usize]))
+    };
     for n in 1..=m {
         let (lower, upper) = (&levels[(n - 1) as usize], &levels[n as usize]);
         // Growth-ring levels nest between the offset boundaries, so their difference
@@ -559,11 +570,11 @@ pub fn plan_region(
         }
         // The offsets stop `offset_end_clearance_mm` short of the contour they run
         // towards (C_n inward, C_n+1 outward).
-        let facing = match opts.direction {
-            OffsetDirection::Inward => lower_shape,
-            OffsetDirection::Outward => upper_shape,
+        let (facing, facing_j, start_j) = match opts.direction {
+            OffsetDirection::Inward => (lower_shape, n - 1, n),
+            OffsetDirection::Outward => (upper_shape, n, n - 1),
         };
-        let facing_index = shapes::boundary_index(facing);
+        let facing_index = level_index(facing_j);
         let d_max_mm = match (lower, upper) {
             // Parallel lines: the gap between them, as far as the part reaches (where
             // the boundary-offset C_m+1 or C1 misses the interior near a corner, the
@@ -582,17 +593,12 @@ pub fn plan_region(
                     });
                 (s_upper.min(hi) - s_lower.max(lo)).max(0.0)
             }
-            _ => {
-                let built;
-                let lower_index = match opts.direction {
-                    OffsetDirection::Inward => &facing_index,
-                    OffsetDirection::Outward => {
-                        built = shapes::boundary_index(&level_shapes[(n - 1) as usize]);
-                        &built
-                    }
-                };
-                gap_along_gradient(&contours[n as usize].roads, pre.centre, lower_index, opts)
-            }
+            _ => gap_along_gradient(
+                &contours[n as usize].roads,
+                pre.centre,
+                level_index(n - 1),
+                opts,
+            ),
         };
         let n_max = offset_count(d_max_mm, opts.nozzle_mm);
         let (m_n, m_n1) = (&compositions[(n - 1) as usize], &compositions[n as usize]);
@@ -633,12 +639,14 @@ pub fn plan_region(
             OffsetDirection::Outward => lower.clone(),
         };
         for i in 1..n_max {
+            // The first offset starts from a contour level, whose index is at hand.
+            let index = (i == 1).then(|| level_index(start_j));
             level = match (opts.direction, lower.is_empty(), pre.centre) {
-                (OffsetDirection::Inward, _, _) => level.offset(-step, chord),
+                (OffsetDirection::Inward, _, _) => level.offset(-step, chord, index),
                 (OffsetDirection::Outward, true, Some(c)) => {
                     Level::Shapes(vec![vec![shapes::circle(c, i as f64 * step, chord)]])
                 }
-                (OffsetDirection::Outward, _, _) => level.offset(step, chord),
+                (OffsetDirection::Outward, _, _) => level.offset(step, chord, index),
             };
             if level.is_empty() {
                 break;
@@ -651,7 +659,7 @@ pub fn plan_region(
                             closed: true,
                         })
                         .collect();
-                    let mut kept = shapes::keep_clear_of(whole, &facing_index, clearance);
+                    let mut kept = shapes::keep_clear_of(whole, facing_index, clearance);
                     kept.retain(|p| {
                         p.points
                             .get(p.points.len() / 2)
@@ -660,7 +668,7 @@ pub fn plan_region(
                     kept
                 }
                 Some(area) if clearance > 0.0 => {
-                    shapes::keep_clear_of(level.roads(area, false, eps), &facing_index, clearance)
+                    shapes::keep_clear_of(level.roads(area, false, eps), facing_index, clearance)
                 }
                 Some(area) => level.roads(area, false, eps),
             };

@@ -78,13 +78,24 @@ fn arc_angle(radius: f64, chord_mm: f64) -> f64 {
 /// Offset every boundary of `shapes` by `delta_mm` (positive grows the area, negative
 /// shrinks it), with round joins: the equal distance offset of §3.2.
 pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
+    offset_indexed(shapes, None, delta_mm, chord_mm)
+}
+
+/// [`offset`] where the caller already has the [`boundary_index`] of `shapes` (`index`),
+/// so the direct offset's distance certificate need not build it again.
+pub fn offset_indexed(
+    shapes: &Shapes,
+    index: Option<&SegmentIndex>,
+    delta_mm: f64,
+    chord_mm: f64,
+) -> Shapes {
     if shapes.is_empty() {
         return Vec::new();
     }
     if delta_mm == 0.0 {
         return shapes.clone();
     }
-    let mut out = offset_direct(shapes, delta_mm, chord_mm).unwrap_or_else(|| {
+    let mut out = offset_direct(shapes, index, delta_mm, chord_mm).unwrap_or_else(|| {
         let style =
             OutlineStyle::new(delta_mm).line_join(LineJoin::Round(arc_angle(delta_mm, chord_mm)));
         shapes.outline(&style)
@@ -116,7 +127,14 @@ pub fn offset(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
 ///    nearest source edge. A vanishing loop, a neck that pinches off or an edge the
 ///    offset swallows fails one of these, and the caller runs the general outline.
-fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes> {
+///
+/// `index` is the [`boundary_index`] of `shapes` where the caller has it.
+fn offset_direct(
+    shapes: &Shapes,
+    index: Option<&SegmentIndex>,
+    delta_mm: f64,
+    chord_mm: f64,
+) -> Option<Shapes> {
     let reach = delta_mm.abs();
     let step = arc_angle(delta_mm, chord_mm);
     let mut out: Shapes = Vec::with_capacity(shapes.len());
@@ -150,7 +168,14 @@ fn offset_direct(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Option<Shapes
         }
     }
     let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
-    let index = boundary_index(shapes);
+    let built;
+    let index = match index {
+        Some(index) => index,
+        None => {
+            built = boundary_index(shapes);
+            &built
+        }
+    };
     let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
     let far = reach * (1.0 + DIRECT_OFFSET_SLACK);
     if raw
@@ -581,6 +606,10 @@ pub fn keep_clear_of(
     if index.is_empty() {
         return roads;
     }
+    // Gathered a hair beyond the clearance, so points a rounding off an edge are
+    // still covered.
+    let gather_mm = clearance_mm * (1.0 + 1e-6);
+    let mut near = crate::geom::NearSegments::default();
     let mut out = Vec::with_capacity(roads.len());
     for road in roads {
         // Edges that come within the clearance are split to at most the clearance, so
@@ -588,23 +617,36 @@ pub fn keep_clear_of(
         let m = road.points.len();
         let edges = if road.closed { m } else { m.saturating_sub(1) };
         // Whether each point is at least the clearance from the contour, known at once
-        // for the ends of clear edges (a point within the clearance of an edge's middle
-        // plus half its length decides most of them without the segment distances).
+        // for the ends of clear edges and, for the points splitting the others, from
+        // the contour's segments near that edge (gathered once per edge, they answer
+        // every question about points on it as the whole index would).
         let mut pts = Vec::with_capacity(m);
         let mut known: Vec<Option<bool>> = Vec::with_capacity(m);
+        // The range of `near` that holds the segments near the edge each point starts.
+        let mut spans: Vec<std::ops::Range<usize>> = Vec::with_capacity(m);
+        near.truncate(0);
         let mut clear_before = false;
         for k in 0..edges {
             let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            let reach = clearance_mm + 0.5 * a.distance(b);
-            let clear =
-                !index.within(a.lerp(b, 0.5), reach) || !index.any_within(a, b, clearance_mm);
+            let from = near.len();
+            index.near_box(a.min(b), a.max(b), gather_mm, &mut near);
+            let span = from..near.len();
+            let clear = !near.any_within(span.clone(), a, b, clearance_mm);
             if clear {
+                near.truncate(from);
                 pts.push(a);
                 known.push(Some(true));
+                spans.push(from..from);
             } else {
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
-                pts.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
-                known.extend((0..pieces).map(|q| (q == 0 && clear_before).then_some(true)));
+                for q in 0..pieces {
+                    let p = a.lerp(b, q as f64 / pieces as f64);
+                    pts.push(p);
+                    known.push(Some(
+                        (q == 0 && clear_before) || !near.within(span.clone(), p, clearance_mm),
+                    ));
+                    spans.push(span.clone());
+                }
             }
             clear_before = clear;
         }
@@ -618,6 +660,7 @@ pub fn keep_clear_of(
         } else {
             pts.extend(road.points.last().copied());
             known.push(clear_before.then_some(true));
+            spans.push(near.len()..near.len());
         }
         let n = pts.len();
         if n < 2 {
@@ -633,11 +676,12 @@ pub fn keep_clear_of(
             continue;
         };
         // Where the distance crosses the clearance between a (far) and b (near).
-        let cross = |a: DVec2, b: DVec2| {
+        // Both lie on the edge point `k` starts, so its near segments answer.
+        let cross = |a: DVec2, b: DVec2, k: usize| {
             let (mut lo, mut hi) = (0.0, 1.0);
             for _ in 0..CLEARANCE_BISECTIONS {
                 let mid = 0.5 * (lo + hi);
-                if !index.within(a.lerp(b, mid), clearance_mm) {
+                if !near.within(spans[k].clone(), a.lerp(b, mid), clearance_mm) {
                     lo = mid;
                 } else {
                     hi = mid;
@@ -671,11 +715,11 @@ pub fn keep_clear_of(
             match (far[i], far[j]) {
                 (true, true) => run.push(pts[j]),
                 (true, false) => {
-                    run.push(cross(pts[i], pts[j]));
+                    run.push(cross(pts[i], pts[j], i));
                     flush(&mut run);
                 }
                 (false, true) => {
-                    run.push(cross(pts[j], pts[i]));
+                    run.push(cross(pts[j], pts[i], i));
                     run.push(pts[j]);
                 }
                 (false, false) => {}
