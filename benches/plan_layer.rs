@@ -95,10 +95,26 @@
 //! quarter of the offset distance across; 125.2M up to the whole distance), the
 //! distance tests 6.3M -> 3.7M but the gathering cost more than it saved.
 //!
-//! The 5 ms target (about 30M instructions) is still out of reach: the distance field
-//! alone (two vector distance transforms over 82k nodes, about 140 instructions a
-//! node each) takes 29M, and a coarser cell moves the contours beyond the chord
-//! tolerance (above). cavalier_contours 0.9 parallel_offset was measured too (offsets
+//! 2026-12-01, exact level sets (field.rs steps 6-7) merged with speed3: 96.7M
+//! instructions per layer (callgrind, from 134.5M at the start of the day's last
+//! session); criterion median 17.6 ms (17.3-18.0), machine idle, from 34.8 ms. The
+//! field cell went from R_mach / 3 to R_mach / 2, with every crossing of a cell side
+//! placed on the exact level set and the corners where level sets cross the medial
+//! axis added; the plans changed, and are judged against the exact level sets
+//! (`plan_compare levels`) rather than against the previous grid: mean distance on
+//! this region 0.0029 mm (was 0.0032), 99.9th percentile 0.012 mm (was 0.023);
+//! femur every 5th layer 99th percentile 0.021 mm (was 0.042), 99.9th 0.041 mm (was
+//! 0.127). Where the 96.7M go (inclusive): offsets 25.1M; level sets 26.2M, of which
+//! placing crossings on the exact level sets 14M (exact distances 10.2M); trimming
+//! offsets to the end clearance 12.3M; the two distance transforms 11.7M;
+//! simplification 7.5M. Tried: cell R_mach / 1.5 (106M with the corners found only
+//! from the midpoint) rounds off the tips of level sets on the femur (99.9th
+//! percentile 0.23 mm), so the cell stays at R_mach / 2.
+//!
+//! The 5 ms target (about 20M instructions at this machine's rate) is still out of
+//! reach: the offsets alone (68 equal distance offsets and the two boundary
+//! offsets; 3 of the 70 now need the i_overlay outline, 5.0M) take 25M, and the level
+//! sets, the distance transforms and the trimming another 50M. cavalier_contours 0.9 parallel_offset was measured too (offsets
 //! 132M -> 54.5M) and not taken: a debug assertion in it fails on an example job (a
 //! 0.06 mm sliver eroded by 0.4 mm) and its offset path has expect()s.
 
