@@ -178,11 +178,11 @@ impl Boundary {
         Boundary { segs, loop_of }
     }
 
-    /// The distance from `p` to the boundary and the nearest point, for `p` near two
-    /// grid nodes whose nearest edges are `s0` and `s1`: from each of those edges, walk
-    /// along its loop while the distance falls. The nearest point of a point between
-    /// the two nodes lies along the loop from one of theirs (it moves continuously,
-    /// except across the medial axis, where it jumps from near one to near the other).
+    /// The distance from `p` to the boundary and the nearest point, for `p` near grid
+    /// nodes whose nearest edges are `seeds`: from each of those edges, walk along its
+    /// loop while the distance falls. The nearest point of a point between the nodes
+    /// lies along the loop from one of theirs (it moves continuously, except across
+    /// the medial axis, where it jumps from near one to near another).
     fn near(&self, seeds: impl IntoIterator<Item = u32>, p: DVec2) -> (f64, DVec2) {
         let mut best = (f64::INFINITY, p);
         let mut last = None;
@@ -244,9 +244,10 @@ impl Boundary {
 }
 
 /// Vector distance transform: distance from every node to the nearest point of the
-/// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere. Nodes
-/// carry their nearest boundary point and the squared distance to it: squared
-/// distances order the same as distances and spare a square root per relaxation.
+/// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere, and the
+/// edge that point lies on (numbered as [`Boundary::of`] numbers them). Nodes carry
+/// their nearest boundary point and the squared distance to it: squared distances
+/// order the same as distances and spare a square root per relaxation.
 fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> (Vec<f64>, Vec<u32>) {
     let (nx, ny) = (grid.nx, grid.ny);
     let n = nx * ny;
@@ -384,7 +385,8 @@ impl DistanceField {
             .zip(&in_hole)
             .map(|(o, h)| *o && !*h)
             .collect();
-        let (de, outer_seg) = distance_to_loops(&grid, &[&region.outer]);
+        let (de, _) = distance_to_loops(&grid, &[&region.outer]);
+        // No Ci, so nothing is placed on exact level sets: no boundary edges kept.
         DistanceField {
             origin: grid.origin,
             h: grid.h,
@@ -394,8 +396,8 @@ impl DistanceField {
             de,
             di: Vec::new(),
             inside,
-            outer: Boundary::of(&[&region.outer]),
-            outer_seg,
+            outer: Boundary::of(&[]),
+            outer_seg: Vec::new(),
             inner: Inner::None,
         }
     }
@@ -465,12 +467,12 @@ impl DistanceField {
     /// The exact normalised distance at `p`, near grid `nodes` in the material, from
     /// the boundary edges near theirs, with its gradient; none where it is undefined.
     fn exact_at(&self, nodes: &[usize], p: DVec2) -> Option<(f64, DVec2)> {
-        let (e, qe) = self.outer.near(nodes.iter().map(|&k| self.outer_seg[k]), p);
         let (a, qa) = match &self.inner {
             Inner::Holes { holes, seg } => holes.near(nodes.iter().map(|&k| seg[k]), p),
             Inner::Centre(c) => (p.distance(*c), *c),
             Inner::None => return None,
         };
+        let (e, qe) = self.outer.near(nodes.iter().map(|&k| self.outer_seg[k]), p);
         let s = a + e;
         if !(a > 0.0 && e > 0.0 && s.is_finite()) {
             return None;
@@ -681,7 +683,8 @@ impl DistanceField {
     /// the cell before it.
     pub fn level_sets(&self, m: u32) -> Vec<Vec<Vec<DVec2>>> {
         let levels = m.saturating_sub(1) as usize;
-        if levels == 0 {
+        // A field from [`DistanceField::outer_only`] has no normalised distance to trace.
+        if levels == 0 || self.d.len() != self.nx * self.ny {
             return Vec::new();
         }
         let mut segs: Vec<Vec<Segment>> = vec![Vec::new(); levels];
