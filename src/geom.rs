@@ -212,19 +212,25 @@ impl NearSegments {
         self.segments.truncate(len);
     }
 
-    /// [`SegmentIndex::within`] over the segments `range` of those gathered.
+    /// [`SegmentIndex::within`] over the segments `range` of those gathered (none
+    /// where the range is not theirs).
     pub fn within(&self, range: std::ops::Range<usize>, p: DVec2, r_mm: f64) -> bool {
         let reach = r_mm + reject_slack(r_mm);
-        self.segments[range]
+        self.segments
+            .get(range)
+            .unwrap_or_default()
             .iter()
             .any(|&(c, d)| point_hit(p, c, d, r_mm, reach))
     }
 
-    /// [`SegmentIndex::any_within`] over the segments `range` of those gathered.
+    /// [`SegmentIndex::any_within`] over the segments `range` of those gathered (none
+    /// where the range is not theirs).
     pub fn any_within(&self, range: std::ops::Range<usize>, a: DVec2, b: DVec2, r_mm: f64) -> bool {
         let (lo, hi) = (a.min(b), a.max(b));
         let reach = r_mm + reject_slack(r_mm);
-        self.segments[range]
+        self.segments
+            .get(range)
+            .unwrap_or_default()
             .iter()
             .any(|&seg| segment_hit(a, b, lo, hi, seg, r_mm, reach))
     }

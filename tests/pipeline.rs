@@ -1,8 +1,8 @@
 //! The pipeline on the example jobs: planned layers become a valid, contiguous move stream
 //! whose per-syringe volumes equal the plan's.
 
-use edo::edo::plan_layers;
-use edo::job::Job;
+use edo::edo::{plan_layers, LayerPlan};
+use edo::job::{Job, LayerSlice};
 use edo::machine::MoveKind;
 use edo::pipeline::{layer_moves, ProcessSettings, StreamState};
 
@@ -10,6 +10,14 @@ fn job(name: &str) -> Job {
     let path = format!("{}/config/examples/{name}.toml", env!("CARGO_MANIFEST_DIR"));
     let text = std::fs::read_to_string(&path).unwrap();
     Job::from_toml(&text, &path).unwrap()
+}
+
+/// An example job with its first `n` layers sliced and planned.
+fn planned(name: &str, n: usize) -> (Job, Vec<LayerSlice>, Vec<LayerPlan>) {
+    let job = job(name);
+    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
+    let layers = plan_layers(&slices[..n], &job.plan, None).unwrap();
+    (job, slices, layers)
 }
 
 #[test]
@@ -136,9 +144,7 @@ fn want_nonzero(v: &[u64]) -> bool {
 fn annulus_coverage_meets_targets() {
     use edo::pipeline::layer_paths;
     use edo::toolpath::coverage::measure;
-    let job = job("paper-annulus");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+    let (job, slices, layers) = planned("paper-annulus", 1);
     let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
     let mut plain = s.clone();
     plain.flow_raise = false;
@@ -172,9 +178,7 @@ fn annulus_coverage_meets_targets() {
 fn flow_raise_closes_crown_voids_within_the_cap() {
     use edo::pipeline::layer_paths;
     use edo::toolpath::coverage::measure;
-    let job = job("tooth-crown");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+    let (job, slices, layers) = planned("tooth-crown", 1);
     let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
     let mut plain = s.clone();
     plain.flow_raise = false;
@@ -203,9 +207,7 @@ fn flow_raise_closes_crown_voids_within_the_cap() {
 /// designed-versus-delivered error under plug flow.
 #[test]
 fn mixing_lead_cuts_delivered_composition_error() {
-    let job = job("paper-annulus");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+    let (job, _, layers) = planned("paper-annulus", 1);
     let mut errors = Vec::new();
     for lead in [false, true] {
         let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
@@ -232,9 +234,7 @@ fn mixing_lead_cuts_delivered_composition_error() {
 fn roads_preview_draws_everything() {
     use edo::pipeline::layer_paths;
     use edo::toolpath::coverage::measure_with_voids;
-    let job = job("tooth-crown");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+    let (job, slices, layers) = planned("tooth-crown", 1);
     let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
     let paths = layer_paths(&layers[0], &s, &StreamState::new());
     let (_, voids) =
@@ -260,9 +260,7 @@ fn roads_preview_draws_everything() {
 #[test]
 fn alternating_order_removes_the_layer_change_jump() {
     use edo::toolpath::SubRegionOrder;
-    let job = job("paper-annulus");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..2], &job.plan, None).unwrap();
+    let (job, _, layers) = planned("paper-annulus", 2);
     let mut worst = Vec::new();
     for order in [SubRegionOrder::InnerToOuter, SubRegionOrder::Alternating] {
         let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
@@ -288,9 +286,7 @@ fn alternating_order_removes_the_layer_change_jump() {
 #[test]
 fn purge_pad_removes_the_layer_change_jump() {
     use edo::machine::MoveKind;
-    let job = job("paper-annulus");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..2], &job.plan, None).unwrap();
+    let (job, _, layers) = planned("paper-annulus", 2);
     let run = |purge: Option<[f64; 2]>| {
         let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
         s.v_dead_ul = 2.0;
@@ -356,9 +352,7 @@ fn width_matching_keeps_overlap_and_outside_within_targets() {
     use edo::pipeline::layer_paths;
     use edo::toolpath::coverage::measure;
     for name in ["non-star", "tooth-crown"] {
-        let job = job(name);
-        let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-        let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+        let (job, slices, layers) = planned(name, 1);
         let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
         let paths = layer_paths(&layers[0], &s, &StreamState::new());
         let c = measure(&slices[0].layer.islands, &paths, s.road_width(), 0.02);
@@ -375,9 +369,7 @@ fn width_matching_keeps_overlap_and_outside_within_targets() {
 fn slanted_fiber_ends_are_continued_into_their_corners() {
     use edo::pipeline::layer_paths;
     use edo::toolpath::coverage::measure;
-    let job = job("fibers");
-    let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-    let layers = plan_layers(&slices[..1], &job.plan, None).unwrap();
+    let (job, slices, layers) = planned("fibers", 1);
     let s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
     let islands = &slices[0].layer.islands;
     let paths = layer_paths(&layers[0], &s, &StreamState::new());

@@ -245,10 +245,10 @@ impl Boundary {
 
 /// Vector distance transform: distance from every node to the nearest point of the
 /// loops' edges, exact near the edges and propagated (8SSEDT-style) elsewhere, and the
-/// edge that point lies on (numbered as [`Boundary::of`] numbers them). Nodes carry
+/// edge of `boundary` that point lies on. Nodes carry
 /// their nearest boundary point and the squared distance to it: squared distances
 /// order the same as distances and spare a square root per relaxation.
-fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> (Vec<f64>, Vec<u32>) {
+fn distance_to_loops(grid: &Grid, boundary: &Boundary) -> (Vec<f64>, Vec<u32>) {
     let (nx, ny) = (grid.nx, grid.ny);
     let n = nx * ny;
     let mut near = vec![
@@ -260,39 +260,24 @@ fn distance_to_loops(grid: &Grid, loops: &[&Vec<DVec2>]) -> (Vec<f64>, Vec<u32>)
         n
     ];
     let band = 1.5 * grid.h;
-    let mut seg = 0u32;
-    for l in loops {
-        let m = l.len();
-        for i in 0..m {
-            let (a, b) = (l[i], l[(i + 1) % m]);
-            seg += 1;
-            let lo = (a.min(b) - DVec2::splat(band) - grid.origin) / grid.h;
-            let hi = (a.max(b) + DVec2::splat(band) - grid.origin) / grid.h;
-            let (c0, r0) = (lo.x.ceil().max(0.0) as usize, lo.y.ceil().max(0.0) as usize);
-            let (c1, r1) = (
-                (hi.x.floor().max(0.0) as usize).min(nx - 1),
-                (hi.y.floor().max(0.0) as usize).min(ny - 1),
-            );
-            let ab = b - a;
-            let len2 = ab.length_squared();
-            for r in r0..=r1 {
-                for c in c0..=c1 {
-                    let p = grid.node(c, r);
-                    let t = if len2 > 0.0 {
-                        ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
-                    } else {
-                        0.0
+    for (k, &(a, b)) in boundary.segs.iter().enumerate() {
+        let lo = (a.min(b) - DVec2::splat(band) - grid.origin) / grid.h;
+        let hi = (a.max(b) + DVec2::splat(band) - grid.origin) / grid.h;
+        let (c0, r0) = (lo.x.ceil().max(0.0) as usize, lo.y.ceil().max(0.0) as usize);
+        let (c1, r1) = (
+            (hi.x.floor().max(0.0) as usize).min(nx - 1),
+            (hi.y.floor().max(0.0) as usize).min(ny - 1),
+        );
+        for r in r0..=r1 {
+            for c in c0..=c1 {
+                let (d2, q) = boundary.to_edge(k as u32, grid.node(c, r));
+                let here = &mut near[r * nx + c];
+                if d2 < here.d2 {
+                    *here = Nearest {
+                        q,
+                        d2,
+                        seg: k as u32,
                     };
-                    let q = a + ab * t;
-                    let d2 = p.distance_squared(q);
-                    let k = r * nx + c;
-                    if d2 < near[k].d2 {
-                        near[k] = Nearest {
-                            q,
-                            d2,
-                            seg: seg - 1,
-                        };
-                    }
                 }
             }
         }
@@ -385,7 +370,7 @@ impl DistanceField {
             .zip(&in_hole)
             .map(|(o, h)| *o && !*h)
             .collect();
-        let (de, _) = distance_to_loops(&grid, &[&region.outer]);
+        let (de, _) = distance_to_loops(&grid, &Boundary::of(&[&region.outer]));
         // No Ci, so nothing is placed on exact level sets: no boundary edges kept.
         DistanceField {
             origin: grid.origin,
@@ -414,7 +399,8 @@ impl DistanceField {
         let in_outer = fill_inside(&grid, &[&region.outer]);
         let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
         let in_hole = fill_inside(&grid, &holes);
-        let (de, outer_seg) = distance_to_loops(&grid, &[&region.outer]);
+        let outer = Boundary::of(&[&region.outer]);
+        let (de, outer_seg) = distance_to_loops(&grid, &outer);
         let (di, inner): (Vec<f64>, Inner) = if holes.is_empty() {
             let c = centre.unwrap_or_else(|| crate::geom::centroid(&region.outer));
             (
@@ -425,14 +411,9 @@ impl DistanceField {
                 Inner::Centre(c),
             )
         } else {
+            let holes = Boundary::of(&holes);
             let (di, seg) = distance_to_loops(&grid, &holes);
-            (
-                di,
-                Inner::Holes {
-                    holes: Boundary::of(&holes),
-                    seg,
-                },
-            )
+            (di, Inner::Holes { holes, seg })
         };
         let mut d = vec![0.0; grid.nx * grid.ny];
         let mut inside = vec![false; grid.nx * grid.ny];
@@ -458,7 +439,7 @@ impl DistanceField {
             de,
             di,
             inside,
-            outer: Boundary::of(&[&region.outer]),
+            outer,
             outer_seg,
             inner,
         }
@@ -996,5 +977,32 @@ mod tests {
         assert!(corners > 0, "no corner found on the medial axis");
         let all: Vec<&[DVec2]> = levels.iter().flatten().map(|l| l.as_slice()).collect();
         assert!(crate::geom::first_crossing(&all).is_none());
+    }
+
+    /// A field of distances to Ce only (the pole search) has no normalised distance:
+    /// it traces no level sets. Broken regions (a NaN vertex, a hole outside the outer
+    /// loop, a degenerate outer loop) give a field without a panic.
+    #[test]
+    fn odd_fields_trace_without_panicking() {
+        let outer = circle(DVec2::ZERO, 10.0, 0.01);
+        let region = Region::new(outer.clone(), Vec::new());
+        assert!(DistanceField::outer_only(&region, 0.5, 1 << 16)
+            .level_sets(5)
+            .is_empty());
+        let mut nan = outer.clone();
+        nan[3] = DVec2::new(f64::NAN, 0.0);
+        let mut far_hole = circle(DVec2::new(40.0, 0.0), 2.0, 0.01);
+        far_hole.reverse();
+        let flat = vec![DVec2::ZERO, DVec2::X, DVec2::new(2.0, 0.0)];
+        for region in [
+            Region::new(nan, Vec::new()),
+            Region::new(outer.clone(), vec![far_hole]),
+            Region::new(flat, Vec::new()),
+        ] {
+            let field = DistanceField::new(&region, None, 0.5, 1 << 16);
+            for loops in field.level_sets(5) {
+                assert!(loops.iter().all(|l| l.len() >= 3));
+            }
+        }
     }
 }

@@ -453,9 +453,19 @@ mod tests {
         paths[3].points[2] = DVec2::new(f64::NAN, 1.0);
         paths[4].points[1] = paths[4].points[2];
         paths[5].width_factors.pop();
+        let doubled_end = paths[4].points[2];
         let islands = vec![part];
         continue_slanted_ends(&mut paths, &S, &islands);
-        assert!(paths[5].points.len() == 3 && paths[4].points.len() >= 3);
+        // The NaN end and the end whose last edge has no length are not continued (the
+        // other end of each may be); the path with a width missing is not touched.
+        assert!(paths[3].points.last().is_some_and(|p| p.x.is_nan()));
+        assert_eq!(paths[3].points.len(), paths[3].width_factors.len());
+        assert_eq!(paths[4].points.last(), Some(&doubled_end));
+        assert!(paths[5].points.len() == 3 && paths[5].width_factors.len() == 2);
+        assert!(paths
+            .iter()
+            .flat_map(|p| &p.width_factors)
+            .all(|f| f.is_finite() && *f >= 0.0));
         let mut bad = S;
         bad.road_width_mm = f64::NAN;
         let counts: Vec<usize> = paths.iter().map(|p| p.points.len()).collect();
