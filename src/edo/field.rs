@@ -555,6 +555,12 @@ impl DistanceField {
         let (Some(ga), Some(gb)) = (a.grad, b.grad) else {
             return;
         };
+        // Most pieces turn less than BEND_TURN: their cosine says so without the acos.
+        if depth == 0
+            || ga.dot(gb) >= BEND_TURN.cos() * (ga.length_squared() * gb.length_squared()).sqrt()
+        {
+            return;
+        }
         let chord = a.p.distance(b.p);
         let turn = ga.angle_to(gb).abs();
         let bends = turn > BEND_TURN && chord * turn / 4.0 > BEND_MM;
