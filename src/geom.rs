@@ -39,6 +39,15 @@ impl Default for Tolerances {
     }
 }
 
+/// The edges of a closed loop in order, from vertex 0: `(pts[i], pts[i + 1])`, the last
+/// back to the first (without a division per edge).
+pub fn loop_edges(pts: &[DVec2]) -> impl Iterator<Item = (DVec2, DVec2)> + '_ {
+    let last = pts.last().copied();
+    pts.windows(2)
+        .map(|w| (w[0], w[1]))
+        .chain(last.zip(pts.first().copied()).filter(|_| pts.len() > 1))
+}
+
 /// Twice the signed area of a closed loop (positive when counter-clockwise).
 pub fn signed_area2(pts: &[DVec2]) -> f64 {
     let n = pts.len();
@@ -46,9 +55,7 @@ pub fn signed_area2(pts: &[DVec2]) -> f64 {
         return 0.0;
     }
     let mut s = 0.0;
-    for i in 0..n {
-        let a = pts[i];
-        let b = pts[(i + 1) % n];
+    for (a, b) in loop_edges(pts) {
         s += a.x * b.y - b.x * a.y;
     }
     s
@@ -65,7 +72,7 @@ pub fn loop_length(pts: &[DVec2]) -> f64 {
     if n < 2 {
         return 0.0;
     }
-    (0..n).map(|i| pts[i].distance(pts[(i + 1) % n])).sum()
+    loop_edges(pts).map(|(a, b)| a.distance(b)).sum()
 }
 
 /// Length of an open polyline, mm.
@@ -84,9 +91,7 @@ pub fn centroid(pts: &[DVec2]) -> DVec2 {
         return pts.iter().copied().sum::<DVec2>() / n as f64;
     }
     let mut c = DVec2::ZERO;
-    for i in 0..n {
-        let p = pts[i];
-        let q = pts[(i + 1) % n];
+    for (p, q) in loop_edges(pts) {
         let cross = p.x * q.y - q.x * p.y;
         c += (p + q) * cross;
     }
@@ -270,9 +275,8 @@ pub fn segment_segment_distance(a: DVec2, b: DVec2, c: DVec2, d: DVec2) -> f64 {
 
 /// Distance from `p` to the closest point of a closed loop's boundary.
 pub fn point_loop_distance(p: DVec2, pts: &[DVec2]) -> f64 {
-    let n = pts.len();
-    (0..n)
-        .map(|i| point_segment_distance(p, pts[i], pts[(i + 1) % n]))
+    loop_edges(pts)
+        .map(|(a, b)| point_segment_distance(p, a, b))
         .fold(f64::INFINITY, f64::min)
 }
 
@@ -431,27 +435,26 @@ pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
     keep[0] = true;
     keep[far] = true;
     let mut stack = vec![(0usize, far), (far, n)];
+    let tolerance2 = tolerance_mm * tolerance_mm;
     while let Some((a, b)) = stack.pop() {
         if b <= a + 1 {
             continue;
         }
         let (pa, pb) = (pts[a], pts[b % n]);
         let mut worst = (0.0, a);
-        // `point_segment_distance(p, pa, pb)` with the chord's terms computed once.
+        // The squared `point_segment_distance(p, pa, pb)`, with the chord's terms
+        // computed once (and no division or square root per point).
         let ab = pb - pa;
         let len2 = ab.length_squared();
+        let inv_len2 = if len2 > 0.0 { 1.0 / len2 } else { 0.0 };
         for (k, p) in pts[a + 1..b].iter().enumerate() {
-            let d = if len2 <= 0.0 {
-                p.distance(pa)
-            } else {
-                let t = ((*p - pa).dot(ab) / len2).clamp(0.0, 1.0);
-                p.distance(pa + ab * t)
-            };
-            if d > worst.0 {
-                worst = (d, a + 1 + k);
+            let t = ((*p - pa).dot(ab) * inv_len2).clamp(0.0, 1.0);
+            let d2 = p.distance_squared(pa + ab * t);
+            if d2 > worst.0 {
+                worst = (d2, a + 1 + k);
             }
         }
-        if worst.0 > tolerance_mm {
+        if worst.0 > tolerance2 {
             keep[worst.1] = true;
             stack.push((a, worst.1));
             stack.push((worst.1, b));

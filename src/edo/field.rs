@@ -159,9 +159,18 @@ struct Nearest {
 /// The edges of a set of closed loops, numbered loop after loop, with each edge's loop
 /// (to reach its neighbours along the loop).
 struct Boundary {
-    segs: Vec<(DVec2, DVec2)>,
+    segs: Vec<Edge>,
     /// First edge and edge count of the loop of each edge.
     loop_of: Vec<(u32, u32)>,
+}
+
+/// A boundary edge from `a` to `a + ab`, with `1 / |ab|²` (0 for a point) for the
+/// nearest-point projections.
+#[derive(Clone, Copy)]
+struct Edge {
+    a: DVec2,
+    ab: DVec2,
+    inv_len2: f64,
 }
 
 impl Boundary {
@@ -171,7 +180,13 @@ impl Boundary {
         for l in loops {
             let (start, n) = (segs.len() as u32, l.len() as u32);
             for i in 0..l.len() {
-                segs.push((l[i], l[(i + 1) % l.len()]));
+                let (a, b) = (l[i], l[(i + 1) % l.len()]);
+                let len2 = (b - a).length_squared();
+                segs.push(Edge {
+                    a,
+                    ab: b - a,
+                    inv_len2: if len2 > 0.0 { 1.0 / len2 } else { 0.0 },
+                });
                 loop_of.push((start, n));
             }
         }
@@ -201,14 +216,8 @@ impl Boundary {
 
     /// Squared distance and nearest point of `p` on edge `k`.
     fn to_edge(&self, k: u32, p: DVec2) -> (f64, DVec2) {
-        let (a, b) = self.segs[k as usize];
-        let ab = b - a;
-        let len2 = ab.length_squared();
-        let t = if len2 > 0.0 {
-            ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
+        let Edge { a, ab, inv_len2 } = self.segs[k as usize];
+        let t = ((p - a).dot(ab) * inv_len2).clamp(0.0, 1.0);
         let q = a + ab * t;
         (p.distance_squared(q), q)
     }
@@ -218,13 +227,20 @@ impl Boundary {
         let Some(&(start, n)) = self.loop_of.get(s as usize) else {
             return (f64::INFINITY, p);
         };
+        // The next edge round the loop (without an integer division).
         let step = |k: u32, forward: bool| {
             let i = k - start;
             start
                 + if forward {
-                    (i + 1) % n
+                    if i + 1 == n {
+                        0
+                    } else {
+                        i + 1
+                    }
+                } else if i == 0 {
+                    n - 1
                 } else {
-                    (i + n - 1) % n
+                    i - 1
                 }
         };
         let mut best = self.to_edge(s, p);
@@ -260,7 +276,8 @@ fn distance_to_loops(grid: &Grid, boundary: &Boundary) -> (Vec<f64>, Vec<u32>) {
         n
     ];
     let band = 1.5 * grid.h;
-    for (k, &(a, b)) in boundary.segs.iter().enumerate() {
+    for (k, edge) in boundary.segs.iter().enumerate() {
+        let (a, b) = (edge.a, edge.a + edge.ab);
         let lo = (a.min(b) - DVec2::splat(band) - grid.origin) / grid.h;
         let hi = (a.max(b) + DVec2::splat(band) - grid.origin) / grid.h;
         let (c0, r0) = (lo.x.ceil().max(0.0) as usize, lo.y.ceil().max(0.0) as usize);
@@ -525,8 +542,11 @@ impl DistanceField {
         let n = placed.len();
         let keep: Vec<bool> = (0..n)
             .map(|k| {
-                let (before, here, after) =
-                    (&placed[(k + n - 1) % n], &placed[k], &placed[(k + 1) % n]);
+                let (before, here, after) = (
+                    &placed[if k == 0 { n - 1 } else { k - 1 }],
+                    &placed[k],
+                    &placed[if k + 1 == n { 0 } else { k + 1 }],
+                );
                 here.on_level || here.grad.is_none() || !(before.on_level && after.on_level)
             })
             .collect();
@@ -544,7 +564,7 @@ impl DistanceField {
         let n = placed.len();
         let mut out = Vec::with_capacity(n + n / 4);
         for k in 0..n {
-            let (a, b) = (placed[k], placed[(k + 1) % n]);
+            let (a, b) = (placed[k], placed[if k + 1 == n { 0 } else { k + 1 }]);
             out.push(a.p);
             self.bend_between(a, b, t, BEND_DEPTH, &mut out);
         }
