@@ -153,6 +153,7 @@ struct RawProcess {
     layer: Option<LayerSpec>,
     boundary_offset: Option<f64>,
     offset_end_clearance: Option<f64>,
+    min_road: Option<f64>,
     radial_lines: Option<usize>,
     field_cell: Option<f64>,
     cusp: Option<f64>,
@@ -309,6 +310,18 @@ impl Job {
                 ));
             }
             plan.offset_end_clearance_mm = c;
+        }
+        if let Some(l) = p.min_road {
+            if !l.is_finite() || l < 0.0 || l > p.nozzle {
+                return Err(bad(
+                    "process.min_road",
+                    format!(
+                        "must be a length from 0 to the nozzle ({} mm), got {l}",
+                        p.nozzle
+                    ),
+                ));
+            }
+            plan.min_road_mm = l;
         }
         if let Some(n) = p.radial_lines {
             if !(8..=100_000).contains(&n) {

@@ -44,6 +44,7 @@ pub struct Settings {
     pub nozzle_mm: f64,
     pub boundary_offset_mm: f64,
     pub offset_end_clearance_mm: f64,
+    pub min_road_mm: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -347,6 +348,7 @@ pub fn build(
             nozzle_mm: job.plan.nozzle_mm,
             boundary_offset_mm: job.plan.boundary_offset_mm,
             offset_end_clearance_mm: job.plan.offset_end_clearance_mm,
+            min_road_mm: job.plan.min_road_mm,
         },
         mesh: notes.mesh,
         slicing: notes.slicing,

@@ -391,3 +391,45 @@ fn slanted_fiber_ends_are_continued_into_their_corners() {
         "{plain:?} vs {c:?}"
     );
 }
+
+/// The lengths of every inner contour road and equal distance offset road of `layers`.
+fn inner_road_lengths(layers: &[LayerPlan]) -> Vec<f64> {
+    let mut out = Vec::new();
+    for r in layers.iter().flat_map(|l| &l.regions) {
+        let last = r.contours.len() as u32;
+        for c in r.contours.iter().filter(|c| c.j > 1 && c.j < last) {
+            out.extend(c.roads.iter().map(|p| p.length_mm()));
+        }
+        for s in &r.sub_regions {
+            out.extend(s.offsets.iter().flatten().map(|p| p.length_mm()));
+        }
+    }
+    out
+}
+
+#[test]
+fn roads_shorter_than_min_road_are_left_out() {
+    // Femur layers where trimmed and clipped offsets leave pieces microns long.
+    let path = std::path::PathBuf::from(format!(
+        "{}/config/examples/femur-graded.toml",
+        env!("CARGO_MANIFEST_DIR")
+    ));
+    let mut job = edo::cli::plan::load_job(&path).unwrap();
+    let mut slices = Vec::new();
+    for range in [60..61, 150..151, 745..746] {
+        let (s, _) = edo::cli::plan::job_layers(&job, &path, Some(range), true).unwrap();
+        slices.extend(s);
+    }
+    let min_road = job.plan.min_road_mm;
+    assert!((min_road - job.plan.nozzle_mm / 4.0).abs() < 1e-12);
+    let kept = inner_road_lengths(&plan_layers(&slices, &job.plan, None).unwrap());
+    assert!(
+        kept.iter().all(|&l| l >= min_road),
+        "a road under {min_road} mm"
+    );
+    job.plan.min_road_mm = 0.0;
+    let all = inner_road_lengths(&plan_layers(&slices, &job.plan, None).unwrap());
+    let short = all.iter().filter(|&&l| l < min_road).count();
+    assert!(short >= 3, "{short} short roads without the limit");
+    assert_eq!(all.len() - kept.len(), short);
+}

@@ -154,6 +154,11 @@ fn bad_jobs_fail_with_named_errors() {
         ),
         (
             "[process]",
+            "[process]\nmin_road = -0.1",
+            "process.min_road",
+        ),
+        (
+            "[process]",
             "[toolpath]\npurge_pad_mm = -1.0\n[process]",
             "toolpath.purge_pad_mm",
         ),

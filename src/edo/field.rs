@@ -706,6 +706,14 @@ impl DistanceField {
         let mut top_below = vec![none; levels * nx];
         let mut top_here = vec![none; levels * nx];
         let mut right = vec![none; levels];
+        // floor(d m) per node: a cell crosses level k when the least of its corners'
+        // is below k and the greatest at least k (floor is monotone, so this is
+        // floor(lo m) and floor(hi m) of the cell's least and greatest value).
+        let band: Vec<i64> = self
+            .d
+            .iter()
+            .map(|v| floor_clamped(v * mf) as i64)
+            .collect();
         for r in 0..ny - 1 {
             std::mem::swap(&mut top_below, &mut top_here);
             for c in 0..nx - 1 {
@@ -715,20 +723,24 @@ impl DistanceField {
                     ((r + 1) * nx + c + 1) as u64,
                     ((r + 1) * nx + c) as u64,
                 ];
+                let b = [
+                    band[ids[0] as usize],
+                    band[ids[1] as usize],
+                    band[ids[2] as usize],
+                    band[ids[3] as usize],
+                ];
+                // Level k/m is crossed when lo < k/m <= hi.
+                let k_lo = (b[0].min(b[1]).min(b[2]).min(b[3]) + 1).max(1);
+                let k_hi = b[0].max(b[1]).max(b[2]).max(b[3]).min(m as i64 - 1);
+                if k_lo > k_hi {
+                    continue;
+                }
                 let val = [
                     self.d[ids[0] as usize],
                     self.d[ids[1] as usize],
                     self.d[ids[2] as usize],
                     self.d[ids[3] as usize],
                 ];
-                let lo = val[0].min(val[1]).min(val[2]).min(val[3]);
-                let hi = val[0].max(val[1]).max(val[2]).max(val[3]);
-                // Level k/m is crossed when lo < k/m <= hi.
-                let k_lo = (floor_clamped(lo * mf) as i64 + 1).max(1);
-                let k_hi = (floor_clamped(hi * mf) as i64).min(m as i64 - 1);
-                if k_lo > k_hi {
-                    continue;
-                }
                 let centre_id = nodes + (r * (nx - 1) + c) as u64;
                 let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
                 for k in k_lo..=k_hi {

@@ -21,6 +21,7 @@
 //!    non-continuous segments where the neighbouring contour cuts them, Fig. 4(a)),
 //!    their compositions by eq (6) and the step width W by eq (7). Offsets stop
 //!    `offset_end_clearance_mm` short of the contour they run into (§4 narrow areas).
+//!    Inner contour and offset roads shorter than `min_road_mm` are left out.
 //!
 //! The result is a compact [`LayerPlan`] (§3.2, last paragraph): per sub-region one
 //! contour composition, W and N_max, plus the road geometry.
@@ -121,6 +122,11 @@ pub struct PlanOptions {
     /// is at most 1.5 road widths centre to centre, which the flow raise closes
     /// (`max_flow_factor` 1.5). Default D_noz / 2; 0 clips at the contour itself.
     pub offset_end_clearance_mm: f64,
+    /// Roads shorter than this are left out, mm: the open pieces an offset leaves where
+    /// it is trimmed or clipped twice close together, and loops round a vanishing
+    /// area, which would build a start-stop blob rather than a road. Contours C1 and
+    /// Cm+1 (the part's own surface) are never shortened. Default D_noz / 4.
+    pub min_road_mm: f64,
     pub subdivision: Subdivision,
     /// Which bounding contour the equal distance offsets start from (eq (6)).
     pub direction: OffsetDirection,
@@ -146,6 +152,7 @@ impl PlanOptions {
             nozzle_mm,
             boundary_offset_mm: nozzle_mm / 2.0,
             offset_end_clearance_mm: nozzle_mm / 2.0,
+            min_road_mm: nozzle_mm / 4.0,
             subdivision: Subdivision::Auto,
             direction: OffsetDirection::Inward,
             radial_lines: 360,
@@ -514,11 +521,13 @@ pub fn plan_region(
             } else if j == 1 && pre.inner_is_boundary && !parallel {
                 hole_runs.clone()
             } else {
-                levels[(j - 1) as usize].roads(
+                let mut roads = levels[(j - 1) as usize].roads(
                     &interior_area,
                     parallel && (j == 1 || j == m + 1),
                     eps,
-                )
+                );
+                roads.retain(|r| r.length_mm() >= opts.min_road_mm);
+                roads
             },
         })
         .collect();
@@ -672,6 +681,8 @@ pub fn plan_region(
                 }
                 Some(area) => level.roads(area, false, eps),
             };
+            let mut roads = roads;
+            roads.retain(|r| r.length_mm() >= opts.min_road_mm);
             offsets.push(roads);
         }
         sub_regions.push(SubRegion {
