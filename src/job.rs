@@ -300,27 +300,11 @@ impl Job {
             plan.boundary_offset_mm = b;
         }
         if let Some(c) = p.offset_end_clearance {
-            if !c.is_finite() || c < 0.0 || c > p.nozzle {
-                return Err(bad(
-                    "process.offset_end_clearance",
-                    format!(
-                        "must be a distance from 0 to the nozzle ({} mm), got {c}",
-                        p.nozzle
-                    ),
-                ));
-            }
+            up_to_nozzle(c, p.nozzle, "process.offset_end_clearance", &bad)?;
             plan.offset_end_clearance_mm = c;
         }
         if let Some(l) = p.min_road {
-            if !l.is_finite() || l < 0.0 || l > p.nozzle {
-                return Err(bad(
-                    "process.min_road",
-                    format!(
-                        "must be a length from 0 to the nozzle ({} mm), got {l}",
-                        p.nozzle
-                    ),
-                ));
-            }
+            up_to_nozzle(l, p.nozzle, "process.min_road", &bad)?;
             plan.min_road_mm = l;
         }
         if let Some(n) = p.radial_lines {
@@ -843,6 +827,22 @@ fn positive<E>(v: f64, key: &str, bad: &impl Fn(&str, String) -> E) -> Result<()
         return Err(bad(
             key,
             format!("must be a positive number of mm, got {v}"),
+        ));
+    }
+    Ok(())
+}
+
+/// A length from 0 to the nozzle diameter, mm.
+fn up_to_nozzle<E>(
+    v: f64,
+    nozzle_mm: f64,
+    key: &str,
+    bad: &impl Fn(&str, String) -> E,
+) -> Result<(), E> {
+    if !v.is_finite() || v < 0.0 || v > nozzle_mm {
+        return Err(bad(
+            key,
+            format!("must be a length from 0 to the nozzle ({nozzle_mm} mm), got {v}"),
         ));
     }
     Ok(())
