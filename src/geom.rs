@@ -183,7 +183,38 @@ fn segment_hit(
     let (c, d) = seg;
     // Boxes farther apart than the reach along an axis cannot be within it.
     let gap = (c.min(d) - hi).max(lo - c.max(d));
-    gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
+    gap.x <= reach && gap.y <= reach && segment_near(a, b, c, d, r_mm, reach)
+}
+
+/// The exact part of [`segment_hit`], for segments whose boxes come within the reach:
+/// out of line (only these few get here, the box test stays in the caller's loop).
+#[inline(never)]
+fn segment_near(a: DVec2, b: DVec2, c: DVec2, d: DVec2, r_mm: f64, reach: f64) -> bool {
+    !beside_line(a, b, c, d, reach) && segments_within(a, b, c, d, r_mm)
+}
+
+/// Do `c` and `d` both lie on one side of the line through `a` and `b`, farther from it
+/// than `reach` (allowing for the rounding of this test)? Then every point of `c`–`d` is
+/// farther than `reach` from `a`–`b`: the four point-segment distances of
+/// [`segments_within`] exceed any radius `reach` is [`reject_slack`] beyond, and its
+/// crossing test sees both orientations (`orient(a, b, c)`, `orient(a, b, d)`, the same
+/// products as here) nonzero of one sign. A cheap rejection before that exact test.
+#[inline]
+fn beside_line(a: DVec2, b: DVec2, c: DVec2, d: DVec2, reach: f64) -> bool {
+    let ab = b - a;
+    let (ca, da) = (c - a, d - a);
+    let (sc, sd) = (ab.perp_dot(ca), ab.perp_dot(da));
+    let s = if sc > 0.0 && sd > 0.0 {
+        sc.min(sd)
+    } else if sc < 0.0 && sd < 0.0 {
+        (-sc).min(-sd)
+    } else {
+        return false;
+    };
+    // Each product is within 4 ulps of the 1-norms' product of the exact one.
+    let l1 = |v: DVec2| v.x.abs() + v.y.abs();
+    let s = s - 4.0 * f64::EPSILON * l1(ab) * l1(ca).max(l1(da));
+    s > 0.0 && s * s > reach * reach * ab.length_squared() * (1.0 + 1e-12)
 }
 
 /// Some segments of a [`SegmentIndex`] gathered by [`SegmentIndex::near_box`], for
@@ -204,6 +235,12 @@ impl NearSegments {
 
     pub fn is_empty(&self) -> bool {
         self.segments.is_empty()
+    }
+
+    /// Room for `additional` more without growing.
+    pub fn reserve(&mut self, additional: usize) {
+        self.ids.reserve(additional);
+        self.segments.reserve(additional);
     }
 
     /// Forget those gathered after the first `len`.
@@ -761,10 +798,23 @@ impl SegmentIndex {
     /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
     pub fn any_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
         let (lo, hi) = (a.min(b), a.max(b));
+        if self.segments.is_empty() {
+            return false;
+        }
         let reach = r_mm + reject_slack(r_mm);
-        self.any_in_box(lo, hi, r_mm, |c, d| {
-            segment_hit(a, b, lo, hi, (c, d), r_mm, reach)
-        })
+        let pad = DVec2::splat(r_mm);
+        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
+        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
+        for row in r0..r1 + 1 {
+            for &k in self.row_items(row, c0, c1) {
+                let (c, d) = self.segments[k as usize];
+                let gap = (c.min(d) - hi).max(lo - c.max(d));
+                if gap.x <= reach && gap.y <= reach && segment_near(a, b, c, d, r_mm, reach) {
+                    return true;
+                }
+            }
+        }
+        false
     }
 
     /// Does any indexed segment come within `r_mm` of `p`? Looks only at the cells

@@ -611,66 +611,92 @@ pub fn keep_clear_of(
     let gather_mm = clearance_mm * (1.0 + 1e-6);
     let mut near = crate::geom::NearSegments::default();
     let mut out = Vec::with_capacity(roads.len());
+    // Per point of a road being trimmed: the point, whether it is at least the
+    // clearance from the contour, and the range of `near` that holds the contour's
+    // segments near the edge it starts (they answer every question about points on
+    // that edge as the whole index would).
+    let mut pts: Vec<DVec2> = Vec::new();
+    let mut far: Vec<bool> = Vec::new();
+    let mut spans: Vec<std::ops::Range<usize>> = Vec::new();
+    let mut run: Vec<DVec2> = Vec::new();
     for road in roads {
         // Edges that come within the clearance are split to at most the clearance, so
-        // a near pass between their ends is seen; the rest are clear whole.
+        // a near pass between their ends is seen; the rest are clear whole, and a road
+        // with no such edge is kept as it is without the per-point lists.
         let m = road.points.len();
         let edges = if road.closed { m } else { m.saturating_sub(1) };
-        // Whether each point is at least the clearance from the contour, known at once
-        // for the ends of clear edges and, for the points splitting the others, from
-        // the contour's segments near that edge (gathered once per edge, they answer
-        // every question about points on it as the whole index would).
-        let mut pts = Vec::with_capacity(m);
-        let mut known: Vec<Option<bool>> = Vec::with_capacity(m);
-        // The range of `near` that holds the segments near the edge each point starts.
-        let mut spans: Vec<std::ops::Range<usize>> = Vec::with_capacity(m);
+        pts.clear();
+        far.clear();
+        spans.clear();
         near.truncate(0);
+        let mut split = false;
         let mut clear_before = false;
         for k in 0..edges {
-            let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            let from = near.len();
-            index.near_box(a.min(b), a.max(b), gather_mm, &mut near);
-            let span = from..near.len();
-            let clear = !near.any_within(span.clone(), a, b, clearance_mm);
+            let (a, b) = (
+                road.points[k],
+                road.points[if k + 1 == m { 0 } else { k + 1 }],
+            );
+            // The index answers as the segments gathered for the edge would.
+            let clear = !index.any_within(a, b, clearance_mm);
             if clear {
-                near.truncate(from);
-                pts.push(a);
-                known.push(Some(true));
-                spans.push(from..from);
+                if split {
+                    pts.push(a);
+                    far.push(true);
+                    spans.push(0..0);
+                }
             } else {
+                if !split {
+                    // The clear edges before this one, each point far (room for the
+                    // points splitting a few edges without growing the lists).
+                    split = true;
+                    let room = 2 * m + 16;
+                    pts.reserve(room);
+                    far.reserve(room);
+                    spans.reserve(room);
+                    run.reserve(room);
+                    near.reserve(room);
+                    pts.extend_from_slice(&road.points[..k]);
+                    far.resize(k, true);
+                    spans.resize(k, 0..0);
+                }
+                let from = near.len();
+                index.near_box(a.min(b), a.max(b), gather_mm, &mut near);
+                let span = from..near.len();
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
                 for q in 0..pieces {
                     let p = a.lerp(b, q as f64 / pieces as f64);
                     pts.push(p);
-                    known.push(Some(
+                    far.push(
                         (q == 0 && clear_before) || !near.within(span.clone(), p, clearance_mm),
-                    ));
+                    );
                     spans.push(span.clone());
                 }
             }
             clear_before = clear;
         }
+        if !split {
+            // Every edge clear: every point far.
+            if edges + usize::from(!road.closed) >= 2 {
+                out.push(road);
+            }
+            continue;
+        }
         if road.closed {
             // The first point also ends the last edge.
-            if let Some(k) = known.first_mut() {
+            if let Some(f) = far.first_mut() {
                 if clear_before {
-                    *k = Some(true);
+                    *f = true;
                 }
             }
-        } else {
-            pts.extend(road.points.last().copied());
-            known.push(clear_before.then_some(true));
+        } else if let Some(&last) = road.points.last() {
+            pts.push(last);
+            far.push(clear_before || !index.within(last, clearance_mm));
             spans.push(near.len()..near.len());
         }
         let n = pts.len();
         if n < 2 {
             continue;
         }
-        let far: Vec<bool> = pts
-            .iter()
-            .zip(&known)
-            .map(|(p, k)| k.unwrap_or_else(|| !index.within(*p, clearance_mm)))
-            .collect();
         let Some(first_near) = far.iter().position(|&f| !f) else {
             out.push(road);
             continue;
@@ -695,20 +721,26 @@ pub fn keep_clear_of(
         } else {
             (0, n - 1)
         };
-        let at = |k: usize| (start + k) % n;
-        let mut run: Vec<DVec2> = Vec::new();
+        let at = |k: usize| {
+            if start + k >= n {
+                start + k - n
+            } else {
+                start + k
+            }
+        };
+        // Built in one buffer, each kept run copied out at its length.
+        run.clear();
         if far[at(0)] {
             run.push(pts[at(0)]);
         }
         let mut flush = |run: &mut Vec<DVec2>| {
             if run.len() >= 2 {
                 out.push(Path {
-                    points: std::mem::take(run),
+                    points: run.clone(),
                     closed: false,
                 });
-            } else {
-                run.clear();
             }
+            run.clear();
         };
         for e in 0..edges {
             let (i, j) = (at(e), at(e + 1));
