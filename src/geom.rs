@@ -438,8 +438,14 @@ pub fn segment_intersection_point(p1: DVec2, p2: DVec2, q1: DVec2, q2: DVec2) ->
 /// Remove consecutive duplicate points (and a closing duplicate) closer than `eps`.
 pub fn dedup_loop(pts: &[DVec2], eps: f64) -> Vec<DVec2> {
     let mut out: Vec<DVec2> = Vec::with_capacity(pts.len());
+    // Points clearly farther apart than `eps` (the square of the distance over that of
+    // 2 eps) are told apart without the square root.
+    let clear2 = 4.0 * eps * eps;
     for &p in pts {
-        if out.last().is_none_or(|q: &DVec2| q.distance(p) > eps) {
+        if out
+            .last()
+            .is_none_or(|q: &DVec2| q.distance_squared(p) > clear2 || q.distance(p) > eps)
+        {
             out.push(p);
         }
     }
@@ -690,7 +696,12 @@ const RAY_HIT_MM: f64 = 1e-4;
 impl SegmentIndex {
     /// Index the edges of closed `loops` and open `polylines`.
     pub fn new(loops: &[&[DVec2]], polylines: &[&[DVec2]]) -> Self {
-        let mut segments = Vec::new();
+        let count = loops.iter().map(|l| l.len()).sum::<usize>()
+            + polylines
+                .iter()
+                .map(|l| l.len().saturating_sub(1))
+                .sum::<usize>();
+        let mut segments = Vec::with_capacity(count);
         for l in loops {
             let n = l.len();
             for i in 0..n {

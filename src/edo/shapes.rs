@@ -177,7 +177,7 @@ fn offset_direct(
         }
     };
     let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
-    let far = reach * (1.0 + DIRECT_OFFSET_SLACK);
+    let far = far_reach(reach);
     if raw
         .iter()
         .flat_map(|l| l.iter())
@@ -243,6 +243,11 @@ const SWALLOWTAIL_EDGES: usize = 16;
 /// How many swallowtails [`offset_direct`] cuts before leaving the work to the outline.
 const MAX_SWALLOWTAIL_CUTS: usize = 64;
 
+/// The outer radius of [`offset_direct`]'s distance certificate for offset distance `reach`.
+fn far_reach(reach: f64) -> f64 {
+    reach * (1.0 + DIRECT_OFFSET_SLACK)
+}
+
 /// Relative slack of the distance certificate of [`offset_direct`]: raw vertices lie at
 /// the offset distance from their own edge up to rounding.
 const DIRECT_OFFSET_SLACK: f64 = 1e-9;
@@ -265,6 +270,9 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
         dirs.push(e / len);
     }
     let mut raw = Vec::with_capacity(n + n / 2);
+    // Turns certainly below one arc step (their tangent a hair under the step's) are
+    // one piece, as `ceil(|turn| / step)` makes them, without the arc tangent.
+    let one_piece = step.tan() * (1.0 - 1e-9);
     for k in 0..n {
         let (u0, u1) = (dirs[(k + n - 1) % n], dirs[k]);
         let p = l[k];
@@ -279,6 +287,9 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
                 return None;
             }
             raw.push(p + (n0 + n1) / (1.0 + dot));
+        } else if dot > 0.0 && cross.abs() < dot * one_piece {
+            raw.push(p + n0);
+            raw.push(p + n1);
         } else {
             let turn = cross.atan2(dot);
             let pieces = ((turn.abs() / step).ceil() as usize).max(1);
@@ -321,6 +332,11 @@ pub fn remove_spikes(l: &mut Vec<DVec2>) {
 
 fn is_spike(a: DVec2, b: DVec2, c: DVec2) -> bool {
     let (u, v) = (b - a, c - b);
+    // Not turning back, between edges clearly longer than the degenerate 1e-12 (their
+    // squares above 1e-20): no spike, known without the square roots.
+    if u.dot(v) >= 0.0 && u.length_squared() > 1e-20 && v.length_squared() > 1e-20 {
+        return false;
+    }
     let (lu, lv) = (u.length(), v.length());
     if lu <= 1e-12 || lv <= 1e-12 {
         return true;
