@@ -382,17 +382,19 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
             });
         }
     }
-    // Sweep order: by least x (a stable sort of the keys alone, not of the segments).
-    let mut order: Vec<(f64, u32)> = segs
+    // Sweep order: by least x (a stable sort of the keys alone, not of the segments),
+    // each key as the integer `f64::total_cmp` compares, converted once.
+    let mut order: Vec<(i64, u32)> = segs
         .iter()
         .enumerate()
-        .map(|(k, s)| (s.lo.x, k as u32))
+        .map(|(k, s)| (total_order_key(s.lo.x), k as u32))
         .collect();
-    order.sort_by(|p, q| p.0.total_cmp(&q.0));
+    order.sort_by_key(|p| p.0);
     let max_x: Vec<f64> = segs.iter().map(|s| s.hi.x).collect();
     let mut active: Vec<u32> = Vec::new();
-    for &(min_x, k) in &order {
+    for &(_, k) in &order {
         let s = &segs[k as usize];
+        let min_x = s.lo.x;
         // One pass over the active edges, in order: those the sweep has passed are
         // dropped (kept ones move up), the others checked against `s`.
         let mut kept = 0;
@@ -421,6 +423,14 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
         active.push(k);
     }
     None
+}
+
+/// The integer whose order is `f64::total_cmp`'s order of `x` (the transformation
+/// `total_cmp` applies to both sides of each comparison).
+#[inline]
+fn total_order_key(x: f64) -> i64 {
+    let bits = x.to_bits() as i64;
+    bits ^ ((((bits >> 63) as u64) >> 1) as i64)
 }
 
 /// Intersection point of two segments' supporting lines, if they are not parallel.
@@ -790,7 +800,19 @@ impl SegmentIndex {
         let q = (p - origin) / cell;
         // `floor(x)` clamped to 0..n: truncation floors a positive x, saturates beyond
         // the grid (infinities too), and a negative x or NaN is cell 0.
-        let clamp = |x: f64, n: usize| if x > 0.0 { (x as usize).min(n - 1) } else { 0 };
+        // (Below n - 1, at most 4095, truncation through i64 is the same and converts
+        // in fewer instructions than to usize.)
+        let clamp = |x: f64, n: usize| {
+            if x > 0.0 {
+                if x < (n - 1) as f64 {
+                    x as i64 as usize
+                } else {
+                    n - 1
+                }
+            } else {
+                0
+            }
+        };
         (clamp(q.x, nx), clamp(q.y, ny))
     }
 
