@@ -625,6 +625,7 @@ pub fn keep_clear_of(
     // Gathered a hair beyond the clearance, so points a rounding off an edge are
     // still covered.
     let gather_mm = clearance_mm * (1.0 + 1e-6);
+    let window_mm = KEEP_CLEAR_WINDOW * clearance_mm;
     let mut near = crate::geom::NearSegments::default();
     let mut out = Vec::with_capacity(roads.len());
     // Per point of a road being trimmed: the point, whether it is at least the
@@ -647,13 +648,42 @@ pub fn keep_clear_of(
         near.truncate(0);
         let mut split = false;
         let mut clear_before = false;
-        for k in 0..edges {
-            let (a, b) = (
+        let edge = |k: usize| {
+            (
                 road.points[k],
                 road.points[if k + 1 == m { 0 } else { k + 1 }],
-            );
-            // The index answers as the segments gathered for the edge would.
-            let clear = !index.any_within(a, b, clearance_mm);
+            )
+        };
+        // The contour's segments near a window: the box of a run of consecutive edges
+        // at most `window_mm` across, gathered once for all of them (`win` in `near`;
+        // dropped again when none of its edges came near).
+        let (mut win_lo, mut win_hi) =
+            (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
+        let mut win = 0..0;
+        let mut win_used = false;
+        for k in 0..edges {
+            let (a, b) = edge(k);
+            let (lo, hi) = (a.min(b), a.max(b));
+            if !(lo.cmpge(win_lo).all() && hi.cmple(win_hi).all()) {
+                if !win_used {
+                    near.truncate(win.start);
+                }
+                (win_lo, win_hi) = (lo, hi);
+                for j in k + 1..edges {
+                    let (c, d) = edge(j);
+                    let (grown_lo, grown_hi) = (win_lo.min(c.min(d)), win_hi.max(c.max(d)));
+                    if (grown_hi - grown_lo).max_element() > window_mm {
+                        break;
+                    }
+                    (win_lo, win_hi) = (grown_lo, grown_hi);
+                }
+                let from = near.len();
+                index.near_box(win_lo, win_hi, gather_mm, &mut near);
+                win = from..near.len();
+                win_used = false;
+            }
+            // The window's segments answer as the index would for the edge inside it.
+            let clear = !near.any_within(win.clone(), a, b, clearance_mm);
             if clear {
                 if split {
                     pts.push(a);
@@ -675,9 +705,8 @@ pub fn keep_clear_of(
                     far.resize(k, true);
                     spans.resize(k, 0..0);
                 }
-                let from = near.len();
-                index.near_box(a.min(b), a.max(b), gather_mm, &mut near);
-                let span = from..near.len();
+                win_used = true;
+                let span = win.clone();
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
                 for q in 0..pieces {
                     let p = a.lerp(b, q as f64 / pieces as f64);
@@ -777,6 +806,9 @@ pub fn keep_clear_of(
     }
     out
 }
+
+/// The most a window of [`keep_clear_of`] spans across (in clearances).
+const KEEP_CLEAR_WINDOW: f64 = 8.0;
 
 /// Bisection steps placing a road's end at the clearance (2⁻¹² of an edge).
 const CLEARANCE_BISECTIONS: usize = 12;
