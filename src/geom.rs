@@ -188,7 +188,38 @@ fn segment_hit(
     let (c, d) = seg;
     // Boxes farther apart than the reach along an axis cannot be within it.
     let gap = (c.min(d) - hi).max(lo - c.max(d));
-    gap.x <= reach && gap.y <= reach && segments_within(a, b, c, d, r_mm)
+    gap.x <= reach && gap.y <= reach && segment_near(a, b, c, d, r_mm, reach)
+}
+
+/// The exact part of [`segment_hit`], for segments whose boxes come within the reach:
+/// out of line (only these few get here, the box test stays in the caller's loop).
+#[inline(never)]
+fn segment_near(a: DVec2, b: DVec2, c: DVec2, d: DVec2, r_mm: f64, reach: f64) -> bool {
+    !beside_line(a, b, c, d, reach) && segments_within(a, b, c, d, r_mm)
+}
+
+/// Do `c` and `d` both lie on one side of the line through `a` and `b`, farther from it
+/// than `reach` (allowing for the rounding of this test)? Then every point of `c`–`d` is
+/// farther than `reach` from `a`–`b`: the four point-segment distances of
+/// [`segments_within`] exceed any radius `reach` is [`reject_slack`] beyond, and its
+/// crossing test sees both orientations (`orient(a, b, c)`, `orient(a, b, d)`, the same
+/// products as here) nonzero of one sign. A cheap rejection before that exact test.
+#[inline]
+fn beside_line(a: DVec2, b: DVec2, c: DVec2, d: DVec2, reach: f64) -> bool {
+    let ab = b - a;
+    let (ca, da) = (c - a, d - a);
+    let (sc, sd) = (ab.perp_dot(ca), ab.perp_dot(da));
+    let s = if sc > 0.0 && sd > 0.0 {
+        sc.min(sd)
+    } else if sc < 0.0 && sd < 0.0 {
+        (-sc).min(-sd)
+    } else {
+        return false;
+    };
+    // Each product is within 4 ulps of the 1-norms' product of the exact one.
+    let l1 = |v: DVec2| v.x.abs() + v.y.abs();
+    let s = s - 4.0 * f64::EPSILON * l1(ab) * l1(ca).max(l1(da));
+    s > 0.0 && s * s > reach * reach * ab.length_squared() * (1.0 + 1e-12)
 }
 
 /// Some segments of a [`SegmentIndex`] gathered by [`SegmentIndex::near_box`], for
@@ -209,6 +240,12 @@ impl NearSegments {
 
     pub fn is_empty(&self) -> bool {
         self.segments.is_empty()
+    }
+
+    /// Room for `additional` more without growing.
+    pub fn reserve(&mut self, additional: usize) {
+        self.ids.reserve(additional);
+        self.segments.reserve(additional);
     }
 
     /// Forget those gathered after the first `len`.
@@ -349,17 +386,19 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
             });
         }
     }
-    // Sweep order: by least x (a stable sort of the keys alone, not of the segments).
-    let mut order: Vec<(f64, u32)> = segs
+    // Sweep order: by least x (a stable sort of the keys alone, not of the segments),
+    // each key as the integer `f64::total_cmp` compares, converted once.
+    let mut order: Vec<(i64, u32)> = segs
         .iter()
         .enumerate()
-        .map(|(k, s)| (s.lo.x, k as u32))
+        .map(|(k, s)| (total_order_key(s.lo.x), k as u32))
         .collect();
-    order.sort_by(|p, q| p.0.total_cmp(&q.0));
+    order.sort_by_key(|p| p.0);
     let max_x: Vec<f64> = segs.iter().map(|s| s.hi.x).collect();
     let mut active: Vec<u32> = Vec::new();
-    for &(min_x, k) in &order {
+    for &(_, k) in &order {
         let s = &segs[k as usize];
+        let min_x = s.lo.x;
         // One pass over the active edges, in order: those the sweep has passed are
         // dropped (kept ones move up), the others checked against `s`.
         let mut kept = 0;
@@ -390,6 +429,14 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
     None
 }
 
+/// The integer whose order is `f64::total_cmp`'s order of `x` (the transformation
+/// `total_cmp` applies to both sides of each comparison).
+#[inline]
+fn total_order_key(x: f64) -> i64 {
+    let bits = x.to_bits() as i64;
+    bits ^ ((((bits >> 63) as u64) >> 1) as i64)
+}
+
 /// Intersection point of two segments' supporting lines, if they are not parallel.
 pub fn segment_intersection_point(p1: DVec2, p2: DVec2, q1: DVec2, q2: DVec2) -> Option<DVec2> {
     let r = p2 - p1;
@@ -405,8 +452,14 @@ pub fn segment_intersection_point(p1: DVec2, p2: DVec2, q1: DVec2, q2: DVec2) ->
 /// Remove consecutive duplicate points (and a closing duplicate) closer than `eps`.
 pub fn dedup_loop(pts: &[DVec2], eps: f64) -> Vec<DVec2> {
     let mut out: Vec<DVec2> = Vec::with_capacity(pts.len());
+    // Points clearly farther apart than `eps` (the square of the distance over that of
+    // 2 eps) are told apart without the square root.
+    let clear2 = 4.0 * eps * eps;
     for &p in pts {
-        if out.last().is_none_or(|q: &DVec2| q.distance(p) > eps) {
+        if out
+            .last()
+            .is_none_or(|q: &DVec2| q.distance_squared(p) > clear2 || q.distance(p) > eps)
+        {
             out.push(p);
         }
     }
@@ -656,7 +709,12 @@ const RAY_HIT_MM: f64 = 1e-4;
 impl SegmentIndex {
     /// Index the edges of closed `loops` and open `polylines`.
     pub fn new(loops: &[&[DVec2]], polylines: &[&[DVec2]]) -> Self {
-        let mut segments = Vec::new();
+        let count = loops.iter().map(|l| l.len()).sum::<usize>()
+            + polylines
+                .iter()
+                .map(|l| l.len().saturating_sub(1))
+                .sum::<usize>();
+        let mut segments = Vec::with_capacity(count);
         for l in loops {
             let n = l.len();
             for i in 0..n {
@@ -745,7 +803,19 @@ impl SegmentIndex {
         let q = (p - origin) / cell;
         // `floor(x)` clamped to 0..n: truncation floors a positive x, saturates beyond
         // the grid (infinities too), and a negative x or NaN is cell 0.
-        let clamp = |x: f64, n: usize| if x > 0.0 { (x as usize).min(n - 1) } else { 0 };
+        // (Below n - 1, at most 4095, truncation through i64 is the same and converts
+        // in fewer instructions than to usize.)
+        let clamp = |x: f64, n: usize| {
+            if x > 0.0 {
+                if x < (n - 1) as f64 {
+                    x as i64 as usize
+                } else {
+                    n - 1
+                }
+            } else {
+                0
+            }
+        };
         (clamp(q.x, nx), clamp(q.y, ny))
     }
 
@@ -764,10 +834,23 @@ impl SegmentIndex {
     /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
     pub fn any_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
         let (lo, hi) = (a.min(b), a.max(b));
+        if self.segments.is_empty() {
+            return false;
+        }
         let reach = r_mm + reject_slack(r_mm);
-        self.any_in_box(lo, hi, r_mm, |c, d| {
-            segment_hit(a, b, lo, hi, (c, d), r_mm, reach)
-        })
+        let pad = DVec2::splat(r_mm);
+        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
+        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
+        for row in r0..r1 + 1 {
+            for &k in self.row_items(row, c0, c1) {
+                let (c, d) = self.segments[k as usize];
+                let gap = (c.min(d) - hi).max(lo - c.max(d));
+                if gap.x <= reach && gap.y <= reach && segment_near(a, b, c, d, r_mm, reach) {
+                    return true;
+                }
+            }
+        }
+        false
     }
 
     /// Does any indexed segment come within `r_mm` of `p`? Looks only at the cells

@@ -662,7 +662,15 @@ pub fn plan_region(
             }
             let roads = match &s_area {
                 None => {
-                    let whole = shapes::loops(&level.to_shapes())
+                    let owned;
+                    let offset_shapes = match &level {
+                        Level::Shapes(s) => s,
+                        _ => {
+                            owned = level.to_shapes();
+                            &owned
+                        }
+                    };
+                    let whole = shapes::loops(offset_shapes)
                         .map(|l| Path {
                             points: l.clone(),
                             closed: true,

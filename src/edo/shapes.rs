@@ -237,7 +237,7 @@ fn offset_direct(
         }
     };
     let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
-    let far = reach * (1.0 + DIRECT_OFFSET_SLACK);
+    let far = far_reach(reach);
     if raw
         .iter()
         .flat_map(|l| l.iter())
@@ -303,6 +303,11 @@ const SWALLOWTAIL_EDGES: usize = 16;
 /// How many swallowtails [`offset_direct`] cuts before leaving the work to the outline.
 const MAX_SWALLOWTAIL_CUTS: usize = 64;
 
+/// The outer radius of [`offset_direct`]'s distance certificate for offset distance `reach`.
+fn far_reach(reach: f64) -> f64 {
+    reach * (1.0 + DIRECT_OFFSET_SLACK)
+}
+
 /// Relative slack of the distance certificate of [`offset_direct`]: raw vertices lie at
 /// the offset distance from their own edge up to rounding.
 const DIRECT_OFFSET_SLACK: f64 = 1e-9;
@@ -325,6 +330,9 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
         dirs.push(e / len);
     }
     let mut raw = Vec::with_capacity(n + n / 2);
+    // Turns certainly below one arc step (their tangent a hair under the step's) are
+    // one piece, as `ceil(|turn| / step)` makes them, without the arc tangent.
+    let one_piece = step.tan() * (1.0 - 1e-9);
     for k in 0..n {
         let (u0, u1) = (dirs[(k + n - 1) % n], dirs[k]);
         let p = l[k];
@@ -339,6 +347,9 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
                 return None;
             }
             raw.push(p + (n0 + n1) / (1.0 + dot));
+        } else if dot > 0.0 && cross.abs() < dot * one_piece {
+            raw.push(p + n0);
+            raw.push(p + n1);
         } else {
             let turn = cross.atan2(dot);
             let pieces = ((turn.abs() / step).ceil() as usize).max(1);
@@ -381,6 +392,11 @@ pub fn remove_spikes(l: &mut Vec<DVec2>) {
 
 fn is_spike(a: DVec2, b: DVec2, c: DVec2) -> bool {
     let (u, v) = (b - a, c - b);
+    // Not turning back, between edges clearly longer than the degenerate 1e-12 (their
+    // squares above 1e-20): no spike, known without the square roots.
+    if u.dot(v) >= 0.0 && u.length_squared() > 1e-20 && v.length_squared() > 1e-20 {
+        return false;
+    }
     let (lu, lv) = (u.length(), v.length());
     if lu <= 1e-12 || lv <= 1e-12 {
         return true;
@@ -669,68 +685,123 @@ pub fn keep_clear_of(
     // Gathered a hair beyond the clearance, so points a rounding off an edge are
     // still covered.
     let gather_mm = clearance_mm * (1.0 + 1e-6);
+    let window_mm = KEEP_CLEAR_WINDOW * clearance_mm;
     let mut near = crate::geom::NearSegments::default();
     let mut out = Vec::with_capacity(roads.len());
+    // Per point of a road being trimmed: the point, whether it is at least the
+    // clearance from the contour, and the range of `near` that holds the contour's
+    // segments near the edge it starts (they answer every question about points on
+    // that edge as the whole index would).
+    let mut pts: Vec<DVec2> = Vec::new();
+    let mut far: Vec<bool> = Vec::new();
+    let mut spans: Vec<std::ops::Range<usize>> = Vec::new();
+    let mut run: Vec<DVec2> = Vec::new();
     for road in roads {
         // Edges that come within the clearance are split to at most the clearance, so
-        // a near pass between their ends is seen; the rest are clear whole.
+        // a near pass between their ends is seen; the rest are clear whole, and a road
+        // with no such edge is kept as it is without the per-point lists.
         let m = road.points.len();
         let edges = if road.closed { m } else { m.saturating_sub(1) };
-        // Whether each point is at least the clearance from the contour, known at once
-        // for the ends of clear edges and, for the points splitting the others, from
-        // the contour's segments near that edge (gathered once per edge, they answer
-        // every question about points on it as the whole index would).
-        let mut pts = Vec::with_capacity(m);
-        let mut known: Vec<Option<bool>> = Vec::with_capacity(m);
-        // The range of `near` that holds the segments near the edge each point starts.
-        let mut spans: Vec<std::ops::Range<usize>> = Vec::with_capacity(m);
+        pts.clear();
+        far.clear();
+        spans.clear();
         near.truncate(0);
+        let mut split = false;
         let mut clear_before = false;
+        let edge = |k: usize| {
+            (
+                road.points[k],
+                road.points[if k + 1 == m { 0 } else { k + 1 }],
+            )
+        };
+        // The contour's segments near a window: the box of a run of consecutive edges
+        // at most `window_mm` across, gathered once for all of them (`win` in `near`;
+        // dropped again when none of its edges came near).
+        let (mut win_lo, mut win_hi) =
+            (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
+        let mut win = 0..0;
+        let mut win_used = false;
         for k in 0..edges {
-            let (a, b) = (road.points[k], road.points[(k + 1) % m]);
-            let from = near.len();
-            index.near_box(a.min(b), a.max(b), gather_mm, &mut near);
-            let span = from..near.len();
-            let clear = !near.any_within(span.clone(), a, b, clearance_mm);
+            let (a, b) = edge(k);
+            let (lo, hi) = (a.min(b), a.max(b));
+            if !(lo.cmpge(win_lo).all() && hi.cmple(win_hi).all()) {
+                if !win_used {
+                    near.truncate(win.start);
+                }
+                (win_lo, win_hi) = (lo, hi);
+                for j in k + 1..edges {
+                    let (c, d) = edge(j);
+                    let (grown_lo, grown_hi) = (win_lo.min(c.min(d)), win_hi.max(c.max(d)));
+                    if (grown_hi - grown_lo).max_element() > window_mm {
+                        break;
+                    }
+                    (win_lo, win_hi) = (grown_lo, grown_hi);
+                }
+                let from = near.len();
+                index.near_box(win_lo, win_hi, gather_mm, &mut near);
+                win = from..near.len();
+                win_used = false;
+            }
+            // The window's segments answer as the index would for the edge inside it.
+            let clear = !near.any_within(win.clone(), a, b, clearance_mm);
             if clear {
-                near.truncate(from);
-                pts.push(a);
-                known.push(Some(true));
-                spans.push(from..from);
+                if split {
+                    pts.push(a);
+                    far.push(true);
+                    spans.push(0..0);
+                }
             } else {
+                if !split {
+                    // The clear edges before this one, each point far (room for the
+                    // points splitting a few edges without growing the lists).
+                    split = true;
+                    let room = 2 * m + 16;
+                    pts.reserve(room);
+                    far.reserve(room);
+                    spans.reserve(room);
+                    run.reserve(room);
+                    near.reserve(room);
+                    pts.extend_from_slice(&road.points[..k]);
+                    far.resize(k, true);
+                    spans.resize(k, 0..0);
+                }
+                win_used = true;
+                let span = win.clone();
                 let pieces = ((a.distance(b) / clearance_mm).ceil() as usize).clamp(1, 1 << 16);
                 for q in 0..pieces {
                     let p = a.lerp(b, q as f64 / pieces as f64);
                     pts.push(p);
-                    known.push(Some(
+                    far.push(
                         (q == 0 && clear_before) || !near.within(span.clone(), p, clearance_mm),
-                    ));
+                    );
                     spans.push(span.clone());
                 }
             }
             clear_before = clear;
         }
+        if !split {
+            // Every edge clear: every point far.
+            if edges + usize::from(!road.closed) >= 2 {
+                out.push(road);
+            }
+            continue;
+        }
         if road.closed {
             // The first point also ends the last edge.
-            if let Some(k) = known.first_mut() {
+            if let Some(f) = far.first_mut() {
                 if clear_before {
-                    *k = Some(true);
+                    *f = true;
                 }
             }
-        } else {
-            pts.extend(road.points.last().copied());
-            known.push(clear_before.then_some(true));
+        } else if let Some(&last) = road.points.last() {
+            pts.push(last);
+            far.push(clear_before || !index.within(last, clearance_mm));
             spans.push(near.len()..near.len());
         }
         let n = pts.len();
         if n < 2 {
             continue;
         }
-        let far: Vec<bool> = pts
-            .iter()
-            .zip(&known)
-            .map(|(p, k)| k.unwrap_or_else(|| !index.within(*p, clearance_mm)))
-            .collect();
         let Some(first_near) = far.iter().position(|&f| !f) else {
             out.push(road);
             continue;
@@ -755,20 +826,26 @@ pub fn keep_clear_of(
         } else {
             (0, n - 1)
         };
-        let at = |k: usize| (start + k) % n;
-        let mut run: Vec<DVec2> = Vec::new();
+        let at = |k: usize| {
+            if start + k >= n {
+                start + k - n
+            } else {
+                start + k
+            }
+        };
+        // Built in one buffer, each kept run copied out at its length.
+        run.clear();
         if far[at(0)] {
             run.push(pts[at(0)]);
         }
         let mut flush = |run: &mut Vec<DVec2>| {
             if run.len() >= 2 {
                 out.push(Path {
-                    points: std::mem::take(run),
+                    points: run.clone(),
                     closed: false,
                 });
-            } else {
-                run.clear();
             }
+            run.clear();
         };
         for e in 0..edges {
             let (i, j) = (at(e), at(e + 1));
@@ -789,6 +866,9 @@ pub fn keep_clear_of(
     }
     out
 }
+
+/// The most a window of [`keep_clear_of`] spans across (in clearances).
+const KEEP_CLEAR_WINDOW: f64 = 8.0;
 
 /// Bisection steps placing a road's end at the clearance (2⁻¹² of an edge).
 const CLEARANCE_BISECTIONS: usize = 12;
