@@ -145,6 +145,41 @@
 //! offsets that fall back to the outline (5.0M) fail the distance certificate, not the
 //! crossing check: the outline is needed there. Emitting fewer round-join vertices was
 //! not tried: simplification removes only 1.6k of the 12.8k raw vertices per layer.
+//!
+//! 2026-12-01, fifth session, merged with off4: 85.1M instructions per layer
+//! (callgrind, from 96.8M at the session's start). Criterion medians, the session's
+//! start (c38716a) and this code alternating on the idle machine: 26.1 and 26.2 ms
+//! before, 22.5 and 22.4 ms after (-14 %). The machine ran about 45 % slower than in
+//! the session that measured 17.6 ms for c38716a, so only same-session figures
+//! compare. Mine (the field, level sets and shapes): contour levels become shapes
+//! without the overlay where their loops already are a valid even-odd set (no
+//! crossing, none degenerate; oriented and nested directly), 96.8M -> 92.6M; the hot
+//! loops lost their divisions (each boundary edge keeps 1/|ab|², the walk round a
+//! loop steps without an integer modulo, loop edges without `% n`, Douglas-Peucker on
+//! squared distances), 1.1M fewer instructions but more time than that (level sets
+//! 5.5 -> 4.75 ms in one instrumented run); marching reads floor(d m) per node once,
+//! 1.6M. Per stage now (instrumented run, per layer, slow machine): distance
+//! transforms 2.8 ms, level sets 4.75 ms, simplification and shapes 1.0 ms, boundary
+//! offsets 0.44 ms, boundary runs and contour roads 0.5 ms, sub-regions and D_max 1.6
+//! ms, equal distance offsets 6.8 ms, trimming 4.2 ms (the last two before off4).
+//! Tried and not taken: Newton's second step seeded from the edges its first found
+//! (with the other local minimum kept where it can have become the nearer), 96.8M ->
+//! 97.3M: the nodes' seeds already lie a step or two from the nearest edge; the
+//! distance transform relaxing from the row before first and the node before last
+//! (shorter dependency chain along a row), no change in time.
+//!
+//! Why 5 ms stays out of reach with this design: the layer's 85M instructions come
+//! to about 9,000 per road vertex (about 9,500 a layer), spent on an exact
+//! nearest-point walk per placed contour point, a certified equal distance offset per
+//! offset vertex and a clearance test per offset edge. The target needs 4.5 times
+//! less time on this session's machine (3.5 at the earlier session's speed). Tuning
+//! took the layer from 134.5M to 85.1M over the day, and each step left is worth
+//! 1-3 %. Getting there takes a different method, not tuning: for example offsets
+//! taken as level sets of a per-band distance to their own contour (no certificate,
+//! crossing check, outline fallback or index builds), or contour crossings placed by
+//! Hermite interpolation between node distances and gradients made exact by one walk
+//! per node beside a crossing, with Newton steps only where a side crosses the
+//! medial axis.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};

@@ -909,7 +909,7 @@ fn gap_along_gradient(
         let n = pts.len();
         let edges = if road.closed { n } else { n.saturating_sub(1) };
         for k in 0..edges {
-            let (a, b) = (pts[k], pts[(k + 1) % n]);
+            let (a, b) = (pts[k], pts[if k + 1 == n { 0 } else { k + 1 }]);
             // Sampled at the middle of pieces at most a nozzle long, never at a vertex:
             // from a convex corner the nearest point of the lower contour lies along
             // the bisector, d / sin(α/2) away, further than the gap beside the edges.

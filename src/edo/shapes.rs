@@ -321,8 +321,8 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
     }
     // Unit directions of the edges; the right-hand normal of `u` is `-u.perp()`.
     let mut dirs = Vec::with_capacity(n);
-    for k in 0..n {
-        let e = l[(k + 1) % n] - l[k];
+    for (a, b) in crate::geom::loop_edges(l) {
+        let e = b - a;
         let len = e.length();
         if len <= 1e-12 {
             return None;
@@ -334,7 +334,7 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
     // one piece, as `ceil(|turn| / step)` makes them, without the arc tangent.
     let one_piece = step.tan() * (1.0 - 1e-9);
     for k in 0..n {
-        let (u0, u1) = (dirs[(k + n - 1) % n], dirs[k]);
+        let (u0, u1) = (dirs[if k == 0 { n - 1 } else { k - 1 }], dirs[k]);
         let p = l[k];
         let (n0, n1) = (-u0.perp() * delta_mm, -u1.perp() * delta_mm);
         let (cross, dot) = (u0.perp_dot(u1), u0.dot(u1));
@@ -568,11 +568,8 @@ impl<'a> ClipArea<'a> {
         };
         let n = l.len();
         let clear = n >= 3
-            && (0..n).all(|i| {
-                !self
-                    .boundary
-                    .any_within(l[i], l[(i + 1) % n], self.clear_mm)
-            });
+            && crate::geom::loop_edges(l)
+                .all(|(a, b)| !self.boundary.any_within(a, b, self.clear_mm));
         if !clear {
             return clip_ring(l, self.shapes, rule, eps_mm);
         }
