@@ -86,11 +86,25 @@ fn from_simple_loops(loops: &[Vec<DVec2>]) -> Option<Shapes> {
     if crate::geom::first_crossing(&all).is_some() {
         return None;
     }
-    // The loops enclosing each (with no crossing, one vertex tells).
+    // The loops enclosing each (with no crossing, one vertex tells; a loop whose box
+    // does not hold that vertex cannot).
+    let boxes: Vec<(DVec2, DVec2)> = loops
+        .iter()
+        .map(|l| {
+            l.iter().fold(
+                (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY)),
+                |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+            )
+        })
+        .collect();
     let around: Vec<Vec<usize>> = (0..loops.len())
         .map(|i| {
+            let p = loops[i][0];
             (0..loops.len())
-                .filter(|&j| j != i && point_in_loop(loops[i][0], &loops[j]))
+                .filter(|&j| {
+                    let (lo, hi) = boxes[j];
+                    j != i && p.cmpge(lo).all() && p.cmple(hi).all() && point_in_loop(p, &loops[j])
+                })
                 .collect()
         })
         .collect();
