@@ -833,7 +833,23 @@ impl SegmentIndex {
 
     /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?
     pub fn any_within(&self, a: DVec2, b: DVec2, r_mm: f64) -> bool {
-        let (lo, hi) = (a.min(b), a.max(b));
+        let reach = r_mm + reject_slack(r_mm);
+        self.near_candidates(a.min(b), a.max(b), r_mm, |_, c, d| {
+            segment_near(a, b, c, d, r_mm, reach)
+        })
+    }
+
+    /// Offer `visit` the indexed segments (number and ends) in the cells over the box
+    /// `lo`–`hi` grown by `r_mm` whose own boxes come within that reach of it (a
+    /// segment spanning several cells comes once per cell), until it returns true;
+    /// returns whether it did.
+    fn near_candidates(
+        &self,
+        lo: DVec2,
+        hi: DVec2,
+        r_mm: f64,
+        mut visit: impl FnMut(u32, DVec2, DVec2) -> bool,
+    ) -> bool {
         if self.segments.is_empty() {
             return false;
         }
@@ -845,7 +861,7 @@ impl SegmentIndex {
             for &k in self.row_items(row, c0, c1) {
                 let (c, d) = self.segments[k as usize];
                 let gap = (c.min(d) - hi).max(lo - c.max(d));
-                if gap.x <= reach && gap.y <= reach && segment_near(a, b, c, d, r_mm, reach) {
+                if gap.x <= reach && gap.y <= reach && visit(k, c, d) {
                     return true;
                 }
             }
@@ -866,24 +882,14 @@ impl SegmentIndex {
     /// own boxes come within that reach of it. [`NearSegments`] asks those questions of
     /// them alone, with the same answers.
     pub fn near_box(&self, lo: DVec2, hi: DVec2, r_mm: f64, out: &mut NearSegments) {
-        if self.segments.is_empty() {
-            return;
-        }
         let from = out.ids.len();
-        let reach = r_mm + reject_slack(r_mm);
-        let pad = DVec2::splat(r_mm);
-        let (c0, r0) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, lo - pad);
-        let (c1, r1) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, hi + pad);
-        for row in r0..r1 + 1 {
-            for &k in self.row_items(row, c0, c1) {
-                let (c, d) = self.segments[k as usize];
-                let gap = (c.min(d) - hi).max(lo - c.max(d));
-                if gap.x <= reach && gap.y <= reach && !out.ids[from..].contains(&k) {
-                    out.ids.push(k);
-                    out.segments.push((c, d));
-                }
+        self.near_candidates(lo, hi, r_mm, |k, c, d| {
+            if !out.ids[from..].contains(&k) {
+                out.ids.push(k);
+                out.segments.push((c, d));
             }
-        }
+            false
+        });
     }
 
     /// `(self.within(p, near_mm), self.within(p, far_mm))` in one look at the cells,

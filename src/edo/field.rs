@@ -668,10 +668,7 @@ impl DistanceField {
                 best = Some((k, de));
             }
         }
-        best.map(|(k, de)| {
-            let (c, r) = (k % self.nx, k / self.nx);
-            (self.origin + DVec2::new(c as f64, r as f64) * self.h, de)
-        })
+        best.map(|(k, de)| (self.node_pos(k), de))
     }
 
     /// Cell size actually used, mm.

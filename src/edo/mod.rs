@@ -660,7 +660,7 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            let roads = match &s_area {
+            let mut roads = match &s_area {
                 None => {
                     let owned;
                     let offset_shapes = match &level {
@@ -689,7 +689,6 @@ pub fn plan_region(
                 }
                 Some(area) => level.roads(area, false, eps),
             };
-            let mut roads = roads;
             roads.retain(|r| r.length_mm() >= opts.min_road_mm);
             offsets.push(roads);
         }
