@@ -679,12 +679,14 @@ impl DistanceField {
     /// Level sets at `d = k / m` for k = 1..m−1 (contours C2..Cm), each a list of closed
     /// loops, extracted by marching triangles.
     ///
-    /// Every crossing point lies on a triangle edge, named by its two end nodes (the
-    /// cell centres numbered after the grid nodes); the two segments of a level through
-    /// one edge join there. They are linked as the cells are visited row by row: a
-    /// cell's own triangles meet on its diagonals, its bottom edge is the top edge of
-    /// the cell below (kept from the previous row) and its left edge the right edge of
-    /// the cell before it.
+    /// Each cell is four triangles about its centre (the mean of its corners); a level's
+    /// pieces through the cell join side crossings, and which sides a piece joins (and
+    /// where a loop starting in the cell starts) is read off [`CELL_PIECES`], built from
+    /// those triangles. Every crossing lies on a cell side, named by its two end nodes;
+    /// the two pieces of a level through one side join there. They are linked as the
+    /// cells are visited row by row: a cell's bottom side is the top side of the cell
+    /// below (kept from the previous row) and its left side the right side of the cell
+    /// before it.
     pub fn level_sets(&self, m: u32) -> Vec<Vec<Vec<DVec2>>> {
         let levels = m.saturating_sub(1) as usize;
         // A field from [`DistanceField::outer_only`] has no normalised distance to trace.
@@ -693,7 +695,6 @@ impl DistanceField {
         }
         let mut segs: Vec<Vec<Segment>> = vec![Vec::new(); levels];
         let (nx, ny) = (self.nx, self.ny);
-        let nodes = (nx * ny) as u64;
         let mf = m as f64;
         // Per level: the segment ending on each cell's top edge in the previous and the
         // current row, and on the right edge of the cell just visited, with that
@@ -738,63 +739,58 @@ impl DistanceField {
                     self.d[ids[2] as usize],
                     self.d[ids[3] as usize],
                 ];
-                let centre_id = nodes + (r * (nx - 1) + c) as u64;
                 let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
+                // The cell's sides (bottom, right, top, left), as the crossings' keys.
+                let sides = [
+                    edge_key(ids[0], ids[1]),
+                    edge_key(ids[1], ids[2]),
+                    edge_key(ids[2], ids[3]),
+                    edge_key(ids[3], ids[0]),
+                ];
                 for k in k_lo..=k_hi {
                     let t = k as f64 / mf;
                     let level = (k - 1) as usize;
+                    let case = usize::from(val[0] >= t)
+                        | usize::from(val[1] >= t) << 1
+                        | usize::from(val[2] >= t) << 2
+                        | usize::from(val[3] >= t) << 3
+                        | usize::from(centre_val >= t) << 4;
+                    let pieces = &CELL_PIECES[case];
                     let out = &mut segs[level];
-                    let first = out.len();
                     // The right edge of the cell before (this cell's left edge), before
                     // this cell's right edge replaces it.
-                    let mut left = right[level];
-                    for e in 0..4 {
-                        let f = (e + 1) % 4;
-                        let tri = [(ids[e], val[e]), (ids[f], val[f]), (centre_id, centre_val)];
-                        let Some(mut seg) = triangle_crossing(&tri, t) else {
-                            continue;
-                        };
+                    let left = right[level];
+                    for piece in &pieces.pieces[..pieces.count as usize] {
                         let i = out.len() as u32;
-                        // The cell's outer edge of this triangle: bottom, right, top, left.
-                        let outer = edge_key(ids[e], ids[f]);
+                        let mut seg = Segment {
+                            keys: [
+                                sides[piece.sides[0] as usize],
+                                sides[piece.sides[1] as usize],
+                            ],
+                            links: [NO_SEGMENT; 2],
+                            rotate: piece.rotate,
+                        };
                         for end in 0..2 {
-                            if seg.keys[end] != outer {
-                                continue;
-                            }
-                            let slot = match e {
-                                0 => &mut top_below[level * nx + c],
-                                1 => &mut right[level],
-                                2 => &mut top_here[level * nx + c],
-                                _ => &mut left,
-                            };
-                            match e {
-                                // Edges shared with cells already visited: link.
-                                0 | 3 => {
-                                    if slot.0 == outer && slot.1 != NO_SEGMENT {
+                            let key = seg.keys[end];
+                            match piece.sides[end] {
+                                // Sides shared with cells already visited: link.
+                                e @ (0 | 3) => {
+                                    let slot = if e == 0 {
+                                        top_below[level * nx + c]
+                                    } else {
+                                        left
+                                    };
+                                    if slot.0 == key && slot.1 != NO_SEGMENT {
                                         let j = slot.1;
                                         seg.links[end] = j;
                                         let other = &mut out[j as usize];
-                                        let back = usize::from(other.keys[1] == outer);
+                                        let back = usize::from(other.keys[1] == key);
                                         other.links[back] = i;
                                     }
                                 }
-                                // Edges the next cells share: leave the segment there.
-                                _ => *slot = (outer, i),
-                            }
-                        }
-                        // Diagonals, shared with this cell's other triangles.
-                        for end in 0..2 {
-                            let key = seg.keys[end];
-                            if key == outer {
-                                continue;
-                            }
-                            for (j, other) in out.iter_mut().enumerate().skip(first) {
-                                for back in 0..2 {
-                                    if other.keys[back] == key {
-                                        seg.links[end] = j as u32;
-                                        other.links[back] = i;
-                                    }
-                                }
+                                // Sides the next cells share: leave the segment there.
+                                1 => right[level] = (key, i),
+                                _ => top_here[level * nx + c] = (key, i),
                             }
                         }
                         out.push(seg);
@@ -814,7 +810,7 @@ impl DistanceField {
                 let t = (level + 1) as f64 / mf;
                 chain_segments(segs, |key| {
                     let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
-                    (hi < nodes as usize).then(|| self.place(lo, hi, t, spacing))
+                    self.place(lo, hi, t, spacing)
                 })
                 .into_iter()
                 .filter_map(|placed| {
@@ -844,13 +840,15 @@ const BEND_REACH_CELLS: f64 = 2.0;
 /// No segment (an end whose edge no other segment of the level crosses).
 const NO_SEGMENT: u32 = u32::MAX;
 
-/// One piece of a level set inside one triangle: the keys of the triangle edges its
-/// ends lie on (see [`edge_key`]), and the segments of the same level through those
-/// edges.
+/// One piece of a level set through one cell: the keys of the cell sides its ends lie
+/// on (see [`edge_key`]), and the pieces of the same level through those sides.
 #[derive(Clone, Copy)]
 struct Segment {
     keys: [u64; 2],
     links: [u32; 2],
+    /// A loop starting with this piece starts at `keys[1]` and ends at `keys[0]` (see
+    /// [`CellPiece`]).
+    rotate: bool,
 }
 
 fn edge_key(a: u64, b: u64) -> u64 {
@@ -859,32 +857,151 @@ fn edge_key(a: u64, b: u64) -> u64 {
     (lo << 32) | hi
 }
 
-/// The piece of level `t` in the triangle of three (node id, value) corners, if it
-/// crosses it.
-fn triangle_crossing(tri: &[(u64, f64); 3], t: f64) -> Option<Segment> {
-    let above = [tri[0].1 >= t, tri[1].1 >= t, tri[2].1 >= t];
-    let n_above = above.iter().filter(|a| **a).count();
-    if n_above == 0 || n_above == 3 {
-        return None;
-    }
-    let mut keys = [0u64; 2];
-    let mut n = 0;
-    for i in 0..3 {
-        let j = (i + 1) % 3;
-        if above[i] != above[j] {
-            keys[n] = edge_key(tri[i].0, tri[j].0);
-            n += 1;
-        }
-    }
-    (n == 2).then_some(Segment {
-        keys,
-        links: [NO_SEGMENT; 2],
-    })
+/// A piece of a level through a cell, joining two of its sides (0 bottom, 1 right, 2
+/// top, 3 left). Where a loop starts with the piece, its first point is the crossing of
+/// `sides[0]` and its second that of `sides[1]`, or (`rotate`) its first that of
+/// `sides[1]`, running out of the cell, and its last that of `sides[0]`: where the
+/// cell's four triangles, chained from the first one the level crosses, place them.
+#[derive(Clone, Copy)]
+struct CellPiece {
+    sides: [u8; 2],
+    rotate: bool,
 }
 
-/// Chain linked segments into closed loops, each crossing placed by `place` (none:
-/// left out).
-fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> Option<T>) -> Vec<Vec<T>> {
+/// The pieces of a level through a cell (two in a saddle), in the order the cell's
+/// triangles (bottom, right, top, left) first meet them.
+#[derive(Clone, Copy)]
+struct CellPieces {
+    count: u8,
+    pieces: [CellPiece; 2],
+}
+
+/// [`CellPieces`] for each case: bit k (k < 4) set where corner k (counter-clockwise
+/// from the cell's lower left) is at or above the level, bit 4 where the cell's centre
+/// is.
+static CELL_PIECES: [CellPieces; 32] = cell_pieces();
+
+/// Marching triangles on one cell, case by case: triangle e has corners e, e + 1 and
+/// the centre, and its piece of the level joins two of its edges: the cell side e, the
+/// half-diagonal from corner e + 1 to the centre, and the half-diagonal from the centre
+/// to corner e (tried in that order). Pieces joined through half-diagonals are one
+/// piece between two sides; chained from a triangle, a loop places its crossings from
+/// the first edge that triangle's piece meets, through its second.
+const fn cell_pieces() -> [CellPieces; 32] {
+    const SIDE: u8 = 0;
+    const DIAG: u8 = 4;
+    let none = CellPiece {
+        sides: [0, 0],
+        rotate: false,
+    };
+    let mut table = [CellPieces {
+        count: 0,
+        pieces: [none; 2],
+    }; 32];
+    let mut case = 0;
+    while case < 32 {
+        let centre = (case >> 4) & 1 == 1;
+        // The triangles' pieces, each as its two edges (sides 0..3, half-diagonals
+        // 4 + corner).
+        let mut tri = [[0u8; 2]; 4];
+        let mut crossed = [false; 4];
+        let mut e = 0;
+        while e < 4 {
+            let f = (e + 1) % 4;
+            let v = [(case >> e) & 1 == 1, (case >> f) & 1 == 1, centre];
+            let edges = [SIDE + e as u8, DIAG + f as u8, DIAG + e as u8];
+            let mut n = 0;
+            let mut i = 0;
+            while i < 3 {
+                if v[i] != v[(i + 1) % 3] && n < 2 {
+                    tri[e][n] = edges[i];
+                    n += 1;
+                }
+                i += 1;
+            }
+            crossed[e] = n == 2;
+            e += 1;
+        }
+        let mut used = [false; 4];
+        let mut count = 0;
+        let mut s = 0;
+        while s < 4 {
+            if crossed[s] && !used[s] {
+                used[s] = true;
+                let [first, second] = tri[s];
+                let ahead = walk_to_side(&tri, &crossed, s, second, &mut used);
+                let piece = if first < DIAG {
+                    match ahead {
+                        Some(b) => Some(CellPiece {
+                            sides: [first, b],
+                            rotate: false,
+                        }),
+                        None => None,
+                    }
+                } else {
+                    match (walk_to_side(&tri, &crossed, s, first, &mut used), ahead) {
+                        (Some(a), Some(b)) => Some(CellPiece {
+                            sides: [a, b],
+                            rotate: true,
+                        }),
+                        _ => None,
+                    }
+                };
+                if let Some(p) = piece {
+                    if count < 2 {
+                        table[case].pieces[count] = p;
+                        count += 1;
+                    }
+                }
+            }
+            s += 1;
+        }
+        table[case].count = count as u8;
+        case += 1;
+    }
+    table
+}
+
+/// In [`cell_pieces`]: from triangle `from` out through its edge `edge`, through the
+/// triangles sharing half-diagonals (marked `used`), to the side the piece reaches.
+const fn walk_to_side(
+    tri: &[[u8; 2]; 4],
+    crossed: &[bool; 4],
+    mut from: usize,
+    mut edge: u8,
+    used: &mut [bool; 4],
+) -> Option<u8> {
+    const DIAG: u8 = 4;
+    let mut steps = 0;
+    while edge >= DIAG && steps < 4 {
+        // The other triangle with this half-diagonal.
+        let corner = (edge - DIAG) as usize;
+        let next = if from == corner {
+            (corner + 3) % 4
+        } else {
+            corner
+        };
+        if !crossed[next] {
+            return None;
+        }
+        used[next] = true;
+        edge = if tri[next][0] == edge {
+            tri[next][1]
+        } else {
+            tri[next][0]
+        };
+        from = next;
+        steps += 1;
+    }
+    if edge < DIAG {
+        Some(edge)
+    } else {
+        None
+    }
+}
+
+/// Chain linked pieces into closed loops, each crossing placed by `place`.
+fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> T) -> Vec<Vec<T>> {
     let mut used = vec![false; segs.len()];
     let mut loops = Vec::new();
     for start in 0..segs.len() {
@@ -893,14 +1010,14 @@ fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> Option<T>) -> Ve
         }
         used[start] = true;
         let first_key = segs[start].keys[0];
-        let mut pts: Vec<T> = place(first_key).into_iter().collect();
+        let mut pts: Vec<T> = vec![place(first_key)];
         let mut key = segs[start].keys[1];
         let mut next = segs[start].links[1];
         loop {
             if key == first_key {
                 break;
             }
-            pts.extend(place(key));
+            pts.push(place(key));
             if next == NO_SEGMENT || used[next as usize] {
                 break;
             }
@@ -909,6 +1026,9 @@ fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> Option<T>) -> Ve
             let enter = usize::from(s.keys[0] != key);
             key = s.keys[1 - enter];
             next = s.links[1 - enter];
+        }
+        if segs[start].rotate {
+            pts.rotate_left(1);
         }
         if pts.len() >= 3 {
             loops.push(pts);
