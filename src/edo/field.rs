@@ -198,20 +198,27 @@ impl Boundary {
     /// loop while the distance falls. The nearest point of a point between the nodes
     /// lies along the loop from one of theirs (it moves continuously, except across
     /// the medial axis, where it jumps from near one to near another).
-    fn near(&self, seeds: impl IntoIterator<Item = u32>, p: DVec2) -> (f64, DVec2) {
+    ///
+    /// Also whether every seed's walk ended on the same nearest point (no other local
+    /// minimum of the distance, as beside the medial axis).
+    fn near(&self, seeds: impl IntoIterator<Item = u32>, p: DVec2) -> (f64, DVec2, bool) {
         let mut best = (f64::INFINITY, p);
         let mut last = None;
+        let mut agree = true;
         for s in seeds {
             if last == Some(s) {
                 continue;
             }
-            last = Some(s);
             let here = self.descend(s, p);
+            if last.is_some() && here.1 != best.1 {
+                agree = false;
+            }
+            last = Some(s);
             if here.0 < best.0 {
                 best = here;
             }
         }
-        (best.0.sqrt(), best.1)
+        (best.0.sqrt(), best.1, agree)
     }
 
     /// Squared distance and nearest point of `p` on edge `k`.
@@ -464,19 +471,21 @@ impl DistanceField {
 
     /// The exact normalised distance at `p`, near grid `nodes` in the material, from
     /// the boundary edges near theirs, with its gradient; none where it is undefined.
-    fn exact_at(&self, nodes: &[usize], p: DVec2) -> Option<(f64, DVec2)> {
-        let (a, qa) = match &self.inner {
+    ///
+    /// Also whether the walks from the nodes' nearest edges agreed (see [`Boundary::near`]).
+    fn exact_at(&self, nodes: &[usize], p: DVec2) -> Option<(f64, DVec2, bool)> {
+        let (a, qa, agree_a) = match &self.inner {
             Inner::Holes { holes, seg } => holes.near(nodes.iter().map(|&k| seg[k]), p),
-            Inner::Centre(c) => (p.distance(*c), *c),
+            Inner::Centre(c) => (p.distance(*c), *c, true),
             Inner::None => return None,
         };
-        let (e, qe) = self.outer.near(nodes.iter().map(|&k| self.outer_seg[k]), p);
+        let (e, qe, agree_e) = self.outer.near(nodes.iter().map(|&k| self.outer_seg[k]), p);
         let s = a + e;
         if !(a > 0.0 && e > 0.0 && s.is_finite()) {
             return None;
         }
         let (ga, ge) = ((p - qa) / a, (p - qe) / e);
-        Some((a / s, (ga * e - ge * a) / (s * s)))
+        Some((a / s, (ga * e - ge * a) / (s * s), agree_a && agree_e))
     }
 
     /// Where level `t` crosses the grid edge from node `n0` to node `n1` (values on
@@ -504,9 +513,9 @@ impl DistanceField {
         let mut s = s_lin;
         let mut last_grad = None;
         let mut on_level = false;
-        for _ in 0..NEWTON_STEPS {
+        for step in 0..NEWTON_STEPS {
             let p = p0 + edge * s;
-            let Some((d, grad)) = self.exact_at(&[n0, n1], p) else {
+            let Some((d, grad, agree)) = self.exact_at(&[n0, n1], p) else {
                 break;
             };
             last_grad = Some(grad);
@@ -520,6 +529,14 @@ impl DistanceField {
             s = next;
             on_level = next == free && moved < NEWTON_CLOSE_MM;
             if moved < NEWTON_DONE_MM {
+                break;
+            }
+            // A first step shorter than NEWTON_TRUST_MM, on a stretch where the walks from
+            // both nodes found the same nearest points (no medial axis between them), is
+            // within Newton's quadratic error of the level set, about moved² / (2 ×
+            // the distances' radius of curvature): well under NEWTON_DONE_MM.
+            if step == 0 && agree && next == free && moved < NEWTON_TRUST_MM {
+                on_level = true;
                 break;
             }
         }
@@ -601,7 +618,7 @@ impl DistanceField {
         for _ in 0..NEWTON_STEPS {
             // The node nearest the point too: a corner can lie near a third part of
             // the boundary.
-            let Some((d, g)) = self.exact_at(&[a.node, b.node, self.node_near(x)], x) else {
+            let Some((d, g, _)) = self.exact_at(&[a.node, b.node, self.node_near(x)], x) else {
                 return;
             };
             let g2 = g.length_squared();
@@ -834,6 +851,9 @@ const NEWTON_STEPS: usize = 2;
 const NEWTON_DONE_MM: f64 = 1e-4;
 /// A last Newton step under this (mm) counts as having reached the level set.
 const NEWTON_CLOSE_MM: f64 = 1e-3;
+/// A first Newton step under this (mm), where the nearest boundary points agree, is
+/// not checked by a second (see [`DistanceField::place`]).
+const NEWTON_TRUST_MM: f64 = 1e-2;
 /// How far (cells) from the middle of a piece a corner of the level set may be found.
 const BEND_REACH_CELLS: f64 = 2.0;
 
