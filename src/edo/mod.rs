@@ -560,10 +560,22 @@ pub fn plan_region(
                 // nested and at least about L_short / m apart: far enough apart
                 // (beyond what simplifying each by the chord tolerance moves them),
                 // their difference is their loops, without the overlay.
-                let nested = n >= 2
-                    && n < m
-                    && pre.l_short_mm / m as f64 > NESTED_GAP_CHORDS * chord
-                    && !lower_shape.is_empty();
+                // Next to a boundary offset (n = 1 or m), whose arcs and the level's
+                // simplification are not so far apart, the same holds where no edge of
+                // the lower level comes within a chord tolerance of the upper one.
+                let apart = || {
+                    let upper_index = level_index(n);
+                    shapes::loops(lower_shape).all(|l| {
+                        crate::geom::loop_edges(l)
+                            .all(|(a, b)| !upper_index.any_within(a, b, chord))
+                    })
+                };
+                let nested = !lower_shape.is_empty()
+                    && if n >= 2 && n < m {
+                        pre.l_short_mm / m as f64 > NESTED_GAP_CHORDS * chord
+                    } else {
+                        apart()
+                    };
                 nested
                     .then(|| shapes::nested_difference(upper_shape, lower_shape))
                     .flatten()
