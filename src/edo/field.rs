@@ -710,8 +710,11 @@ impl DistanceField {
         if levels == 0 || self.d.len() != self.nx * self.ny {
             return Vec::new();
         }
-        let mut segs: Vec<Vec<Segment>> = vec![Vec::new(); levels];
         let (nx, ny) = (self.nx, self.ny);
+        // Room for a level a few times round the grid's sides without regrowing.
+        let mut segs: Vec<Vec<Segment>> = (0..levels)
+            .map(|_| Vec::with_capacity(4 * (nx + ny)))
+            .collect();
         let mf = m as f64;
         // Per level: the segment ending on each cell's top edge in the previous and the
         // current row, and on the right edge of the cell just visited, with that
@@ -1024,13 +1027,16 @@ const fn walk_to_side(
 fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> T) -> Vec<Vec<T>> {
     let mut used = vec![false; segs.len()];
     let mut loops = Vec::new();
+    let mut chained = 0;
     for start in 0..segs.len() {
         if used[start] {
             continue;
         }
         used[start] = true;
         let first_key = segs[start].keys[0];
-        let mut pts: Vec<T> = vec![place(first_key)];
+        // Room for every piece not yet chained: a level is mostly one or two loops.
+        let mut pts: Vec<T> = Vec::with_capacity(segs.len().saturating_sub(chained) + 1);
+        pts.push(place(first_key));
         let mut key = segs[start].keys[1];
         let mut next = segs[start].links[1];
         loop {
@@ -1047,6 +1053,7 @@ fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> T) -> Vec<Vec<T>
             key = s.keys[1 - enter];
             next = s.links[1 - enter];
         }
+        chained += pts.len();
         if segs[start].rotate {
             pts.rotate_left(1);
         }
