@@ -520,6 +520,69 @@ pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
         .collect()
 }
 
+/// Simplification of a closed loop in one pass, with the guarantee of [`simplify_loop`]:
+/// every dropped vertex lies within `tolerance_mm` of the chord that replaces it. From
+/// each kept vertex the next kept one is the farthest (at most [`GREEDY_RUN`] on) whose
+/// chord passes within the tolerance of every vertex between. Where nearly every vertex
+/// stays (an offset's moved edges and round joins), that is one chord test per vertex,
+/// against Douglas–Peucker's scan of the whole remaining run at every split.
+pub fn simplify_loop_greedy(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
+    let n = pts.len();
+    if n <= 4 || tolerance_mm <= 0.0 {
+        return pts.to_vec();
+    }
+    let tol2 = tolerance_mm * tolerance_mm;
+    let mut out = Vec::with_capacity(n);
+    out.push(pts[0]);
+    let mut a = 0;
+    while a < n {
+        let pa = pts[a];
+        // `b`: the farthest end found so far whose chord from `a` holds every vertex
+        // between (the next vertex trivially); index `n` is vertex 0 closing the loop.
+        let mut b = a + 1;
+        while b < n && b - a < GREEDY_RUN {
+            let pc = pts[if b + 1 == n { 0 } else { b + 1 }];
+            if pts[a + 1..=b]
+                .iter()
+                .all(|&p| chord_within(p, pa, pc, tol2))
+            {
+                b += 1;
+            } else {
+                break;
+            }
+        }
+        if b < n {
+            out.push(pts[b]);
+        }
+        a = b;
+    }
+    out
+}
+
+/// How many edges one chord of [`simplify_loop_greedy`] may replace (bounding its cost
+/// on long straight runs at n times this).
+const GREEDY_RUN: usize = 32;
+
+/// Whether `p` lies within `sqrt(tol2)` of segment `ab`, without a division or square
+/// root: the distance to the line first (never more than that to the segment), then to
+/// the nearer end where `p` projects beyond one.
+fn chord_within(p: DVec2, a: DVec2, b: DVec2, tol2: f64) -> bool {
+    let (ab, ap) = (b - a, p - a);
+    let len2 = ab.length_squared();
+    let cross = ap.perp_dot(ab);
+    if cross * cross > tol2 * len2 {
+        return false;
+    }
+    let dot = ap.dot(ab);
+    if dot <= 0.0 {
+        ap.length_squared() <= tol2
+    } else if dot >= len2 {
+        p.distance_squared(b) <= tol2
+    } else {
+        true
+    }
+}
+
 /// Bounding box (min, max) of several regions (infinite and inverted when empty).
 pub fn bounds_of(regions: &[Region]) -> (DVec2, DVec2) {
     let mut lo = DVec2::splat(f64::INFINITY);
@@ -1151,20 +1214,51 @@ mod tests {
         }
     }
 
-    #[test]
-    fn simplify_keeps_corners_drops_collinear() {
-        let mut l = Vec::new();
-        for k in 0..10 {
-            l.push(DVec2::new(k as f64, 0.0));
-        }
-        for k in 0..10 {
-            l.push(DVec2::new(10.0, k as f64));
-        }
+    /// A 10 mm square with nine collinear vertices on each of two sides.
+    fn square_with_collinear_points() -> Vec<DVec2> {
+        let mut l: Vec<DVec2> = (0..10).map(|k| DVec2::new(k as f64, 0.0)).collect();
+        l.extend((0..10).map(|k| DVec2::new(10.0, k as f64)));
         l.push(DVec2::new(10.0, 10.0));
         l.push(DVec2::new(0.0, 10.0));
+        l
+    }
+
+    #[test]
+    fn simplify_keeps_corners_drops_collinear() {
+        let l = square_with_collinear_points();
         let s = simplify_loop(&l, 1e-6);
         assert_eq!(s.len(), 4, "{s:?}");
         assert!((signed_area(&s) - signed_area(&l)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn greedy_simplify_keeps_within_tolerance() {
+        // The square of `simplify_keeps_corners_drops_collinear`: the corners alone stay.
+        let l = square_with_collinear_points();
+        let s = simplify_loop_greedy(&l, 1e-6);
+        assert_eq!(s.len(), 4, "{s:?}");
+        // A wobbly circle: every dropped vertex within the tolerance of the loop left,
+        // the vertices kept in order, and some dropped.
+        let tol = 0.002;
+        let l: Vec<DVec2> = (0..400)
+            .map(|k| {
+                let t = k as f64 / 400.0 * std::f64::consts::TAU;
+                DVec2::from_angle(t) * (5.0 + 0.003 * (7.0 * t).sin() + 0.001 * (53.0 * t).sin())
+            })
+            .collect();
+        let s = simplify_loop_greedy(&l, tol);
+        assert!(s.len() < l.len() && s.len() >= 3, "{}", s.len());
+        let mut next = 0;
+        for p in &s {
+            next += l[next..]
+                .iter()
+                .position(|q| q == p)
+                .expect("kept vertex in order")
+                + 1;
+        }
+        for p in &l {
+            assert!(point_loop_distance(*p, &s) <= tol * (1.0 + 1e-9), "{p}");
+        }
     }
 
     #[test]

@@ -179,7 +179,7 @@ pub fn offset_indexed(
             // Round joins leave runs of micro-edges; later booleans and offsets slow
             // down badly on them. Simplify well inside the chord tolerance, so offsets
             // stay within a few µm of exact (clip margins rely on that).
-            *l = crate::geom::simplify_loop(l, chord_mm / 20.0);
+            *l = crate::geom::simplify_loop_greedy(l, chord_mm / 20.0);
             remove_spikes(l);
         }
         shape.retain(|l| l.len() >= 3);
