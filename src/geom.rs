@@ -369,6 +369,31 @@ struct TaggedSegment {
 /// First pair of non-adjacent edges that touch or cross, over all `loops` together,
 /// found with a sweep over x (near-linear for ordinary outlines).
 pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
+    let mut first = None;
+    sweep_crossings(loops, |c| {
+        first = Some(c);
+        false
+    });
+    first
+}
+
+/// Every pair of non-adjacent edges that touch or cross, over all `loops` together, in
+/// the order [`first_crossing`]'s sweep meets them (so the first is its answer); None
+/// where there are more than `limit`.
+pub fn crossings(loops: &[&[DVec2]], limit: usize) -> Option<Vec<Crossing>> {
+    let mut all = Vec::new();
+    sweep_crossings(loops, |c| {
+        all.push(c);
+        all.len() <= limit
+    });
+    (all.len() <= limit).then_some(all)
+}
+
+/// The sweep of [`first_crossing`]: every crossing pair goes to `found` (the edge the
+/// sweep reached first as `first`) until it returns false. The sweep meets the pairs in
+/// the order of their later edge, then of their earlier one, each edge ranked by its
+/// least x (`f64::total_cmp`) and then by its number in the order of all loops' edges.
+fn sweep_crossings(loops: &[&[DVec2]], mut found: impl FnMut(Crossing) -> bool) {
     let mut segs: Vec<TaggedSegment> = Vec::with_capacity(loops.iter().map(|l| l.len()).sum());
     for (li, l) in loops.iter().enumerate() {
         let (n, first) = (l.len(), segs.len());
@@ -415,18 +440,32 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
                 continue;
             }
             if segments_intersect(s.a, s.b, t.a, t.b) {
-                let p = segment_intersection_point(s.a, s.b, t.a, t.b).unwrap_or(s.a);
-                return Some(Crossing {
+                let c = Crossing {
                     first: (t.loop_index, t.edge_index),
                     second: (s.loop_index, s.edge_index),
-                    at: p,
-                });
+                    at: crossing_point(s.a, s.b, t.a, t.b),
+                };
+                if !found(c) {
+                    return;
+                }
             }
         }
         active.truncate(kept);
         active.push(k);
     }
-    None
+}
+
+/// Where segment `s1`–`s2` meets `t1`–`t2` (which touch or cross), as the sweep of
+/// [`first_crossing`] places it, `s` being the edge it reached second.
+pub fn crossing_point(s1: DVec2, s2: DVec2, t1: DVec2, t2: DVec2) -> DVec2 {
+    segment_intersection_point(s1, s2, t1, t2).unwrap_or(s1)
+}
+
+/// The key [`first_crossing`]'s sweep ranks an edge `a`–`b` by, given the edge's number
+/// in the order of all loops' edges: pairs are met in the order of the larger key of
+/// their two edges, then of the smaller.
+pub fn sweep_rank(a: DVec2, b: DVec2, number: usize) -> (i64, usize) {
+    (total_order_key(a.x.min(b.x)), number)
 }
 
 /// The integer whose order is `f64::total_cmp`'s order of `x` (the transformation
