@@ -195,7 +195,7 @@ pub fn offset_indexed(
 ///    every loop, outer loops counter-clockwise and holes clockwise), consecutive moved
 ///    edges cut off where they meet (mitre: exact for the corners the offset turns
 ///    into) or joined by a round arc about the vertex where they part, sampled as the
-///    outline's round join is.
+///    outline's round join is (a join within chord/20 of a point, that point).
 /// 2. **Certificate**: the raw loops are the offset's boundary when no two of their
 ///    edges touch or cross, each keeps the orientation (so the area it bounds) of its
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
@@ -215,7 +215,7 @@ fn offset_direct(
     for shape in shapes {
         let mut loops = Vec::with_capacity(shape.len());
         for l in shape {
-            let raw = raw_offset_loop(l, delta_mm, step)?;
+            let raw = raw_offset_loop(l, delta_mm, step, chord_mm / 20.0)?;
             let (a0, a1) = (
                 crate::geom::signed_area2(l),
                 crate::geom::signed_area2(&raw),
@@ -495,7 +495,12 @@ const DIRECT_OFFSET_SLACK: f64 = 1e-9;
 
 /// Step 1 of [`offset_direct`] for one loop; None where an edge is degenerate or a
 /// corner turns back on itself (the mitre would run off far away).
-fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> {
+///
+/// A join so slight that its arc's midpoint lies within `merge_mm` of both moved edges'
+/// lines is that one point (at the offset distance from the corner, as the arc is): the
+/// loop then moves by at most `merge_mm` from the round join, inward, where the two arc
+/// ends would have been a micro-edge that simplification mostly drops anyway.
+fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64, merge_mm: f64) -> Option<Vec<DVec2>> {
     let n = l.len();
     if n < 3 {
         return None;
@@ -514,6 +519,11 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
     // Turns certainly below one arc step (their tangent a hair under the step's) are
     // one piece, as `ceil(|turn| / step)` makes them, without the arc tangent.
     let one_piece = step.tan() * (1.0 - 1e-9);
+    // The midpoint of a join turning by `t` lies `|delta| (1 - cos(t / 2))` inside the
+    // moved edges' lines: within `merge_mm` where `(1 + cos t) / 2 >= (1 - merge_mm /
+    // |delta|)²`.
+    let keep = (1.0 - merge_mm / delta_mm.abs()).max(0.0);
+    let merge_dot = 2.0 * keep * keep - 1.0;
     for k in 0..n {
         let (u0, u1) = (dirs[if k == 0 { n - 1 } else { k - 1 }], dirs[k]);
         let p = l[k];
@@ -529,8 +539,12 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
             }
             raw.push(p + (n0 + n1) / (1.0 + dot));
         } else if dot > 0.0 && cross.abs() < dot * one_piece {
-            raw.push(p + n0);
-            raw.push(p + n1);
+            if dot >= merge_dot {
+                raw.push(p + (n0 + n1) / (2.0 * (1.0 + dot)).sqrt());
+            } else {
+                raw.push(p + n0);
+                raw.push(p + n1);
+            }
         } else {
             let turn = cross.atan2(dot);
             let pieces = ((turn.abs() / step).ceil() as usize).max(1);
@@ -1070,7 +1084,7 @@ mod tests {
                         DVec2::from_angle(t) * r
                     })
                     .collect();
-                let Some(raw) = raw_offset_loop(&l, delta, arc_angle(delta, 0.01)) else {
+                let Some(raw) = raw_offset_loop(&l, delta, arc_angle(delta, 0.01), 0.0005) else {
                     continue;
                 };
                 let mut fast: Shapes = vec![vec![raw.clone()]];
