@@ -95,23 +95,25 @@ fn samples(paths: &[&edo::edo::shapes::Path], step: f64) -> Vec<DVec2> {
     out
 }
 
+/// The segments of some paths, closed ones as loops and open ones as polylines.
+fn path_index(ps: &[&edo::edo::shapes::Path]) -> SegmentIndex {
+    let loops: Vec<&[DVec2]> = ps
+        .iter()
+        .filter(|p| p.closed)
+        .map(|p| p.points.as_slice())
+        .collect();
+    let lines: Vec<&[DVec2]> = ps
+        .iter()
+        .filter(|p| !p.closed)
+        .map(|p| p.points.as_slice())
+        .collect();
+    SegmentIndex::new(&loops, &lines)
+}
+
 /// Sampled symmetric Hausdorff distance between two sets of paths, and the length (mm,
 /// both ways) of the samples farther than `tol` from the other set.
 fn hausdorff(a: &[&edo::edo::shapes::Path], b: &[&edo::edo::shapes::Path], tol: f64) -> (f64, f64) {
-    let index = |ps: &[&edo::edo::shapes::Path]| {
-        let loops: Vec<&[DVec2]> = ps
-            .iter()
-            .filter(|p| p.closed)
-            .map(|p| p.points.as_slice())
-            .collect();
-        let lines: Vec<&[DVec2]> = ps
-            .iter()
-            .filter(|p| !p.closed)
-            .map(|p| p.points.as_slice())
-            .collect();
-        SegmentIndex::new(&loops, &lines)
-    };
-    let (ia, ib) = (index(a), index(b));
+    let (ia, ib) = (path_index(a), path_index(b));
     let step = 0.02;
     let one_way = |from: &[&edo::edo::shapes::Path], to: &SegmentIndex| {
         samples(from, step)
@@ -233,6 +235,85 @@ fn diff(a: &str, b: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// How the equal distance offsets of two plans differ at their ends and away from them:
+/// for every pair of offsets, the ends of open roads (each end's distance to the
+/// nearest end of the other plan's roads), the road counts, and the sampled distance of
+/// the roads farther than `r` mm from every end of either.
+fn ends(a: &str, b: &str, r: f64) -> anyhow::Result<()> {
+    let read = |p: &str| -> anyhow::Result<Vec<LayerPlan>> {
+        Ok(serde_json::from_str(&std::fs::read_to_string(p)?)?)
+    };
+    let (la, lb) = (read(a)?, read(b)?);
+    anyhow::ensure!(la.len() == lb.len(), "layer counts differ");
+    let ends_of = |ps: &[edo::edo::shapes::Path]| -> Vec<DVec2> {
+        ps.iter()
+            .filter(|p| !p.closed)
+            .flat_map(|p| p.points.first().into_iter().chain(p.points.last()).copied())
+            .collect()
+    };
+    let (mut moved, mut worst_end, mut roads) = (Vec::new(), 0.0f64, (0, 0));
+    let mut interior = (0.0f64, String::new());
+    let verbose = std::env::var("VERBOSE").is_ok();
+    let mut changed_counts = 0;
+    for (x, y) in la.iter().zip(&lb) {
+        for (rx, ry) in x.regions.iter().zip(&y.regions) {
+            for (sx, sy) in rx.sub_regions.iter().zip(&ry.sub_regions) {
+                for (i, (ox, oy)) in sx.offsets.iter().zip(&sy.offsets).enumerate() {
+                    roads.0 += ox.len();
+                    roads.1 += oy.len();
+                    if ox.len() != oy.len() {
+                        changed_counts += 1;
+                    }
+                    let (ex, ey) = (ends_of(ox), ends_of(oy));
+                    let nearest = |p: DVec2, es: &[DVec2]| {
+                        es.iter()
+                            .map(|e| e.distance(p))
+                            .fold(f64::INFINITY, f64::min)
+                    };
+                    let at = format!("layer {} S{} offset {}", x.index, sx.n, i + 1);
+                    if ex.len() != ey.len() {
+                        println!("  {at}: {} / {} open road ends", ex.len(), ey.len());
+                    }
+                    for &p in ex.iter() {
+                        let d = nearest(p, &ey);
+                        worst_end = worst_end.max(d);
+                        if d > 0.01 {
+                            moved.push((d, at.clone()));
+                        }
+                    }
+                    let all_ends: Vec<DVec2> = ex.iter().chain(&ey).copied().collect();
+                    let (rx, ry): (Vec<_>, Vec<_>) = (ox.iter().collect(), oy.iter().collect());
+                    let (ix, iy) = (path_index(&rx), path_index(&ry));
+                    let mut here = 0.0f64;
+                    for (from, to) in [(&rx, &iy), (&ry, &ix)] {
+                        for p in samples(from, 0.02) {
+                            let d = to.distance(p);
+                            if d > here && nearest(p, &all_ends) > r {
+                                here = d;
+                            }
+                        }
+                    }
+                    if verbose && here > 0.002 {
+                        println!("  {at}: {here:.5} mm away from the ends");
+                    }
+                    if here > interior.0 {
+                        interior = (here, at);
+                    }
+                }
+            }
+        }
+    }
+    moved.sort_by(|p, q| q.0.total_cmp(&p.0));
+    println!(
+        "roads {} / {} ({} offsets with another count); ends moved beyond 0.01 mm: {} (largest {:.4} mm); largest distance farther than {r} mm from every end: {:.5} mm ({})",
+        roads.0, roads.1, changed_counts, moved.len(), worst_end, interior.0, interior.1
+    );
+    for (d, at) in moved.iter().take(16) {
+        println!("  {d:.4} mm  {at}");
+    }
+    Ok(())
+}
+
 fn levels(path: &str) -> anyhow::Result<()> {
     let layers: Vec<LayerPlan> = serde_json::from_str(&std::fs::read_to_string(path)?)?;
     let tol = edo::geom::Tolerances::default();
@@ -319,6 +400,10 @@ fn main() -> anyhow::Result<()> {
         Some("diff") => match (arg(1), arg(2)) {
             (Some(a), Some(b)) => diff(a, b),
             _ => anyhow::bail!("usage: plan_compare diff A.json B.json"),
+        },
+        Some("ends") => match (arg(1), arg(2), arg(3).and_then(|s| s.parse().ok())) {
+            (Some(a), Some(b), Some(r)) => ends(a, b, r),
+            _ => anyhow::bail!("usage: plan_compare ends A.json B.json R_MM"),
         },
         Some("levels") => match arg(1) {
             Some(p) => levels(p),

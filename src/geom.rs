@@ -369,6 +369,31 @@ struct TaggedSegment {
 /// First pair of non-adjacent edges that touch or cross, over all `loops` together,
 /// found with a sweep over x (near-linear for ordinary outlines).
 pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
+    let mut first = None;
+    sweep_crossings(loops, |c| {
+        first = Some(c);
+        false
+    });
+    first
+}
+
+/// Every pair of non-adjacent edges that touch or cross, over all `loops` together, in
+/// the order [`first_crossing`]'s sweep meets them (so the first is its answer); None
+/// where there are more than `limit`.
+pub fn crossings(loops: &[&[DVec2]], limit: usize) -> Option<Vec<Crossing>> {
+    let mut all = Vec::new();
+    sweep_crossings(loops, |c| {
+        all.push(c);
+        all.len() <= limit
+    });
+    (all.len() <= limit).then_some(all)
+}
+
+/// The sweep of [`first_crossing`]: every crossing pair goes to `found` (the edge the
+/// sweep reached first as `first`) until it returns false. The sweep meets the pairs in
+/// the order of their later edge, then of their earlier one, each edge ranked by its
+/// least x (`f64::total_cmp`) and then by its number in the order of all loops' edges.
+fn sweep_crossings(loops: &[&[DVec2]], mut found: impl FnMut(Crossing) -> bool) {
     let mut segs: Vec<TaggedSegment> = Vec::with_capacity(loops.iter().map(|l| l.len()).sum());
     for (li, l) in loops.iter().enumerate() {
         let (n, first) = (l.len(), segs.len());
@@ -415,18 +440,32 @@ pub fn first_crossing(loops: &[&[DVec2]]) -> Option<Crossing> {
                 continue;
             }
             if segments_intersect(s.a, s.b, t.a, t.b) {
-                let p = segment_intersection_point(s.a, s.b, t.a, t.b).unwrap_or(s.a);
-                return Some(Crossing {
+                let c = Crossing {
                     first: (t.loop_index, t.edge_index),
                     second: (s.loop_index, s.edge_index),
-                    at: p,
-                });
+                    at: crossing_point(s.a, s.b, t.a, t.b),
+                };
+                if !found(c) {
+                    return;
+                }
             }
         }
         active.truncate(kept);
         active.push(k);
     }
-    None
+}
+
+/// Where segment `s1`–`s2` meets `t1`–`t2` (which touch or cross), as the sweep of
+/// [`first_crossing`] places it, `s` being the edge it reached second.
+pub fn crossing_point(s1: DVec2, s2: DVec2, t1: DVec2, t2: DVec2) -> DVec2 {
+    segment_intersection_point(s1, s2, t1, t2).unwrap_or(s1)
+}
+
+/// The key [`first_crossing`]'s sweep ranks an edge `a`–`b` by, given the edge's number
+/// in the order of all loops' edges: pairs are met in the order of the larger key of
+/// their two edges, then of the smaller.
+pub fn sweep_rank(a: DVec2, b: DVec2, number: usize) -> (i64, usize) {
+    (total_order_key(a.x.min(b.x)), number)
 }
 
 /// The integer whose order is `f64::total_cmp`'s order of `x` (the transformation
@@ -518,6 +557,69 @@ pub fn simplify_loop(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
         .filter(|(_, k)| *k)
         .map(|(p, _)| *p)
         .collect()
+}
+
+/// Simplification of a closed loop in one pass, with the guarantee of [`simplify_loop`]:
+/// every dropped vertex lies within `tolerance_mm` of the chord that replaces it. From
+/// each kept vertex the next kept one is the farthest (at most [`GREEDY_RUN`] on) whose
+/// chord passes within the tolerance of every vertex between. Where nearly every vertex
+/// stays (an offset's moved edges and round joins), that is one chord test per vertex,
+/// against Douglas–Peucker's scan of the whole remaining run at every split.
+pub fn simplify_loop_greedy(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
+    let n = pts.len();
+    if n <= 4 || tolerance_mm <= 0.0 {
+        return pts.to_vec();
+    }
+    let tol2 = tolerance_mm * tolerance_mm;
+    let mut out = Vec::with_capacity(n);
+    out.push(pts[0]);
+    let mut a = 0;
+    while a < n {
+        let pa = pts[a];
+        // `b`: the farthest end found so far whose chord from `a` holds every vertex
+        // between (the next vertex trivially); index `n` is vertex 0 closing the loop.
+        let mut b = a + 1;
+        while b < n && b - a < GREEDY_RUN {
+            let pc = pts[if b + 1 == n { 0 } else { b + 1 }];
+            if pts[a + 1..=b]
+                .iter()
+                .all(|&p| chord_within(p, pa, pc, tol2))
+            {
+                b += 1;
+            } else {
+                break;
+            }
+        }
+        if b < n {
+            out.push(pts[b]);
+        }
+        a = b;
+    }
+    out
+}
+
+/// How many edges one chord of [`simplify_loop_greedy`] may replace (bounding its cost
+/// on long straight runs at n times this).
+const GREEDY_RUN: usize = 32;
+
+/// Whether `p` lies within `sqrt(tol2)` of segment `ab`, without a division or square
+/// root: the distance to the line first (never more than that to the segment), then to
+/// the nearer end where `p` projects beyond one.
+fn chord_within(p: DVec2, a: DVec2, b: DVec2, tol2: f64) -> bool {
+    let (ab, ap) = (b - a, p - a);
+    let len2 = ab.length_squared();
+    let cross = ap.perp_dot(ab);
+    if cross * cross > tol2 * len2 {
+        return false;
+    }
+    let dot = ap.dot(ab);
+    if dot <= 0.0 {
+        ap.length_squared() <= tol2
+    } else if dot >= len2 {
+        p.distance_squared(b) <= tol2
+    } else {
+        true
+    }
 }
 
 /// Bounding box (min, max) of several regions (infinite and inverted when empty).
@@ -1151,20 +1253,51 @@ mod tests {
         }
     }
 
-    #[test]
-    fn simplify_keeps_corners_drops_collinear() {
-        let mut l = Vec::new();
-        for k in 0..10 {
-            l.push(DVec2::new(k as f64, 0.0));
-        }
-        for k in 0..10 {
-            l.push(DVec2::new(10.0, k as f64));
-        }
+    /// A 10 mm square with nine collinear vertices on each of two sides.
+    fn square_with_collinear_points() -> Vec<DVec2> {
+        let mut l: Vec<DVec2> = (0..10).map(|k| DVec2::new(k as f64, 0.0)).collect();
+        l.extend((0..10).map(|k| DVec2::new(10.0, k as f64)));
         l.push(DVec2::new(10.0, 10.0));
         l.push(DVec2::new(0.0, 10.0));
+        l
+    }
+
+    #[test]
+    fn simplify_keeps_corners_drops_collinear() {
+        let l = square_with_collinear_points();
         let s = simplify_loop(&l, 1e-6);
         assert_eq!(s.len(), 4, "{s:?}");
         assert!((signed_area(&s) - signed_area(&l)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn greedy_simplify_keeps_within_tolerance() {
+        // The square of `simplify_keeps_corners_drops_collinear`: the corners alone stay.
+        let l = square_with_collinear_points();
+        let s = simplify_loop_greedy(&l, 1e-6);
+        assert_eq!(s.len(), 4, "{s:?}");
+        // A wobbly circle: every dropped vertex within the tolerance of the loop left,
+        // the vertices kept in order, and some dropped.
+        let tol = 0.002;
+        let l: Vec<DVec2> = (0..400)
+            .map(|k| {
+                let t = k as f64 / 400.0 * std::f64::consts::TAU;
+                DVec2::from_angle(t) * (5.0 + 0.003 * (7.0 * t).sin() + 0.001 * (53.0 * t).sin())
+            })
+            .collect();
+        let s = simplify_loop_greedy(&l, tol);
+        assert!(s.len() < l.len() && s.len() >= 3, "{}", s.len());
+        let mut next = 0;
+        for p in &s {
+            next += l[next..]
+                .iter()
+                .position(|q| q == p)
+                .expect("kept vertex in order")
+                + 1;
+        }
+        for p in &l {
+            assert!(point_loop_distance(*p, &s) <= tol * (1.0 + 1e-9), "{p}");
+        }
     }
 
     #[test]

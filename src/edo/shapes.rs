@@ -5,7 +5,7 @@
 //! turns a loop cut by the neighbouring contour into the non-continuous segments of
 //! Fig. 4(a)).
 
-use crate::geom::{point_in_loop, SegmentIndex};
+use crate::geom::{point_in_loop, sweep_rank, Crossing, SegmentIndex};
 use glam::DVec2;
 use i_overlay::core::fill_rule::FillRule;
 use i_overlay::core::overlay_rule::OverlayRule;
@@ -179,7 +179,7 @@ pub fn offset_indexed(
             // Round joins leave runs of micro-edges; later booleans and offsets slow
             // down badly on them. Simplify well inside the chord tolerance, so offsets
             // stay within a few µm of exact (clip margins rely on that).
-            *l = crate::geom::simplify_loop(l, chord_mm / 20.0);
+            *l = crate::geom::simplify_loop_greedy(l, chord_mm / 20.0);
             remove_spikes(l);
         }
         shape.retain(|l| l.len() >= 3);
@@ -195,7 +195,7 @@ pub fn offset_indexed(
 ///    every loop, outer loops counter-clockwise and holes clockwise), consecutive moved
 ///    edges cut off where they meet (mitre: exact for the corners the offset turns
 ///    into) or joined by a round arc about the vertex where they part, sampled as the
-///    outline's round join is.
+///    outline's round join is (a join within chord/20 of a point, that point).
 /// 2. **Certificate**: the raw loops are the offset's boundary when no two of their
 ///    edges touch or cross, each keeps the orientation (so the area it bounds) of its
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
@@ -215,7 +215,7 @@ fn offset_direct(
     for shape in shapes {
         let mut loops = Vec::with_capacity(shape.len());
         for l in shape {
-            let raw = raw_offset_loop(l, delta_mm, step)?;
+            let raw = raw_offset_loop(l, delta_mm, step, chord_mm / 20.0)?;
             let (a0, a1) = (
                 crate::geom::signed_area2(l),
                 crate::geom::signed_area2(&raw),
@@ -230,17 +230,7 @@ fn offset_direct(
     // Little reversed loops (swallowtails) where the offset swallows a short edge
     // between two corners it turns into are cut off at their crossing; any other
     // crossing leaves the work to the outline.
-    let mut cuts = 0;
-    loop {
-        let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
-        let Some(c) = crate::geom::first_crossing(&raw) else {
-            break;
-        };
-        cuts += 1;
-        if cuts > MAX_SWALLOWTAIL_CUTS || !cut_swallowtail(&mut out, &c) {
-            return None;
-        }
-    }
+    cut_swallowtails(&mut out)?;
     let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
     let built;
     let index = match index {
@@ -262,18 +252,190 @@ fn offset_direct(
     Some(out)
 }
 
+/// Cut off every swallowtail of `shapes`, one crossing at a time in the order the sweep
+/// of [`crate::geom::first_crossing`] would find them; None where a crossing is not a
+/// swallowtail or there are more than [`MAX_SWALLOWTAIL_CUTS`].
+///
+/// One sweep finds every crossing pair. A cut keeps pieces of the two crossing edges
+/// and drops the edges between, so the crossings left are pairs of the first sweep
+/// whose edges stay whole, and pairs of the two shortened edges (found by testing
+/// them against every edge); the other edges keep their order (a cut loop's edges keep
+/// theirs round it), so picking the pair the sweep meets first (by [`sweep_rank`]) is
+/// the crossing sweeping the cut loops again would find.
+fn cut_swallowtails(shapes: &mut Shapes) -> Option<()> {
+    let raw: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
+    let Some(mut pending) = crate::geom::crossings(&raw, MAX_PENDING_CROSSINGS) else {
+        // Too many to follow: sweep again after every cut.
+        for _ in 0..MAX_SWALLOWTAIL_CUTS {
+            let raw: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
+            let Some(c) = crate::geom::first_crossing(&raw) else {
+                return Some(());
+            };
+            cut_swallowtail(shapes, &c)?;
+        }
+        let raw: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
+        return crate::geom::first_crossing(&raw).is_none().then_some(());
+    };
+    let mut cuts = 0;
+    while !pending.is_empty() {
+        let all: Vec<&Vec<DVec2>> = loops(shapes).collect();
+        let starts = loop_starts(&all);
+        let rank = |(l, e): (usize, usize)| {
+            let pts = all[l];
+            let b = pts[if e + 1 == pts.len() { 0 } else { e + 1 }];
+            sweep_rank(pts[e], b, starts[l] + e)
+        };
+        let c = *pending
+            .iter()
+            .min_by_key(|c| (rank(c.second), rank(c.first)))?;
+        cuts += 1;
+        if cuts > MAX_SWALLOWTAIL_CUTS {
+            return None;
+        }
+        let cut = cut_swallowtail(shapes, &c)?;
+        pending = crossings_after_cut(shapes, &pending, &c, &cut);
+    }
+    Some(())
+}
+
+/// The first edge number of each loop in the order of all loops' edges.
+fn loop_starts(all: &[&Vec<DVec2>]) -> Vec<usize> {
+    all.iter()
+        .scan(0, |n, l| {
+            let start = *n;
+            *n += l.len();
+            Some(start)
+        })
+        .collect()
+}
+
+/// The crossings of `shapes` after [`cut_swallowtail`] cut crossing `c` (`cut`), given
+/// every crossing before (`pending`): see [`cut_swallowtails`].
+fn crossings_after_cut(
+    shapes: &Shapes,
+    pending: &[Crossing],
+    c: &Crossing,
+    cut: &Cut,
+) -> Vec<Crossing> {
+    let shortened = cut.shortened();
+    let edge = |(l, e): (usize, usize)| {
+        if l != cut.loop_index {
+            return Some((l, e));
+        }
+        cut.edge(e)
+            .filter(|e| !shortened.contains(e))
+            .map(|e| (l, e))
+    };
+    let mut out: Vec<Crossing> = pending
+        .iter()
+        .filter(|p| (p.first, p.second) != (c.first, c.second))
+        .filter_map(|p| {
+            Some(Crossing {
+                first: edge(p.first)?,
+                second: edge(p.second)?,
+                at: p.at,
+            })
+        })
+        .collect();
+    let all: Vec<&Vec<DVec2>> = loops(shapes).collect();
+    let starts = loop_starts(&all);
+    let seg = |(l, e): (usize, usize)| {
+        let pts = all[l];
+        (pts[e], pts[if e + 1 == pts.len() { 0 } else { e + 1 }])
+    };
+    for s in shortened {
+        let me = (cut.loop_index, s);
+        let (a, b) = seg(me);
+        let (lo, hi) = (a.min(b), a.max(b));
+        let n = all[cut.loop_index].len();
+        for (l, pts) in all.iter().enumerate() {
+            for e in 0..pts.len() {
+                // Itself and its neighbours round the loop (the other shortened edge
+                // is one) cannot count.
+                if l == cut.loop_index && (e == s || e == (s + 1) % n || (e + 1) % n == s) {
+                    continue;
+                }
+                let (p, q) = seg((l, e));
+                if p.max(q).cmplt(lo).any() || hi.cmplt(p.min(q)).any() {
+                    continue;
+                }
+                if crate::geom::segments_intersect(a, b, p, q) {
+                    let (rs, re) = (
+                        sweep_rank(a, b, starts[cut.loop_index] + s),
+                        sweep_rank(p, q, starts[l] + e),
+                    );
+                    let (earlier, later) = if rs < re {
+                        ((me, (a, b)), ((l, e), (p, q)))
+                    } else {
+                        (((l, e), (p, q)), (me, (a, b)))
+                    };
+                    out.push(Crossing {
+                        first: earlier.0,
+                        second: later.0,
+                        at: crate::geom::crossing_point(
+                            later.1 .0,
+                            later.1 .1,
+                            earlier.1 .0,
+                            earlier.1 .1,
+                        ),
+                    });
+                }
+            }
+        }
+    }
+    out
+}
+
+/// How many crossings [`cut_swallowtails`] follows from one sweep.
+const MAX_PENDING_CROSSINGS: usize = 4 * MAX_SWALLOWTAIL_CUTS;
+
+/// What [`cut_swallowtail`] did to its loop: crossing edges `i < j` of a loop of `n`
+/// edges, keeping the piece outside them (`outside`: `..=i`, the crossing, `j + 1..`)
+/// or between them (the crossing, `i + 1..=j`).
+struct Cut {
+    loop_index: usize,
+    i: usize,
+    j: usize,
+    outside: bool,
+}
+
+impl Cut {
+    /// The new number of edge `k` of the cut loop, None where the cut dropped it.
+    fn edge(&self, k: usize) -> Option<usize> {
+        let (i, j) = (self.i, self.j);
+        if self.outside {
+            if k <= i {
+                Some(k)
+            } else if k < j {
+                None
+            } else {
+                Some(k + 1 + i - j)
+            }
+        } else {
+            (i..=j).contains(&k).then(|| k - i)
+        }
+    }
+
+    /// The new numbers of the two crossing edges, which the cut shortened to the crossing.
+    fn shortened(&self) -> [usize; 2] {
+        if self.outside {
+            [self.i, self.i + 1]
+        } else {
+            [0, self.j - self.i]
+        }
+    }
+}
+
 /// Cut the loop crossing `c` closes off, if it is a swallowtail: both edges of one loop,
 /// at most [`SWALLOWTAIL_EDGES`] apart along it, and the piece between them turning
-/// the other way round from the loop. Returns whether it cut.
-fn cut_swallowtail(shapes: &mut Shapes, c: &crate::geom::Crossing) -> bool {
+/// the other way round from the loop. Returns what it cut, None where it did not.
+fn cut_swallowtail(shapes: &mut Shapes, c: &Crossing) -> Option<Cut> {
     let ((la, i), (lb, j)) = (c.first, c.second);
     if la != lb {
-        return false;
+        return None;
     }
     let (i, j) = (i.min(j), i.max(j));
-    let Some(l) = shapes.iter_mut().flat_map(|s| s.iter_mut()).nth(la) else {
-        return false;
-    };
+    let l = shapes.iter_mut().flat_map(|s| s.iter_mut()).nth(la)?;
     let n = l.len();
     let inner = j - i;
     let outer = n - inner;
@@ -290,7 +452,7 @@ fn cut_swallowtail(shapes: &mut Shapes, c: &crate::geom::Crossing) -> bool {
     if piece.len() > SWALLOWTAIL_EDGES + 1
         || (crate::geom::signed_area2(&piece) > 0.0) == (crate::geom::signed_area2(l) > 0.0)
     {
-        return false;
+        return None;
     }
     let kept: Vec<DVec2> = if inner <= outer {
         l[..=i]
@@ -305,10 +467,15 @@ fn cut_swallowtail(shapes: &mut Shapes, c: &crate::geom::Crossing) -> bool {
             .collect()
     };
     if kept.len() < 3 {
-        return false;
+        return None;
     }
     *l = kept;
-    true
+    Some(Cut {
+        loop_index: la,
+        i,
+        j,
+        outside: inner <= outer,
+    })
 }
 
 /// How many edges a swallowtail [`cut_swallowtail`] cuts may span.
@@ -328,7 +495,12 @@ const DIRECT_OFFSET_SLACK: f64 = 1e-9;
 
 /// Step 1 of [`offset_direct`] for one loop; None where an edge is degenerate or a
 /// corner turns back on itself (the mitre would run off far away).
-fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> {
+///
+/// A join so slight that its arc's midpoint lies within `merge_mm` of both moved edges'
+/// lines is that one point (at the offset distance from the corner, as the arc is): the
+/// loop then moves by at most `merge_mm` from the round join, inward, where the two arc
+/// ends would have been a micro-edge that simplification mostly drops anyway.
+fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64, merge_mm: f64) -> Option<Vec<DVec2>> {
     let n = l.len();
     if n < 3 {
         return None;
@@ -347,6 +519,11 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
     // Turns certainly below one arc step (their tangent a hair under the step's) are
     // one piece, as `ceil(|turn| / step)` makes them, without the arc tangent.
     let one_piece = step.tan() * (1.0 - 1e-9);
+    // The midpoint of a join turning by `t` lies `|delta| (1 - cos(t / 2))` inside the
+    // moved edges' lines: within `merge_mm` where `(1 + cos t) / 2 >= (1 - merge_mm /
+    // |delta|)²`.
+    let keep = (1.0 - merge_mm / delta_mm.abs()).max(0.0);
+    let merge_dot = 2.0 * keep * keep - 1.0;
     for k in 0..n {
         let (u0, u1) = (dirs[if k == 0 { n - 1 } else { k - 1 }], dirs[k]);
         let p = l[k];
@@ -362,8 +539,12 @@ fn raw_offset_loop(l: &[DVec2], delta_mm: f64, step: f64) -> Option<Vec<DVec2>> 
             }
             raw.push(p + (n0 + n1) / (1.0 + dot));
         } else if dot > 0.0 && cross.abs() < dot * one_piece {
-            raw.push(p + n0);
-            raw.push(p + n1);
+            if dot >= merge_dot {
+                raw.push(p + (n0 + n1) / (2.0 * (1.0 + dot)).sqrt());
+            } else {
+                raw.push(p + n0);
+                raw.push(p + n1);
+            }
         } else {
             let turn = cross.atan2(dot);
             let pieces = ((turn.abs() / step).ceil() as usize).max(1);
@@ -887,6 +1068,50 @@ const CLEARANCE_BISECTIONS: usize = 12;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn swallowtails_cut_as_sweeping_after_every_cut() {
+        // Wavy loops shrunk past the waves' curvature: their raw offsets have several
+        // swallowtails. Following the first sweep's crossings cuts them as sweeping
+        // again after every cut does.
+        let mut cut_some = 0;
+        for (k, waves) in [7.0, 23.0, 37.0, 53.0].into_iter().enumerate() {
+            for delta in [-0.05, -0.1, -0.2, -0.35] {
+                let l: Vec<DVec2> = (0..300)
+                    .map(|q| {
+                        let t = q as f64 / 300.0 * std::f64::consts::TAU;
+                        let r = 3.0 + 0.04 * (waves * t).sin() + 0.01 * k as f64 * (3.0 * t).cos();
+                        DVec2::from_angle(t) * r
+                    })
+                    .collect();
+                let Some(raw) = raw_offset_loop(&l, delta, arc_angle(delta, 0.01), 0.0005) else {
+                    continue;
+                };
+                let mut fast: Shapes = vec![vec![raw.clone()]];
+                let mut slow: Shapes = vec![vec![raw]];
+                let fast_ok = cut_swallowtails(&mut fast).is_some();
+                let mut slow_ok = true;
+                let mut cuts = 0;
+                loop {
+                    let all: Vec<&[DVec2]> = loops(&slow).map(|l| l.as_slice()).collect();
+                    let Some(c) = crate::geom::first_crossing(&all) else {
+                        break;
+                    };
+                    cuts += 1;
+                    if cuts > MAX_SWALLOWTAIL_CUTS || cut_swallowtail(&mut slow, &c).is_none() {
+                        slow_ok = false;
+                        break;
+                    }
+                }
+                assert_eq!(fast_ok, slow_ok, "waves {waves} delta {delta}");
+                if slow_ok {
+                    assert_eq!(fast, slow, "waves {waves} delta {delta}");
+                    cut_some += usize::from(cuts > 0);
+                }
+            }
+        }
+        assert!(cut_some > 0);
+    }
 
     /// The outline alone, for comparison with [`offset`]'s shortcut.
     fn outline_only(shapes: &Shapes, delta_mm: f64, chord_mm: f64) -> Shapes {
