@@ -199,6 +199,27 @@
 //! void / overlap %, before -> after): paper-annulus 0.010 / 0.010 -> 0.009 / 0.011;
 //! tooth-crown 0.177 / 0.587 -> 0.175 / 0.560; non-star 0.443 / 1.596 -> 0.479 /
 //! 1.619; Benchy 0.421 / 1.340 -> 0.433 / 1.302; femur 0.174 / 0.646 -> 0.177 / 0.645.
+//!
+//! 2026-12-01, sixth session, merged with off5: 69.2M instructions per layer (callgrind,
+//! from 85.1M at the session's start). Criterion medians, the session's start (3c97c76)
+//! and this code alternating on the idle machine: 12.0 and 12.7 ms before, 9.4 and 10.2
+//! ms after (-21 %); this session's machine ran about twice as fast as the last one's,
+//! so only same-session figures compare. Mine (the field, level sets and sub-regions):
+//! level sets march one piece per cell and level from a 32-case table built at compile
+//! time from the cell's four triangles (same crossings, same joins, same loop starts:
+//! plans byte-identical), level sets 21.9M -> 18.5M; a first Newton step under 0.01 mm
+//! where both nodes' walks find the same nearest points is not checked by a second
+//! (level-set accuracy unchanged: bench mean 0.00294 mm, p99.9 0.0120), 81.8M -> 78.0M;
+//! the sub-regions next to the boundary offsets are their levels' loops without the
+//! overlay where no lower edge comes within a chord of the upper level (roads
+//! identical), 1.1M; level sets reserve their pieces and loops, 1.0M. Tried and not
+//! taken: a 4-neighbour distance transform (6 relaxations a node instead of 10),
+//! distance transforms 11.6M -> 8.6M but 80.3M in all (worse seeds cost the walks) and
+//! the level sets less exact (bench p99.9 0.0120 -> 0.0145 mm, femur 0.041 -> 0.057,
+//! six structural differences on the femur). Where the 69.2M go now (inclusive):
+//! offsets 18.8M, distance field 13.5M (transforms 11.6M), level sets 13.7M (exact
+//! distances 5.5M), trimming 9.5M, boundary index builds 3.3M. The 5 ms target needs
+//! about 2 times less on this session's machine.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};
