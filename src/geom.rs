@@ -39,6 +39,40 @@ impl Default for Tolerances {
     }
 }
 
+/// The vertex after `k` round a loop of `n` vertices (without an integer division).
+#[inline]
+pub fn next_in_loop(k: usize, n: usize) -> usize {
+    if k + 1 == n {
+        0
+    } else {
+        k + 1
+    }
+}
+
+/// The vertex before `k` round a loop of `n` vertices.
+#[inline]
+pub fn prev_in_loop(k: usize, n: usize) -> usize {
+    if k == 0 {
+        n - 1
+    } else {
+        k - 1
+    }
+}
+
+/// Edge `e` of a closed loop: from vertex `e` to the next.
+#[inline]
+pub fn loop_edge(pts: &[DVec2], e: usize) -> (DVec2, DVec2) {
+    (pts[e], pts[next_in_loop(e, pts.len())])
+}
+
+/// Axis-aligned bounding box (min, max) of points (infinite and inverted when empty).
+pub fn loop_bounds(pts: &[DVec2]) -> (DVec2, DVec2) {
+    pts.iter().fold(
+        (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    )
+}
+
 /// The edges of a closed loop in order, from vertex 0: `(pts[i], pts[i + 1])`, the last
 /// back to the first (without a division per edge).
 pub fn loop_edges(pts: &[DVec2]) -> impl Iterator<Item = (DVec2, DVec2)> + '_ {
@@ -580,7 +614,7 @@ pub fn simplify_loop_greedy(pts: &[DVec2], tolerance_mm: f64) -> Vec<DVec2> {
         // between (the next vertex trivially); index `n` is vertex 0 closing the loop.
         let mut b = a + 1;
         while b < n && b - a < GREEDY_RUN {
-            let pc = pts[if b + 1 == n { 0 } else { b + 1 }];
+            let pc = pts[next_in_loop(b, n)];
             if pts[a + 1..=b]
                 .iter()
                 .all(|&p| chord_within(p, pa, pc, tol2))
@@ -698,13 +732,7 @@ impl Region {
 
     /// Axis-aligned bounding box (min, max).
     pub fn bounds(&self) -> (DVec2, DVec2) {
-        let mut lo = DVec2::splat(f64::INFINITY);
-        let mut hi = DVec2::splat(f64::NEG_INFINITY);
-        for p in &self.outer {
-            lo = lo.min(*p);
-            hi = hi.max(*p);
-        }
-        (lo, hi)
+        loop_bounds(&self.outer)
     }
 
     /// Is `p` inside the material (inside outer, outside every hole)?
@@ -931,6 +959,12 @@ impl SegmentIndex {
 
     pub fn is_empty(&self) -> bool {
         self.segments.is_empty()
+    }
+
+    /// Does every edge of the closed loop `l` stay farther than `r_mm` from every indexed
+    /// segment?
+    pub fn clear_of_loop(&self, l: &[DVec2], r_mm: f64) -> bool {
+        loop_edges(l).all(|(a, b)| !self.any_within(a, b, r_mm))
     }
 
     /// Does any indexed segment come within `r_mm` of the segment `a`–`b`?

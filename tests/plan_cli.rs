@@ -158,6 +158,7 @@ fn bad_jobs_fail_with_named_errors() {
             "process.min_road",
         ),
         ("[process]", "[process]\nmin_road = 0.9", "process.min_road"),
+        ("[process]", "[process]\nmin_road = nan", "process.min_road"),
         (
             "[process]",
             "[toolpath]\npurge_pad_mm = -1.0\n[process]",

@@ -41,7 +41,7 @@
 //! 0.042, 0.127); the non-star example mean 0.0035 mm, largest 0.017 mm (was 0.0045,
 //! 0.037).
 
-use crate::geom::{floor_clamped, Region};
+use crate::geom::{floor_clamped, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;
 
 /// Sampled normalised distance over a region.
@@ -563,9 +563,9 @@ impl DistanceField {
         let keep: Vec<bool> = (0..n)
             .map(|k| {
                 let (before, here, after) = (
-                    &placed[if k == 0 { n - 1 } else { k - 1 }],
+                    &placed[prev_in_loop(k, n)],
                     &placed[k],
-                    &placed[if k + 1 == n { 0 } else { k + 1 }],
+                    &placed[next_in_loop(k, n)],
                 );
                 here.on_level || here.grad.is_none() || !(before.on_level && after.on_level)
             })
@@ -584,7 +584,7 @@ impl DistanceField {
         let n = placed.len();
         let mut out = Vec::with_capacity(n + n / 4);
         for k in 0..n {
-            let (a, b) = (placed[k], placed[if k + 1 == n { 0 } else { k + 1 }]);
+            let (a, b) = (placed[k], placed[next_in_loop(k, n)]);
             out.push(a.p);
             self.bend_between(a, b, t, BEND_DEPTH, &mut out);
         }
@@ -604,7 +604,7 @@ impl DistanceField {
         let chord = a.p.distance(b.p);
         let turn = ga.angle_to(gb).abs();
         let bends = turn > BEND_TURN && chord * turn / 4.0 > BEND_MM;
-        if depth == 0 || !bends {
+        if !bends {
             return;
         }
         // Newton steps along the gradient from where the level set's tangents at the two

@@ -565,10 +565,7 @@ pub fn plan_region(
                 // the lower level comes within a chord tolerance of the upper one.
                 let apart = || {
                     let upper_index = level_index(n);
-                    shapes::loops(lower_shape).all(|l| {
-                        crate::geom::loop_edges(l)
-                            .all(|(a, b)| !upper_index.any_within(a, b, chord))
-                    })
+                    shapes::loops(lower_shape).all(|l| upper_index.clear_of_loop(l, chord))
                 };
                 let nested = !lower_shape.is_empty()
                     && if n >= 2 && n < m {
@@ -920,7 +917,7 @@ fn gap_along_gradient(
         let n = pts.len();
         let edges = if road.closed { n } else { n.saturating_sub(1) };
         for k in 0..edges {
-            let (a, b) = (pts[k], pts[if k + 1 == n { 0 } else { k + 1 }]);
+            let (a, b) = (pts[k], pts[crate::geom::next_in_loop(k, n)]);
             // Sampled at the middle of pieces at most a nozzle long, never at a vertex:
             // from a convex corner the nearest point of the lower contour lies along
             // the bisector, d / sin(α/2) away, further than the gap beside the edges.
