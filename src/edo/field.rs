@@ -10,7 +10,9 @@
 //! 1. Sample a grid of nodes over the region (cell size from the planner options).
 //! 2. Classify nodes inside the outer loop / inside a hole by scanlines.
 //! 3. Distances to Ce and to Ci (holes, or the centre point when there is none) by a
-//!    vector distance transform seeded with exact nearest points near each boundary.
+//!    vector distance transform seeded with exact nearest points near each boundary,
+//!    swept over each row's stretch of the convex hull of Ce (the nodes outside it are
+//!    read as far outside).
 //! 4. d per node, extended continuously outside the material (negative in holes, above
 //!    1 outside Ce) so every level set is a closed loop.
 //! 5. Marching triangles (four triangles per cell around its mean) trace the level
@@ -43,6 +45,76 @@
 
 use crate::geom::{floor_clamped, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;
+use pool::{give, take};
+
+/// Grid-sized buffers kept by each thread between the fields it builds.
+///
+/// A layer's field and level sets fill a few MB of grid-sized arrays. Freed at the end
+/// of every layer, they let the allocator return the pages to the kernel and fault
+/// fresh ones in for the next layer: on the `plan_layer` bench about an eighth of the
+/// layer's time went to those page faults and the allocator. Each thread (the
+/// planner's rayon workers plan many layers each) keeps the arrays of its last field
+/// instead, a few of each kind, none over [`KEEP_BYTES`].
+mod pool {
+    use std::cell::RefCell;
+    use std::thread::LocalKey;
+
+    /// Buffers of one element type, kept by one thread.
+    pub(super) type Shelf<T> = LocalKey<RefCell<Vec<Vec<T>>>>;
+
+    /// The largest buffer a shelf keeps, bytes (a grid of a million nodes of f64).
+    const KEEP_BYTES: usize = 8 << 20;
+    /// How many buffers a shelf keeps.
+    const KEEP_COUNT: usize = 8;
+
+    /// A buffer of `n` copies of `fill`, reusing one from the shelf where it has one.
+    pub(super) fn take<T: Clone + 'static>(shelf: &'static Shelf<T>, n: usize, fill: T) -> Vec<T> {
+        let kept = shelf
+            .try_with(|s| {
+                let mut s = s.try_borrow_mut().ok()?;
+                // The smallest that holds n, else the largest (grown once).
+                let i = s
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, v)| v.capacity() >= n)
+                    .min_by_key(|(_, v)| v.capacity())
+                    .or_else(|| s.iter().enumerate().max_by_key(|(_, v)| v.capacity()))
+                    .map(|(i, _)| i)?;
+                Some(s.swap_remove(i))
+            })
+            .ok()
+            .flatten();
+        let mut v = kept.unwrap_or_default();
+        v.clear();
+        v.resize(n, fill);
+        v
+    }
+
+    /// Put `v` back on the shelf for the next [`take`].
+    pub(super) fn give<T: 'static>(shelf: &'static Shelf<T>, mut v: Vec<T>) {
+        if v.capacity() == 0 || v.capacity() * std::mem::size_of::<T>() > KEEP_BYTES {
+            return;
+        }
+        v.clear();
+        let _ = shelf.try_with(|s| {
+            if let Ok(mut s) = s.try_borrow_mut() {
+                if s.len() < KEEP_COUNT {
+                    s.push(v);
+                }
+            }
+        });
+    }
+
+    thread_local! {
+        pub(super) static F64: RefCell<Vec<Vec<f64>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static U32: RefCell<Vec<Vec<u32>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static I64: RefCell<Vec<Vec<i64>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static BOOL: RefCell<Vec<Vec<bool>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static NEAREST: RefCell<Vec<Vec<super::Nearest>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static SIDE: RefCell<Vec<Vec<(u64, u32)>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static SEGMENT: RefCell<Vec<Vec<super::Segment>>> = const { RefCell::new(Vec::new()) };
+    }
+}
 
 /// Sampled normalised distance over a region.
 pub struct DistanceField {
@@ -133,7 +205,7 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
             }
         }
     }
-    let mut inside = vec![false; grid.nx * grid.ny];
+    let mut inside = take(&pool::BOOL, grid.nx * grid.ny, false);
     for (r, xs) in rows.iter_mut().enumerate() {
         xs.sort_by(f64::total_cmp);
         for pair in xs.chunks_exact(2) {
@@ -148,6 +220,83 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
         }
     }
     inside
+}
+
+/// Nodes either side of the material that the distance transforms sweep (see
+/// [`distance_to_loops`]): the crossings of the outermost levels lie on cell sides
+/// from a material node to its neighbour.
+const SPAN_MARGIN: usize = 2;
+
+/// Per grid row, the columns (inclusive) the distance transforms sweep: the row's
+/// stretch of the convex hull of the nodes inside Ce, [`SPAN_MARGIN`] wider, over the
+/// rows up to [`SPAN_MARGIN`] either side; an empty range (1, 0) for a row with none
+/// near.
+///
+/// The hull, not the nodes inside Ce themselves: a material node's nearest point on Ci
+/// can lie across a gap outside Ce (a C-shaped part), and the straight line to it
+/// (along which the transform carries it) stays inside the hull.
+fn row_spans(grid: &Grid, in_outer: &[bool]) -> Vec<(usize, usize)> {
+    let own: Vec<(f64, f64, f64)> = in_outer
+        .chunks_exact(grid.nx)
+        .enumerate()
+        .filter_map(|(r, row)| {
+            let first = row.iter().position(|&i| i)?;
+            let last = row.iter().rposition(|&i| i)?;
+            Some((r as f64, first as f64, last as f64))
+        })
+        .collect();
+    let left = hull_side(own.iter().map(|&(r, first, _)| DVec2::new(r, first)), false);
+    let right = hull_side(own.iter().map(|&(r, _, last)| DVec2::new(r, last)), true);
+    let extent = |r: usize| -> Option<(f64, f64)> {
+        Some((side_at(&left, r as f64)?, side_at(&right, r as f64)?))
+    };
+    (0..grid.ny)
+        .map(|r| {
+            let (first, last) = (r.saturating_sub(SPAN_MARGIN)..(r + SPAN_MARGIN + 1).min(grid.ny))
+                .filter_map(extent)
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), (f, l)| {
+                    (a.min(f), b.max(l))
+                });
+            if first > last {
+                (1, 0)
+            } else {
+                (
+                    (first.floor().max(0.0) as usize).saturating_sub(SPAN_MARGIN),
+                    ((last.ceil().max(0.0) as usize) + SPAN_MARGIN).min(grid.nx - 1),
+                )
+            }
+        })
+        .collect()
+}
+
+/// One side of the convex hull of points given in increasing `x` (a row number, with
+/// the column in `y`): the greatest convex function below them (`upper` false) or
+/// the least concave one above them (`upper` true), as its corners.
+fn hull_side(points: impl Iterator<Item = DVec2>, upper: bool) -> Vec<DVec2> {
+    let mut hull: Vec<DVec2> = Vec::new();
+    for p in points {
+        while let [.., a, b] = hull[..] {
+            let turn = (b - a).perp_dot(p - a);
+            if (upper && turn >= 0.0) || (!upper && turn <= 0.0) {
+                hull.pop();
+            } else {
+                break;
+            }
+        }
+        hull.push(p);
+    }
+    hull
+}
+
+/// A [`hull_side`] at `x`; none outside its corners' range.
+fn side_at(side: &[DVec2], x: f64) -> Option<f64> {
+    let i = side.partition_point(|p| p.x < x);
+    let b = *side.get(i)?;
+    if b.x == x {
+        return Some(b.y);
+    }
+    let a = *side.get(i.checked_sub(1)?)?;
+    Some(a.y + (b.y - a.y) * (x - a.x) / (b.x - a.x))
 }
 
 /// A node's nearest boundary point so far (NaN: none yet), its squared distance and the
@@ -274,17 +423,27 @@ impl Boundary {
 /// edge of `boundary` that point lies on. Nodes carry
 /// their nearest boundary point and the squared distance to it: squared distances
 /// order the same as distances and spare a square root per relaxation.
-fn distance_to_loops(grid: &Grid, boundary: &Boundary) -> (Vec<f64>, Vec<u32>) {
+///
+/// The passes sweep each row only over `spans[row]` (columns, inclusive; see
+/// [`row_spans`]): the nodes inside Ce and a margin about them, all that the
+/// field's values are read at. Nodes beyond keep their exact distance where they lie
+/// near an edge and infinity elsewhere.
+fn distance_to_loops(
+    grid: &Grid,
+    boundary: &Boundary,
+    spans: &[(usize, usize)],
+) -> (Vec<f64>, Vec<u32>) {
     let (nx, ny) = (grid.nx, grid.ny);
     let n = nx * ny;
-    let mut near = vec![
+    let mut near = take(
+        &pool::NEAREST,
+        n,
         Nearest {
             q: DVec2::splat(f64::NAN),
             d2: f64::INFINITY,
             seg: 0,
-        };
-        n
-    ];
+        },
+    );
     let band = 1.5 * grid.h;
     for (k, edge) in boundary.segs.iter().enumerate() {
         let (a, b) = (edge.a, edge.a + edge.ab);
@@ -329,12 +488,14 @@ fn distance_to_loops(grid: &Grid, boundary: &Boundary) -> (Vec<f64>, Vec<u32>) {
     // Forward pass: rows upwards, each from the left (left, lower-left, below,
     // lower-right), then back from the right (right). Rows are split off so the
     // neighbours are plain slice reads.
-    for r in 0..ny {
+    for (r, &(lo, hi)) in spans.iter().enumerate() {
         let y = grid.origin.y + r as f64 * grid.h;
         let (done, rest) = near.split_at_mut(r * nx);
         let row = &mut rest[..nx];
         let below = r.checked_sub(1).map(|b| &done[b * nx..(b + 1) * nx]);
-        for c in 0..nx {
+        // Exclusive ends no further than the row (so the indexing needs no checks).
+        let end = (hi + 1).min(nx);
+        for c in lo..end {
             let p = node(c, y);
             if c > 0 {
                 let q = row[c - 1];
@@ -350,18 +511,19 @@ fn distance_to_loops(grid: &Grid, boundary: &Boundary) -> (Vec<f64>, Vec<u32>) {
                 }
             }
         }
-        for c in (0..nx.saturating_sub(1)).rev() {
+        for c in (lo..end.min(nx - 1)).rev() {
             let q = row[c + 1];
             relax(&mut row[c], node(c, y), &q);
         }
     }
     // Backward pass, mirrored.
-    for r in (0..ny).rev() {
+    for (r, &(lo, hi)) in spans.iter().enumerate().rev() {
         let y = grid.origin.y + r as f64 * grid.h;
         let (head, done) = near.split_at_mut((r + 1) * nx);
         let row = &mut head[r * nx..];
         let above = (r + 1 < ny).then(|| &done[..nx]);
-        for c in (0..nx).rev() {
+        let end = (hi + 1).min(nx);
+        for c in (lo..end).rev() {
             let p = node(c, y);
             if c + 1 < nx {
                 let q = row[c + 1];
@@ -377,12 +539,32 @@ fn distance_to_loops(grid: &Grid, boundary: &Boundary) -> (Vec<f64>, Vec<u32>) {
                 }
             }
         }
-        for c in 1..nx {
+        for c in lo.max(1)..end {
             let q = row[c - 1];
             relax(&mut row[c], node(c, y), &q);
         }
     }
-    near.into_iter().map(|n| (n.d2.sqrt(), n.seg)).unzip()
+    let mut d = take(&pool::F64, n, 0.0);
+    let mut seg = take(&pool::U32, n, 0);
+    for ((d, seg), near) in d.iter_mut().zip(&mut seg).zip(&near) {
+        *d = near.d2.sqrt();
+        *seg = near.seg;
+    }
+    give(&pool::NEAREST, near);
+    (d, seg)
+}
+
+impl Drop for DistanceField {
+    fn drop(&mut self) {
+        for v in [&mut self.d, &mut self.de, &mut self.di] {
+            give(&pool::F64, std::mem::take(v));
+        }
+        give(&pool::BOOL, std::mem::take(&mut self.inside));
+        give(&pool::U32, std::mem::take(&mut self.outer_seg));
+        if let Inner::Holes { seg, .. } = &mut self.inner {
+            give(&pool::U32, std::mem::take(seg));
+        }
+    }
 }
 
 impl DistanceField {
@@ -392,12 +574,14 @@ impl DistanceField {
         let in_outer = fill_inside(&grid, &[&region.outer]);
         let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
         let in_hole = fill_inside(&grid, &holes);
-        let inside: Vec<bool> = in_outer
-            .iter()
-            .zip(&in_hole)
-            .map(|(o, h)| *o && !*h)
-            .collect();
-        let (de, _) = distance_to_loops(&grid, &Boundary::of(&[&region.outer]));
+        let spans = row_spans(&grid, &in_outer);
+        let mut inside = in_outer;
+        for (i, h) in inside.iter_mut().zip(&in_hole) {
+            *i = *i && !*h;
+        }
+        give(&pool::BOOL, in_hole);
+        let (de, seg) = distance_to_loops(&grid, &Boundary::of(&[&region.outer]), &spans);
+        give(&pool::U32, seg);
         // No Ci, so nothing is placed on exact level sets: no boundary edges kept.
         DistanceField {
             origin: grid.origin,
@@ -426,30 +610,34 @@ impl DistanceField {
         let in_outer = fill_inside(&grid, &[&region.outer]);
         let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
         let in_hole = fill_inside(&grid, &holes);
+        let spans = row_spans(&grid, &in_outer);
         let outer = Boundary::of(&[&region.outer]);
-        let (de, outer_seg) = distance_to_loops(&grid, &outer);
+        let (de, outer_seg) = distance_to_loops(&grid, &outer, &spans);
         let (di, inner): (Vec<f64>, Inner) = if holes.is_empty() {
             let c = centre.unwrap_or_else(|| crate::geom::centroid(&region.outer));
-            (
-                (0..grid.ny)
-                    .flat_map(|r| (0..grid.nx).map(move |cc| (cc, r)))
-                    .map(|(cc, r)| grid.node(cc, r).distance(c))
-                    .collect(),
-                Inner::Centre(c),
-            )
+            let mut di = take(&pool::F64, grid.nx * grid.ny, 0.0);
+            for (k, di) in di.iter_mut().enumerate() {
+                *di = grid.node(k % grid.nx, k / grid.nx).distance(c);
+            }
+            (di, Inner::Centre(c))
         } else {
             let holes = Boundary::of(&holes);
-            let (di, seg) = distance_to_loops(&grid, &holes);
+            let (di, seg) = distance_to_loops(&grid, &holes, &spans);
             (di, Inner::Holes { holes, seg })
         };
-        let mut d = vec![0.0; grid.nx * grid.ny];
-        let mut inside = vec![false; grid.nx * grid.ny];
+        let mut d = take(&pool::F64, grid.nx * grid.ny, 0.0);
+        let mut inside = take(&pool::BOOL, grid.nx * grid.ny, false);
         for k in 0..d.len() {
             let s = di[k] + de[k];
             let t = if s > 0.0 { di[k] / s } else { 0.0 };
             let e = if s > 0.0 { de[k] / s } else { 0.0 };
             d[k] = if !in_outer[k] {
-                1.0 + e
+                // Beyond the transforms' spans (no distance): as far out as d goes.
+                if e.is_finite() {
+                    1.0 + e
+                } else {
+                    2.0
+                }
             } else if in_hole[k] {
                 -t
             } else {
@@ -457,6 +645,8 @@ impl DistanceField {
                 t
             };
         }
+        give(&pool::BOOL, in_outer);
+        give(&pool::BOOL, in_hole);
         DistanceField {
             origin: grid.origin,
             h: grid.h,
@@ -716,7 +906,11 @@ impl DistanceField {
         let (nx, ny) = (self.nx, self.ny);
         // Room for a level a few times round the grid's sides without regrowing.
         let mut segs: Vec<Vec<Segment>> = (0..levels)
-            .map(|_| Vec::with_capacity(4 * (nx + ny)))
+            .map(|_| {
+                let mut v = take(&pool::SEGMENT, 0, NO_PIECE);
+                v.reserve(4 * (nx + ny));
+                v
+            })
             .collect();
         let mf = m as f64;
         // Per level: the segment ending on each cell's top edge in the previous and the
@@ -724,17 +918,16 @@ impl DistanceField {
         // edge's key (entries of cells that did not cross the level are stale, and
         // the key tells them apart).
         let none = (u64::MAX, NO_SEGMENT);
-        let mut top_below = vec![none; levels * nx];
-        let mut top_here = vec![none; levels * nx];
+        let mut top_below = take(&pool::SIDE, levels * nx, none);
+        let mut top_here = take(&pool::SIDE, levels * nx, none);
         let mut right = vec![none; levels];
         // floor(d m) per node: a cell crosses level k when the least of its corners'
         // is below k and the greatest at least k (floor is monotone, so this is
         // floor(lo m) and floor(hi m) of the cell's least and greatest value).
-        let band: Vec<i64> = self
-            .d
-            .iter()
-            .map(|v| floor_clamped(v * mf) as i64)
-            .collect();
+        let mut band = take(&pool::I64, self.d.len(), 0);
+        for (b, v) in band.iter_mut().zip(&self.d) {
+            *b = floor_clamped(v * mf) as i64;
+        }
         for r in 0..ny - 1 {
             std::mem::swap(&mut top_below, &mut top_here);
             for c in 0..nx - 1 {
@@ -826,21 +1019,26 @@ impl DistanceField {
         // steer the marching through saddle cells and are left out. A level's piece
         // through a cell then runs straight from side to side, and pieces of different
         // levels, whose ends keep their order along every side, do not cross.
+        give(&pool::I64, band);
+        give(&pool::SIDE, top_below);
+        give(&pool::SIDE, top_here);
         let spacing = 1.0 / mf;
         segs.into_iter()
             .enumerate()
             .map(|(level, segs)| {
                 let t = (level + 1) as f64 / mf;
-                chain_segments(segs, |key| {
+                let loops = chain_segments(&segs, |key| {
                     let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
                     self.place(lo, hi, t, spacing)
-                })
-                .into_iter()
-                .filter_map(|placed| {
-                    let l = crate::geom::dedup_loop(&self.bent(&placed, t), 1e-12);
-                    (l.len() >= 3).then_some(l)
-                })
-                .collect()
+                });
+                give(&pool::SEGMENT, segs);
+                loops
+                    .into_iter()
+                    .filter_map(|placed| {
+                        let l = crate::geom::dedup_loop(&self.bent(&placed, t), 1e-12);
+                        (l.len() >= 3).then_some(l)
+                    })
+                    .collect()
             })
             .collect()
     }
@@ -865,6 +1063,13 @@ const BEND_REACH_CELLS: f64 = 2.0;
 
 /// No segment (an end whose edge no other segment of the level crosses).
 const NO_SEGMENT: u32 = u32::MAX;
+
+/// A blank [`Segment`] (to fill buffers with).
+const NO_PIECE: Segment = Segment {
+    keys: [u64::MAX; 2],
+    links: [NO_SEGMENT; 2],
+    rotate: false,
+};
 
 /// One piece of a level set through one cell: the keys of the cell sides its ends lie
 /// on (see [`edge_key`]), and the pieces of the same level through those sides.
@@ -1027,8 +1232,8 @@ const fn walk_to_side(
 }
 
 /// Chain linked pieces into closed loops, each crossing placed by `place`.
-fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> T) -> Vec<Vec<T>> {
-    let mut used = vec![false; segs.len()];
+fn chain_segments<T>(segs: &[Segment], place: impl Fn(u64) -> T) -> Vec<Vec<T>> {
+    let mut used = take(&pool::BOOL, segs.len(), false);
     let mut loops = Vec::new();
     let mut chained = 0;
     for start in 0..segs.len() {
@@ -1064,6 +1269,7 @@ fn chain_segments<T>(segs: Vec<Segment>, place: impl Fn(u64) -> T) -> Vec<Vec<T>
             loops.push(pts);
         }
     }
+    give(&pool::BOOL, used);
     loops
 }
 
@@ -1119,6 +1325,95 @@ mod tests {
     /// the few (crossings at a node, where the grid sees the level cross a side the
     /// exact level set only touches) within the chord tolerance. The corners where
     /// they cross the medial axis between the holes are found, and no two cross.
+    /// A C-shaped region (a ring with a slot cut from it) with a hole in its thick
+    /// part: the nearest boundary points of many nodes lie round a corner.
+    fn slotted_ring() -> Region {
+        let mut outer: Vec<DVec2> = (0..=300)
+            .map(|k| DVec2::from_angle(0.3 + 5.68 * k as f64 / 300.0) * 20.0)
+            .collect();
+        outer.extend(
+            (0..=300)
+                .rev()
+                .map(|k| DVec2::from_angle(0.3 + 5.68 * k as f64 / 300.0) * 9.0),
+        );
+        let mut hole = circle(DVec2::new(-14.5, 0.0), 2.0, 0.01);
+        hole.reverse();
+        Region::new(outer, vec![hole])
+    }
+
+    #[test]
+    fn sweeping_the_material_spans_gives_the_whole_grid_distances() {
+        let region = slotted_ring();
+        let grid = Grid::over(&region, 0.35, 1 << 20);
+        let in_outer = fill_inside(&grid, &[&region.outer]);
+        let whole = vec![(0, grid.nx - 1); grid.ny];
+        let spans = row_spans(&grid, &in_outer);
+        assert!(
+            spans
+                .iter()
+                .map(|(a, b)| (b + 1).saturating_sub(*a))
+                .sum::<usize>()
+                < grid.nx * grid.ny * 9 / 10
+        );
+        let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
+        for boundary in [Boundary::of(&[&region.outer]), Boundary::of(&holes)] {
+            let (d_whole, seg_whole) = distance_to_loops(&grid, &boundary, &whole);
+            let (d_spans, seg_spans) = distance_to_loops(&grid, &boundary, &spans);
+            let mut compared = 0;
+            for k in 0..in_outer.len() {
+                let (c, r) = (k % grid.nx, k / grid.nx);
+                let (lo, hi) = spans[r];
+                // Every node a level's crossing can be read at: inside Ce and its
+                // neighbours.
+                let near_material = (c.saturating_sub(1)..=(c + 1).min(grid.nx - 1))
+                    .flat_map(|cc| {
+                        (r.saturating_sub(1)..=(r + 1).min(grid.ny - 1)).map(move |rr| (cc, rr))
+                    })
+                    .any(|(cc, rr)| in_outer[rr * grid.nx + cc]);
+                if near_material {
+                    assert!(lo <= c && c <= hi, "node {c},{r} outside its row's span");
+                    assert_eq!(d_whole[k], d_spans[k], "node {c},{r}");
+                    assert_eq!(seg_whole[k], seg_spans[k], "node {c},{r}");
+                    compared += 1;
+                }
+            }
+            assert!(compared > 1000);
+        }
+    }
+
+    #[test]
+    fn fields_built_from_reused_buffers_are_the_same() {
+        let ring = slotted_ring();
+        let first = DistanceField::new(&ring, None, 0.35, 1 << 20).level_sets(8);
+        // A larger and a smaller grid in between, so the buffers come back resized.
+        let big = Region::new(circle(DVec2::ZERO, 40.0, 0.01), Vec::new());
+        let centre = DistanceField::outer_only(&big, 0.3, 1 << 20)
+            .pole()
+            .map(|(p, _)| p);
+        assert!(!DistanceField::new(&big, centre, 0.3, 1 << 20)
+            .level_sets(5)
+            .is_empty());
+        let small = Region::new(circle(DVec2::ZERO, 3.0, 0.01), Vec::new());
+        assert!(!DistanceField::new(&small, None, 0.3, 1 << 20)
+            .level_sets(3)
+            .is_empty());
+        let again = DistanceField::new(&ring, None, 0.35, 1 << 20).level_sets(8);
+        assert!(!first.is_empty());
+        assert_eq!(first, again);
+    }
+
+    #[test]
+    fn pooled_buffers_come_back_filled() {
+        let mut v = take(&pool::F64, 100, 0.0);
+        v.iter_mut().for_each(|x| *x = 7.0);
+        let capacity = v.capacity();
+        give(&pool::F64, v);
+        let w = take(&pool::F64, 50, 1.5);
+        assert_eq!(w.len(), 50);
+        assert!(w.iter().all(|&x| x == 1.5));
+        assert!(w.capacity() >= capacity.min(50));
+    }
+
     #[test]
     fn coarse_levels_lie_on_the_exact_level_sets() {
         let outer: Vec<DVec2> = (0..720)
