@@ -1012,6 +1012,25 @@ impl SegmentIndex {
         self.any_in_box(p, p, r_mm, |c, d| point_hit(p, c, d, r_mm, reach))
     }
 
+    /// [`Self::within`], trying the segment `hint` first and leaving in it the segment
+    /// found: for a run of nearby points, most of which one segment answers.
+    pub fn within_hinted(&self, p: DVec2, r_mm: f64, hint: &mut Option<u32>) -> bool {
+        let hit = |c: DVec2, d: DVec2| sqrt_within(point_segment_distance2(p, c, d), r_mm);
+        if let Some(&(c, d)) = hint.and_then(|k| self.segments.get(k as usize)) {
+            if hit(c, d) {
+                return true;
+            }
+        }
+        // The cells and box test of `within` (a segment within the radius passes both).
+        self.near_candidates(p, p, r_mm, |k, c, d| {
+            let found = hit(c, d);
+            if found {
+                *hint = Some(k);
+            }
+            found
+        })
+    }
+
     /// Append to `out` (each once) the indexed segments [`Self::within`] and
     /// [`Self::any_within`] could find for any point or segment inside the box `lo`–`hi`
     /// and any radius up to `r_mm`: those in the cells over the box grown by `r_mm` whose
@@ -1285,6 +1304,37 @@ mod tests {
             let brute = point_loop_distance(p, &outer).min(point_loop_distance(p, &hole));
             assert!((idx.distance(p) - brute).abs() < 1e-12, "{p}");
         }
+    }
+
+    #[test]
+    fn hinted_within_answers_as_within() {
+        let outer = square(DVec2::ZERO, 10.0);
+        let hole = square(DVec2::new(2.0, 1.0), 1.5);
+        let idx = SegmentIndex::new(&[&outer, &hole], &[]);
+        // No hint, a stale one, one past the last segment, and the one left behind.
+        let mut hint = None;
+        let (mut hits, mut misses) = (0, 0);
+        for k in 0..400 {
+            let p = DVec2::new(
+                (k as f64 * 0.37).sin() * 12.0,
+                (k as f64 * 0.91).cos() * 12.0,
+            );
+            let r = 0.2 + (k % 7) as f64 * 0.4;
+            if k % 50 == 0 {
+                hint = Some(if k % 100 == 0 { 3 } else { 99 });
+            }
+            let within = idx.within(p, r);
+            assert_eq!(idx.within_hinted(p, r, &mut hint), within, "{p} {r}");
+            if within {
+                let k = hint.expect("a hit leaves its segment");
+                let (c, d) = idx.segments[k as usize];
+                assert!(point_segment_distance(p, c, d) <= r);
+                hits += 1;
+            } else {
+                misses += 1;
+            }
+        }
+        assert!(hits > 50 && misses > 50, "{hits} hits, {misses} misses");
     }
 
     /// A 10 mm square with nine collinear vertices on each of two sides.

@@ -900,12 +900,15 @@ fn gap_along_gradient(
 ) -> f64 {
     let step = opts.nozzle_mm.max(1e-3);
     let mut best: f64 = 0.0;
+    // The segment that last answered: the next sample, a piece further on, mostly has
+    // it within `best` too.
+    let mut hint = None;
     // Raise `best` to the distance of `p`; a point with a segment within `best` cannot
     // raise it, and saying so looks at fewer cells than the distance itself.
     let mut farther = |p: DVec2| {
         let d = if index.is_empty() {
             centre.map_or(0.0, |c| p.distance(c))
-        } else if index.within(p, best) {
+        } else if index.within_hinted(p, best, &mut hint) {
             return;
         } else {
             index.distance(p)
