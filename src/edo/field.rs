@@ -54,7 +54,12 @@ use pool::{give, take};
 /// fresh ones in for the next layer: on the `plan_layer` bench about an eighth of the
 /// layer's time went to those page faults and the allocator. Each thread (the
 /// planner's rayon workers plan many layers each) keeps the arrays of its last field
-/// instead, a few of each kind, none over [`KEEP_BYTES`].
+/// instead: up to `KEEP_COUNT` buffers of each element type (the level sets take one
+/// per level), together at most `KEEP_BYTES`.
+///
+/// All of them, not only the largest: a big buffer kept while smaller ones come and go
+/// leaves glibc's trim threshold at its default, and the heap's top is handed back and
+/// faulted in again instead.
 mod pool {
     use std::cell::RefCell;
     use std::thread::LocalKey;
@@ -62,10 +67,10 @@ mod pool {
     /// Buffers of one element type, kept by one thread.
     pub(super) type Shelf<T> = LocalKey<RefCell<Vec<Vec<T>>>>;
 
-    /// The largest buffer a shelf keeps, bytes (a grid of a million nodes of f64).
-    const KEEP_BYTES: usize = 8 << 20;
+    /// The most a shelf keeps, bytes (two grids of a million nodes of f64).
+    const KEEP_BYTES: usize = 16 << 20;
     /// How many buffers a shelf keeps.
-    const KEEP_COUNT: usize = 8;
+    const KEEP_COUNT: usize = 32;
 
     /// A buffer of `n` copies of `fill`, reusing one from the shelf where it has one.
     pub(super) fn take<T: Clone + 'static>(shelf: &'static Shelf<T>, n: usize, fill: T) -> Vec<T> {
@@ -92,13 +97,15 @@ mod pool {
 
     /// Put `v` back on the shelf for the next [`take`].
     pub(super) fn give<T: 'static>(shelf: &'static Shelf<T>, mut v: Vec<T>) {
-        if v.capacity() == 0 || v.capacity() * std::mem::size_of::<T>() > KEEP_BYTES {
+        if v.capacity() == 0 {
             return;
         }
         v.clear();
+        let bytes = |v: &Vec<T>| v.capacity() * std::mem::size_of::<T>();
         let _ = shelf.try_with(|s| {
             if let Ok(mut s) = s.try_borrow_mut() {
-                if s.len() < KEEP_COUNT {
+                let kept: usize = s.iter().map(bytes).sum();
+                if s.len() < KEEP_COUNT && kept + bytes(&v) <= KEEP_BYTES {
                     s.push(v);
                 }
             }
