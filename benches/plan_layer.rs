@@ -220,6 +220,25 @@
 //! offsets 18.8M, distance field 13.5M (transforms 11.6M), level sets 13.7M (exact
 //! distances 5.5M), trimming 9.5M, boundary index builds 3.3M. The 5 ms target needs
 //! about 2 times less on this session's machine.
+//!
+//! 2026-12-02, seventh session: 67.2M instructions per layer (callgrind, from 69.2M),
+//! plans byte-identical. The distance transforms sweep each row only over its stretch
+//! of the convex hull of Ce (25.6k of the 35.2k nodes here), 11.55M -> 9.9M; D_max's
+//! samples try the segment that answered the previous one first, 0.7M. The field's
+//! grid buffers are kept per thread between layers (`field::pool`): freed at the end
+//! of each layer, they let glibc hand the pages back and fault them in again for the
+//! next (575 page faults a layer, about 12 % of the time when layers are planned one
+//! after another on one thread, as the daemon does while streaming; 201 plans of
+//! `plan_compare bench` 1.68 -> 1.54 s). Under criterion the heap stayed grown (3,023
+//! faults in all before), so there the gain is the instructions': same-session A/B
+//! medians 8.88 and 8.49 ms before, 8.65 and 8.20 ms after. Tried and not taken:
+//! relaxing the transforms without a branch (bit-mask selects), 1.8-2.3 s -> 2.3-2.7 s
+//! for 201 plans; the contours simplified by the greedy pass the offsets use instead
+//! of Douglas-Peucker, 1.4M fewer but coarser contours make the offsets fall back to
+//! the outline more often (offsets 18.8M -> 20.2M) and move offset ends by up to
+//! 3.8 mm; each offset taken from the contour at i steps instead of one step from the
+//! previous offset (so every certificate uses the contour's index), 76.3M (more
+//! fallbacks to the outline).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};
