@@ -190,10 +190,14 @@ pub fn offset_indexed(
 ///    edges cut off where they meet (mitre: exact for the corners the offset turns
 ///    into) or joined by a round arc about the vertex where they part, sampled as the
 ///    outline's round join is (a join within chord/20 of a point, that point).
+///    An outer loop shrunk or a hole grown past its own width (every point it encloses
+///    nearer to it than `|delta_mm|`: [`within_reach_of_itself`]) has no offset; its
+///    shape or hole is dropped. Swallowtails are cut off at their crossing
+///    ([`cut_swallowtails`]).
 /// 2. **Certificate**: the raw loops are the offset's boundary when no two of their
 ///    edges touch or cross, each keeps the orientation (so the area it bounds) of its
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
-///    nearest source edge. A vanishing loop, a neck that pinches off or an edge the
+///    nearest source edge. A loop vanishing otherwise, a neck that pinches off or an edge the
 ///    offset swallows fails one of these, and the caller runs the general outline.
 ///
 /// `index` is the [`boundary_index`] of `shapes` where the caller has it.
@@ -206,14 +210,23 @@ fn offset_direct(
     let reach = delta_mm.abs();
     let step = arc_angle(delta_mm, chord_mm);
     let mut out: Shapes = Vec::with_capacity(shapes.len());
-    for shape in shapes {
+    'shapes: for shape in shapes {
         let mut loops = Vec::with_capacity(shape.len());
-        for l in shape {
+        for (k, l) in shape.iter().enumerate() {
+            let a0 = crate::geom::signed_area2(l);
+            // An outer loop shrunk or a hole grown by more than it can take: the shape
+            // (all of whose material is inside its outer loop) or the hole vanishes.
+            if delta_mm * a0 < 0.0
+                && (k == 0) == (a0 > 0.0)
+                && within_reach_of_itself(l, 0.5 * a0.abs(), reach)
+            {
+                if k == 0 {
+                    continue 'shapes;
+                }
+                continue;
+            }
             let raw = raw_offset_loop(l, delta_mm, step, chord_mm / 20.0)?;
-            let (a0, a1) = (
-                crate::geom::signed_area2(l),
-                crate::geom::signed_area2(&raw),
-            );
+            let a1 = crate::geom::signed_area2(&raw);
             if a0 == 0.0 || (a0 > 0.0) != (a1 > 0.0) {
                 return None;
             }
@@ -244,6 +257,20 @@ fn offset_direct(
         return None;
     }
     Some(out)
+}
+
+/// Is every point inside loop `l` nearer than `reach` to it (so that an offset moving
+/// the loop inward by `reach` leaves nothing of what it encloses)? So where its box is
+/// narrower than `2 reach` (a vertical or horizontal line through a point inside meets
+/// the loop on both sides of it within the box), or where it encloses less than a disk
+/// of radius `reach` (a point `reach` or more from the loop has that disk inside;
+/// `area` is what the loop encloses).
+fn within_reach_of_itself(l: &[DVec2], area: f64, reach: f64) -> bool {
+    if area < std::f64::consts::PI * reach * reach {
+        return true;
+    }
+    let (lo, hi) = crate::geom::loop_bounds(l);
+    (hi - lo).min_element() < 2.0 * reach
 }
 
 /// Cut off every swallowtail of `shapes`, one crossing at a time in the order the sweep
@@ -1153,6 +1180,66 @@ mod tests {
                 assert_eq!(count(&fast), count(&slow), "delta {delta}");
             }
         }
+    }
+
+    /// The direct offset of `shapes` succeeds and is the outline's: as many loops, and
+    /// every vertex of either within `chord` of the other's boundary (round joins are
+    /// sampled within `chord` of their arcs, each offset's own way).
+    fn direct_agrees_with_the_outline(shapes: &Shapes, delta: f64, chord: f64) {
+        let Some(direct) = offset_direct(shapes, None, delta, chord) else {
+            panic!("delta {delta}: the direct offset falls back");
+        };
+        let source = boundary_index(shapes);
+        for p in loops(&direct).flat_map(|l| l.iter()) {
+            let off = source.distance(*p) - delta.abs();
+            assert!(
+                off.abs() <= chord / 20.0,
+                "delta {delta}: {p} is {off} off the offset"
+            );
+        }
+        let slow = outline_only(shapes, delta, chord);
+        assert_eq!(
+            loops(&direct).count(),
+            loops(&slow).count(),
+            "delta {delta}"
+        );
+        for (a, b) in [(&direct, &slow), (&slow, &direct)] {
+            let index = boundary_index(b);
+            for p in loops(a).flat_map(|l| l.iter()) {
+                let d = index.distance(*p);
+                assert!(d <= chord, "delta {delta}: {p} is {d} off");
+            }
+        }
+    }
+
+    #[test]
+    fn the_direct_offset_drops_loops_the_offset_swallows_whole() {
+        // A sliver (as on the bench layer: 18 µm by 2 µm) next to a plate, shrunk: the
+        // sliver vanishes. A plate with a sliver of a hole and a small round one,
+        // grown: both holes fill in.
+        let sliver = vec![
+            DVec2::new(-0.016378598648691067, -0.08374670477683033),
+            DVec2::new(-0.01647956891694058, -0.08424702616507496),
+            DVec2::new(-0.01215149684586514, -0.10144916506583179),
+            DVec2::new(-0.011678295570993313, -0.0993553134995171),
+        ];
+        let apart = |l: &[DVec2], by: DVec2| -> Vec<DVec2> { l.iter().map(|p| *p + by).collect() };
+        let shapes = vec![
+            vec![apart(&square(2.0), DVec2::new(5.0, 0.0))],
+            vec![sliver.clone()],
+        ];
+        direct_agrees_with_the_outline(&shapes, -0.40860941437999504, 0.01);
+        let mut hole: Vec<DVec2> = sliver.iter().rev().copied().collect();
+        let mut round: Vec<DVec2> = circle(DVec2::new(1.5, 1.5), 0.3, 0.01);
+        if crate::geom::signed_area2(&round) > 0.0 {
+            round.reverse();
+        }
+        hole = apart(&hole, DVec2::new(-1.0, 0.0));
+        let plate = vec![vec![square(3.0), hole, round]];
+        direct_agrees_with_the_outline(&plate, 0.4, 0.01);
+        // Grown a little, the round hole stays (and the sliver still fills in).
+        let grown = offset_direct(&plate, None, 0.1, 0.01).map(|s| loops(&s).count());
+        assert_eq!(grown, Some(2));
     }
 
     fn square(h: f64) -> Vec<DVec2> {
