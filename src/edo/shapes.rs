@@ -198,7 +198,10 @@ pub fn offset_indexed(
 ///    edges touch or cross, each keeps the orientation (so the area it bounds) of its
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
 ///    nearest source edge; a swallowtail's cut point, on two raw edges, up to chord/20
-///    nearer (where the edges are chords of merged joins). A loop vanishing otherwise, a neck that pinches off or an edge the
+///    nearer (where the edges are chords of merged joins). A raw vertex nearer than
+///    that is the apex of a spike where a swallowtail's edges just miss each other
+///    ([`cut_spike`]), which is cut off as a swallowtail is (its cut point certified
+///    in turn). A loop vanishing otherwise, a neck that pinches off or an edge the
 ///    offset swallows fails one of these, and the caller runs the general outline.
 ///
 /// `index` is the [`boundary_index`] of `shapes` where the caller has it.
@@ -212,6 +215,8 @@ fn offset_direct(
     let step = arc_angle(delta_mm, chord_mm);
     let merge_mm = chord_mm / 20.0;
     let mut out: Shapes = Vec::with_capacity(shapes.len());
+    // Whether each raw loop (in the order of `loops(&out)`) runs counter-clockwise.
+    let mut counter_clockwise = Vec::new();
     'shapes: for shape in shapes {
         let mut loops = Vec::with_capacity(shape.len());
         for (k, l) in shape.iter().enumerate() {
@@ -232,6 +237,7 @@ fn offset_direct(
             if a0 == 0.0 || (a0 > 0.0) != (a1 > 0.0) {
                 return None;
             }
+            counter_clockwise.push(a0 > 0.0);
             loops.push(raw);
         }
         out.push(loops);
@@ -267,10 +273,37 @@ fn offset_direct(
     // for; see `raw_offset_loop`), and so may a point on them.
     let near_cut = near - merge_mm;
     let certified = |p: DVec2| index.within_both(p, near_cut, far) == (false, true);
-    failed
-        .iter()
-        .all(|(_, p)| cut_points.contains(p) && certified(*p))
-        .then_some(out)
+    let mut spiked = false;
+    for (li, p) in failed {
+        if cut_points.contains(&p) && certified(p) {
+            continue;
+        }
+        let l = out.iter_mut().flat_map(|s| s.iter_mut()).nth(li)?;
+        // Gone with an earlier spike.
+        let Some(k) = l.iter().position(|q| *q == p) else {
+            continue;
+        };
+        let x = cut_spike(l, k, delta_mm)?;
+        if !certified(x) {
+            return None;
+        }
+        cut_points.push(x);
+        spiked = true;
+    }
+    if spiked {
+        // The cuts keep every loop simple and its orientation (a cut drops a sliver by
+        // the apex only), but check both again rather than rely on it.
+        let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
+        if raw
+            .iter()
+            .zip(&counter_clockwise)
+            .any(|(l, ccw)| (crate::geom::signed_area2(l) > 0.0) != *ccw)
+            || crate::geom::first_crossing(&raw).is_some()
+        {
+            return None;
+        }
+    }
+    Some(out)
 }
 
 /// Is every point inside loop `l` nearer than `reach` to it (so that an offset moving
@@ -285,6 +318,55 @@ fn within_reach_of_itself(l: &[DVec2], area: f64, reach: f64) -> bool {
     }
     let (lo, hi) = crate::geom::loop_bounds(l);
     (hi - lo).min_element() < 2.0 * reach
+}
+
+/// Cut the spike of raw loop `l` whose apex is vertex `k`, which lies nearer the source
+/// than the offset distance (so is off the offset): a swallowtail whose crossing its
+/// edges just miss. The offset turns back sharply at the apex along a reversed
+/// micro-edge `b`–`c` (the apex is `b` or `c`), whose ends lie either side of the line
+/// of the edge after it (`c`–`d`, the apex `b`) or before it (`a`–`b`, the apex `c`).
+/// That line crosses the edge the apex ends, at `x`, outside its own edge (behind `c`,
+/// beyond `b`), and the sliver `x`–`b`–`c` lies on the material's side of the loop
+/// where the offset shrinks (it is cut off), on the other side where it grows (it is
+/// filled in). `b` and `c` become `x`: the apex drops, and the other end now lies on
+/// an edge through `x`. Returns `x`, None where vertex `k` is no such apex.
+fn cut_spike(l: &mut Vec<DVec2>, k: usize, delta_mm: f64) -> Option<DVec2> {
+    let n = l.len();
+    if n < 4 {
+        return None;
+    }
+    for apex_is_b in [true, false] {
+        let ib = if apex_is_b { k } else { prev_in_loop(k, n) };
+        let ic = next_in_loop(ib, n);
+        let (a, b, c, d) = (l[prev_in_loop(ib, n)], l[ib], l[ic], l[next_in_loop(ic, n)]);
+        let Some(x) = spike_cut_point(a, b, c, d, apex_is_b) else {
+            continue;
+        };
+        // Left of the loop (counter-clockwise) for a shrinking offset.
+        if (b - x).perp_dot(c - x) * delta_mm < 0.0 {
+            l[ib] = x;
+            l.remove(ic);
+            return Some(x);
+        }
+    }
+    None
+}
+
+/// Where [`cut_spike`] cuts the spike of `a`–`b`–`c`–`d` with the apex `b`
+/// (`apex_is_b`) or `c`, if it is one.
+fn spike_cut_point(a: DVec2, b: DVec2, c: DVec2, d: DVec2, apex_is_b: bool) -> Option<DVec2> {
+    let (u, v, w) = (b - a, c - b, d - c);
+    if apex_is_b {
+        // Turning back at `b`; `a` and `b` either side of the line of `c`–`d`, which
+        // meets `a`–`b` behind `c`.
+        let (s0, s1) = (w.perp_dot(a - c), w.perp_dot(b - c));
+        let x = a + u * (s0 / (s0 - s1));
+        (u.dot(v) < 0.0 && s0 * s1 < 0.0 && (x - c).dot(w) < 0.0).then_some(x)
+    } else {
+        let (t0, t1) = (u.perp_dot(c - a), u.perp_dot(d - a));
+        let x = c + w * (t0 / (t0 - t1));
+        (v.dot(w) < 0.0 && t0 * t1 < 0.0 && (x - b).dot(u) > 0.0).then_some(x)
+    }
 }
 
 /// Cut off every swallowtail of `shapes`, one crossing at a time in the order the sweep
@@ -1264,6 +1346,31 @@ mod tests {
                 let d = index.distance(*p);
                 assert!(d <= chord, "delta {delta}: {p} is {d} off");
             }
+        }
+    }
+
+    #[test]
+    fn the_direct_offset_cuts_spikes_a_reversed_micro_edge_leaves() {
+        // Shrunk, a long edge, a slight concave corner (a merged join), a micro-edge and
+        // a convex corner that swallows it: the micro-edge's reversed offset backs up
+        // along the first edge's, so their neighbours just miss each other, leaving a
+        // spike a few µm nearer the contour than the offset distance (as on the bench
+        // layer). Mirrored, the spike's apex comes after the micro-edge; as a hole's
+        // offset grown, the spike is a notch.
+        for (concave, micro, convex, delta) in [
+            (-5.26, 0.0163, 23.9, -0.3781871527632471),
+            (-4.59, 0.07222, 25.33, -0.40823597436488307),
+            (-4.78, 0.0474, 21.03, -0.3939965441889213),
+            (-2.64, 0.02797, 18.64, -0.3781871527632471),
+        ] {
+            let outer = box_with_top(&[(3.0, concave), (micro, convex), (3.0, 70.0)]);
+            let shapes = vec![vec![outer.clone()]];
+            direct_agrees_with_the_outline(&shapes, delta, 0.01);
+            direct_agrees_with_the_outline(&mirrored(&shapes), delta, 0.01);
+            let hole: Vec<DVec2> = outer.iter().rev().copied().collect();
+            let plate = vec![vec![square(12.0), hole]];
+            direct_agrees_with_the_outline(&plate, -delta, 0.01);
+            direct_agrees_with_the_outline(&mirrored(&plate), -delta, 0.01);
         }
     }
 
