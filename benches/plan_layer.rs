@@ -221,6 +221,31 @@
 //! distances 5.5M), trimming 9.5M, boundary index builds 3.3M. The 5 ms target needs
 //! about 2 times less on this session's machine.
 //!
+//! 2026-12-02, off6 branch (the equal distance offsets' outline fallback): 64.3M
+//! instructions per layer (callgrind, from 69.2M); offsets (`offset_indexed`, inclusive)
+//! 18.7M -> 13.9M. None of the bench layer's 70 offsets falls back to the i_overlay
+//! outline now (3 did, 1.7M each; the 2 left are in the bench's probe plan: a neck that
+//! pinches off, an island that splits away). What changed in the direct offset: a loop
+//! the offset swallows whole (an outer loop shrunk or a hole grown past its width: its
+//! box narrower than twice the step, or less area than the step's disk; the bench
+//! layer's 18 x 2 um sliver) is dropped; a swallowtail's cut point is certified up to
+//! chord/20 nearer than the step (it lies on chords of merged joins, up to that much
+//! inside their arcs: the 5.7e-7 mm misses were these, not rounding; raw vertices keep
+//! the relative 1e-9); a raw vertex the certificate rejects that is the apex of a spike
+//! (a reversed micro-edge backing up along the edge before it, so that the
+//! swallowtail's edges just miss each other: 2 to 19 um near) is cut off where the
+//! line of one edge crosses the other, that point certified as a cut point and the
+//! crossings and orientations checked again. Plans: bench within 0.0008 mm, the example
+//! jobs identical; on the femur (every 5th layer) 2,009 more offsets go direct, as
+//! close to the outline as those direct before (median 0.0004 mm, p99 0.009 mm: round
+//! joins sampled another way), roads within 0.011 mm of the old ones away from their
+//! ends, and ends trimmed where an offset runs nearly along the facing contour move by
+//! up to 0.51 mm (3.3 mm of 235,000 mm of offsets beyond 0.01 mm). Not taken: cutting
+//! such spikes in every raw loop before the certificate (a pass over every offset for
+//! three a layer, and it could cut a spike that is on the offset; cutting only at a
+//! vertex the certificate rejects cannot); an absolute slack for every raw vertex (they
+//! are exact up to rounding; only cut points lie on chords).
+//!
 //! 2026-12-02, seventh session: 67.2M instructions per layer (callgrind, from 69.2M),
 //! plans byte-identical. The distance transforms sweep each row only over its stretch
 //! of the convex hull of Ce (25.6k of the 35.2k nodes here), 11.55M -> 9.9M; D_max's

@@ -190,10 +190,18 @@ pub fn offset_indexed(
 ///    edges cut off where they meet (mitre: exact for the corners the offset turns
 ///    into) or joined by a round arc about the vertex where they part, sampled as the
 ///    outline's round join is (a join within chord/20 of a point, that point).
+///    An outer loop shrunk or a hole grown past its own width (every point it encloses
+///    nearer to it than `|delta_mm|`: [`within_reach_of_itself`]) has no offset; its
+///    shape or hole is dropped. Swallowtails are cut off at their crossing
+///    ([`cut_swallowtails`]).
 /// 2. **Certificate**: the raw loops are the offset's boundary when no two of their
 ///    edges touch or cross, each keeps the orientation (so the area it bounds) of its
 ///    source loop, and every raw vertex lies `|delta_mm|` (up to a hair) from the
-///    nearest source edge. A vanishing loop, a neck that pinches off or an edge the
+///    nearest source edge; a swallowtail's cut point, on two raw edges, up to chord/20
+///    nearer (where the edges are chords of merged joins). A raw vertex nearer than
+///    that is the apex of a spike where a swallowtail's edges just miss each other
+///    ([`cut_spike`]), which is cut off as a swallowtail is (its cut point certified
+///    in turn). A loop vanishing otherwise, a neck that pinches off or an edge the
 ///    offset swallows fails one of these, and the caller runs the general outline.
 ///
 /// `index` is the [`boundary_index`] of `shapes` where the caller has it.
@@ -205,18 +213,31 @@ fn offset_direct(
 ) -> Option<Shapes> {
     let reach = delta_mm.abs();
     let step = arc_angle(delta_mm, chord_mm);
+    let merge_mm = chord_mm / 20.0;
     let mut out: Shapes = Vec::with_capacity(shapes.len());
-    for shape in shapes {
+    // Whether each raw loop (in the order of `loops(&out)`) runs counter-clockwise.
+    let mut counter_clockwise = Vec::new();
+    'shapes: for shape in shapes {
         let mut loops = Vec::with_capacity(shape.len());
-        for l in shape {
-            let raw = raw_offset_loop(l, delta_mm, step, chord_mm / 20.0)?;
-            let (a0, a1) = (
-                crate::geom::signed_area2(l),
-                crate::geom::signed_area2(&raw),
-            );
+        for (k, l) in shape.iter().enumerate() {
+            let a0 = crate::geom::signed_area2(l);
+            // An outer loop shrunk or a hole grown by more than it can take: the shape
+            // (all of whose material is inside its outer loop) or the hole vanishes.
+            if delta_mm * a0 < 0.0
+                && (k == 0) == (a0 > 0.0)
+                && within_reach_of_itself(l, 0.5 * a0.abs(), reach)
+            {
+                if k == 0 {
+                    continue 'shapes;
+                }
+                continue;
+            }
+            let raw = raw_offset_loop(l, delta_mm, step, merge_mm)?;
+            let a1 = crate::geom::signed_area2(&raw);
             if a0 == 0.0 || (a0 > 0.0) != (a1 > 0.0) {
                 return None;
             }
+            counter_clockwise.push(a0 > 0.0);
             loops.push(raw);
         }
         out.push(loops);
@@ -224,8 +245,8 @@ fn offset_direct(
     // Little reversed loops (swallowtails) where the offset swallows a short edge
     // between two corners it turns into are cut off at their crossing; any other
     // crossing leaves the work to the outline.
-    cut_swallowtails(&mut out)?;
-    let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
+    let mut cut_points = Vec::new();
+    cut_swallowtails(&mut out, &mut cut_points)?;
     let built;
     let index = match index {
         Some(index) => index,
@@ -236,14 +257,116 @@ fn offset_direct(
     };
     let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
     let far = far_reach(reach);
-    if raw
-        .iter()
-        .flat_map(|l| l.iter())
-        .any(|p| index.within_both(*p, near, far) != (false, true))
-    {
-        return None;
+    let mut failed: Vec<(usize, DVec2)> = Vec::new();
+    for (li, l) in loops(&out).enumerate() {
+        for &p in l {
+            if index.within_both(p, near, far) != (false, true) {
+                failed.push((li, p));
+            }
+        }
+    }
+    if failed.is_empty() {
+        return Some(out);
+    }
+    // A cut point lies on two raw edges, which may be chords of merged joins: those lie
+    // up to `merge_mm` nearer the source than the offset distance (the arcs they stand
+    // for; see `raw_offset_loop`), and so may a point on them.
+    let near_cut = near - merge_mm;
+    let certified = |p: DVec2| index.within_both(p, near_cut, far) == (false, true);
+    let mut spiked = false;
+    for (li, p) in failed {
+        if cut_points.contains(&p) && certified(p) {
+            continue;
+        }
+        let l = out.iter_mut().flat_map(|s| s.iter_mut()).nth(li)?;
+        // Gone with an earlier spike.
+        let Some(k) = l.iter().position(|q| *q == p) else {
+            continue;
+        };
+        let x = cut_spike(l, k, delta_mm)?;
+        if !certified(x) {
+            return None;
+        }
+        cut_points.push(x);
+        spiked = true;
+    }
+    if spiked {
+        // The cuts keep every loop simple and its orientation (a cut drops a sliver by
+        // the apex only), but check both again rather than rely on it.
+        let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
+        if raw
+            .iter()
+            .zip(&counter_clockwise)
+            .any(|(l, ccw)| (crate::geom::signed_area2(l) > 0.0) != *ccw)
+            || crate::geom::first_crossing(&raw).is_some()
+        {
+            return None;
+        }
     }
     Some(out)
+}
+
+/// Is every point inside loop `l` nearer than `reach` to it (so that an offset moving
+/// the loop inward by `reach` leaves nothing of what it encloses)? So where its box is
+/// narrower than `2 reach` (a vertical or horizontal line through a point inside meets
+/// the loop on both sides of it within the box), or where it encloses less than a disk
+/// of radius `reach` (a point `reach` or more from the loop has that disk inside;
+/// `area` is what the loop encloses).
+fn within_reach_of_itself(l: &[DVec2], area: f64, reach: f64) -> bool {
+    if area < std::f64::consts::PI * reach * reach {
+        return true;
+    }
+    let (lo, hi) = crate::geom::loop_bounds(l);
+    (hi - lo).min_element() < 2.0 * reach
+}
+
+/// Cut the spike of raw loop `l` whose apex is vertex `k`, which lies nearer the source
+/// than the offset distance (so is off the offset): a swallowtail whose crossing its
+/// edges just miss. The offset turns back sharply at the apex along a reversed
+/// micro-edge `b`–`c` (the apex is `b` or `c`), whose ends lie either side of the line
+/// of the edge after it (`c`–`d`, the apex `b`) or before it (`a`–`b`, the apex `c`).
+/// That line crosses the edge the apex ends, at `x`, outside its own edge (behind `c`,
+/// beyond `b`), and the sliver `x`–`b`–`c` lies on the material's side of the loop
+/// where the offset shrinks (it is cut off), on the other side where it grows (it is
+/// filled in). `b` and `c` become `x`: the apex drops, and the other end now lies on
+/// an edge through `x`. Returns `x`, None where vertex `k` is no such apex.
+fn cut_spike(l: &mut Vec<DVec2>, k: usize, delta_mm: f64) -> Option<DVec2> {
+    let n = l.len();
+    if n < 4 {
+        return None;
+    }
+    for apex_is_b in [true, false] {
+        let ib = if apex_is_b { k } else { prev_in_loop(k, n) };
+        let ic = next_in_loop(ib, n);
+        let (a, b, c, d) = (l[prev_in_loop(ib, n)], l[ib], l[ic], l[next_in_loop(ic, n)]);
+        let Some(x) = spike_cut_point(a, b, c, d, apex_is_b) else {
+            continue;
+        };
+        // Left of the loop (counter-clockwise) for a shrinking offset.
+        if (b - x).perp_dot(c - x) * delta_mm < 0.0 {
+            l[ib] = x;
+            l.remove(ic);
+            return Some(x);
+        }
+    }
+    None
+}
+
+/// Where [`cut_spike`] cuts the spike of `a`–`b`–`c`–`d` with the apex `b`
+/// (`apex_is_b`) or `c`, if it is one.
+fn spike_cut_point(a: DVec2, b: DVec2, c: DVec2, d: DVec2, apex_is_b: bool) -> Option<DVec2> {
+    let (u, v, w) = (b - a, c - b, d - c);
+    if apex_is_b {
+        // Turning back at `b`; `a` and `b` either side of the line of `c`–`d`, which
+        // meets `a`–`b` behind `c`.
+        let (s0, s1) = (w.perp_dot(a - c), w.perp_dot(b - c));
+        let x = a + u * (s0 / (s0 - s1));
+        (u.dot(v) < 0.0 && s0 * s1 < 0.0 && (x - c).dot(w) < 0.0).then_some(x)
+    } else {
+        let (t0, t1) = (u.perp_dot(c - a), u.perp_dot(d - a));
+        let x = c + w * (t0 / (t0 - t1));
+        (v.dot(w) < 0.0 && t0 * t1 < 0.0 && (x - b).dot(u) > 0.0).then_some(x)
+    }
 }
 
 /// Cut off every swallowtail of `shapes`, one crossing at a time in the order the sweep
@@ -256,11 +379,11 @@ fn offset_direct(
 /// them against every edge); the other edges keep their order (a cut loop's edges keep
 /// theirs round it), so picking the pair the sweep meets first (by [`sweep_rank`]) is
 /// the crossing sweeping the cut loops again would find.
-fn cut_swallowtails(shapes: &mut Shapes) -> Option<()> {
+fn cut_swallowtails(shapes: &mut Shapes, cut_points: &mut Vec<DVec2>) -> Option<()> {
     let raw: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
     let Some(mut pending) = crate::geom::crossings(&raw, MAX_PENDING_CROSSINGS) else {
         // Too many to follow.
-        return cut_swallowtails_by_sweeping(shapes);
+        return cut_swallowtails_by_sweeping(shapes, cut_points);
     };
     let mut cuts = 0;
     while !pending.is_empty() {
@@ -278,19 +401,21 @@ fn cut_swallowtails(shapes: &mut Shapes) -> Option<()> {
             return None;
         }
         let cut = cut_swallowtail(shapes, &c)?;
+        cut_points.push(c.at);
         pending = crossings_after_cut(shapes, &pending, &c, &cut);
     }
     Some(())
 }
 
 /// [`cut_swallowtails`] sweeping the loops again after every cut.
-fn cut_swallowtails_by_sweeping(shapes: &mut Shapes) -> Option<()> {
+fn cut_swallowtails_by_sweeping(shapes: &mut Shapes, cut_points: &mut Vec<DVec2>) -> Option<()> {
     for _ in 0..MAX_SWALLOWTAIL_CUTS {
         let raw: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
         let Some(c) = crate::geom::first_crossing(&raw) else {
             return Some(());
         };
         cut_swallowtail(shapes, &c)?;
+        cut_points.push(c.at);
     }
     let raw: Vec<&[DVec2]> = loops(shapes).map(|l| l.as_slice()).collect();
     crate::geom::first_crossing(&raw).is_none().then_some(())
@@ -1084,11 +1209,13 @@ mod tests {
                 };
                 let uncut: Shapes = vec![vec![raw]];
                 let (mut fast, mut slow) = (uncut.clone(), uncut.clone());
-                let fast_ok = cut_swallowtails(&mut fast).is_some();
-                let slow_ok = cut_swallowtails_by_sweeping(&mut slow).is_some();
+                let (mut fast_cuts, mut slow_cuts) = (Vec::new(), Vec::new());
+                let fast_ok = cut_swallowtails(&mut fast, &mut fast_cuts).is_some();
+                let slow_ok = cut_swallowtails_by_sweeping(&mut slow, &mut slow_cuts).is_some();
                 assert_eq!(fast_ok, slow_ok, "waves {waves} delta {delta}");
                 if slow_ok {
                     assert_eq!(fast, slow, "waves {waves} delta {delta}");
+                    assert_eq!(fast_cuts, slow_cuts, "waves {waves} delta {delta}");
                     cut_some += usize::from(slow != uncut);
                 }
             }
@@ -1153,6 +1280,145 @@ mod tests {
                 assert_eq!(count(&fast), count(&slow), "delta {delta}");
             }
         }
+    }
+
+    /// A loop drawn as a turtle walks: from `start` heading `heading_deg`, each step a
+    /// length and then a turn (degrees, left positive); the last step need not close.
+    fn turtle(start: DVec2, heading_deg: f64, steps: &[(f64, f64)]) -> Vec<DVec2> {
+        let mut out = vec![start];
+        let (mut p, mut heading) = (start, heading_deg.to_radians());
+        for (len, turn) in steps {
+            p += DVec2::from_angle(heading) * *len;
+            out.push(p);
+            heading += turn.to_radians();
+        }
+        out
+    }
+
+    /// A box whose top, traversed from right to left, has the corners `top` (a length
+    /// and a turn at its end, as [`turtle`] takes them) from `(6, 0)`: an outer loop
+    /// with the top's features and plain right-angled corners far below them.
+    fn box_with_top(top: &[(f64, f64)]) -> Vec<DVec2> {
+        let mut l = turtle(DVec2::new(6.0, 0.0), 180.0, top);
+        let end = *l.last().unwrap_or(&DVec2::ZERO);
+        l.push(DVec2::new(end.x, -6.0));
+        l.push(DVec2::new(6.0, -6.0));
+        l
+    }
+
+    /// `shapes` mirrored in the y axis (so their corners come in the opposite order
+    /// round each loop), loops reversed to keep their orientation.
+    fn mirrored(shapes: &Shapes) -> Shapes {
+        shapes
+            .iter()
+            .map(|s| {
+                s.iter()
+                    .map(|l| l.iter().rev().map(|p| DVec2::new(-p.x, p.y)).collect())
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// The direct offset of `shapes` succeeds and is the outline's: as many loops, and
+    /// every vertex of either within `chord` of the other's boundary (round joins are
+    /// sampled within `chord` of their arcs, each offset's own way).
+    fn direct_agrees_with_the_outline(shapes: &Shapes, delta: f64, chord: f64) {
+        let Some(direct) = offset_direct(shapes, None, delta, chord) else {
+            panic!("delta {delta}: the direct offset falls back");
+        };
+        let source = boundary_index(shapes);
+        for p in loops(&direct).flat_map(|l| l.iter()) {
+            let off = source.distance(*p) - delta.abs();
+            assert!(
+                off.abs() <= chord / 20.0,
+                "delta {delta}: {p} is {off} off the offset"
+            );
+        }
+        let slow = outline_only(shapes, delta, chord);
+        assert_eq!(
+            loops(&direct).count(),
+            loops(&slow).count(),
+            "delta {delta}"
+        );
+        for (a, b) in [(&direct, &slow), (&slow, &direct)] {
+            let index = boundary_index(b);
+            for p in loops(a).flat_map(|l| l.iter()) {
+                let d = index.distance(*p);
+                assert!(d <= chord, "delta {delta}: {p} is {d} off");
+            }
+        }
+    }
+
+    #[test]
+    fn the_direct_offset_cuts_spikes_a_reversed_micro_edge_leaves() {
+        // Shrunk, a long edge, a slight concave corner (a merged join), a micro-edge and
+        // a convex corner that swallows it: the micro-edge's reversed offset backs up
+        // along the first edge's, so their neighbours just miss each other, leaving a
+        // spike a few µm nearer the contour than the offset distance (as on the bench
+        // layer). Mirrored, the spike's apex comes after the micro-edge; as a hole's
+        // offset grown, the spike is a notch.
+        for (concave, micro, convex, delta) in [
+            (-5.26, 0.0163, 23.9, -0.3781871527632471),
+            (-4.59, 0.07222, 25.33, -0.40823597436488307),
+            (-4.78, 0.0474, 21.03, -0.3939965441889213),
+            (-2.64, 0.02797, 18.64, -0.3781871527632471),
+        ] {
+            let outer = box_with_top(&[(3.0, concave), (micro, convex), (3.0, 70.0)]);
+            let shapes = vec![vec![outer.clone()]];
+            direct_agrees_with_the_outline(&shapes, delta, 0.01);
+            direct_agrees_with_the_outline(&mirrored(&shapes), delta, 0.01);
+            let hole: Vec<DVec2> = outer.iter().rev().copied().collect();
+            let plate = vec![vec![square(12.0), hole]];
+            direct_agrees_with_the_outline(&plate, -delta, 0.01);
+            direct_agrees_with_the_outline(&mirrored(&plate), -delta, 0.01);
+        }
+    }
+
+    #[test]
+    fn the_direct_offset_takes_swallowtail_cuts_on_merged_joins() {
+        // A swallowtail whose crossing edges end at merged (slight concave) joins: the
+        // cut lies on their chords, a fraction of a nanometre nearer the contour than
+        // the offset distance.
+        let outer = box_with_top(&[
+            (1.0, -1.54),
+            (2.75518, 1.40),
+            (0.11715, 42.32),
+            (1.43724, -3.54),
+            (2.0, 60.0),
+        ]);
+        let shapes = vec![vec![outer]];
+        direct_agrees_with_the_outline(&shapes, -0.4050949499850493, 0.01);
+        direct_agrees_with_the_outline(&mirrored(&shapes), -0.4050949499850493, 0.01);
+    }
+
+    #[test]
+    fn the_direct_offset_drops_loops_the_offset_swallows_whole() {
+        // A sliver (as on the bench layer: 18 µm by 2 µm) next to a plate, shrunk: the
+        // sliver vanishes. A plate with a sliver of a hole and a small round one,
+        // grown: both holes fill in.
+        let sliver = vec![
+            DVec2::new(-0.016378598648691067, -0.08374670477683033),
+            DVec2::new(-0.01647956891694058, -0.08424702616507496),
+            DVec2::new(-0.01215149684586514, -0.10144916506583179),
+            DVec2::new(-0.011678295570993313, -0.0993553134995171),
+        ];
+        let apart = |l: &[DVec2], by: DVec2| -> Vec<DVec2> { l.iter().map(|p| *p + by).collect() };
+        let shapes = vec![
+            vec![apart(&square(2.0), DVec2::new(5.0, 0.0))],
+            vec![sliver.clone()],
+        ];
+        direct_agrees_with_the_outline(&shapes, -0.40860941437999504, 0.01);
+        let mut hole: Vec<DVec2> = sliver.iter().rev().copied().collect();
+        let mut round: Vec<DVec2> = circle(DVec2::new(1.5, 1.5), 0.3, 0.01);
+        if crate::geom::signed_area2(&round) > 0.0 {
+            round.reverse();
+        }
+        hole = apart(&hole, DVec2::new(-1.0, 0.0));
+        let plate = vec![vec![square(3.0), hole, round]];
+        direct_agrees_with_the_outline(&plate, 0.4, 0.01);
+        // Grown a little, the round hole stays (and the sliver still fills in).
+        let grown = offset_direct(&plate, None, 0.1, 0.01).map(|s| loops(&s).count());
+        assert_eq!(grown, Some(2));
     }
 
     fn square(h: f64) -> Vec<DVec2> {
