@@ -246,24 +246,34 @@
 //! vertex the certificate rejects cannot); an absolute slack for every raw vertex (they
 //! are exact up to rounding; only cut points lie on chords).
 //!
-//! 2026-12-02, seventh session: 67.2M instructions per layer (callgrind, from 69.2M),
-//! plans byte-identical. The distance transforms sweep each row only over its stretch
-//! of the convex hull of Ce (25.6k of the 35.2k nodes here), 11.55M -> 9.9M; D_max's
-//! samples try the segment that answered the previous one first, 0.7M. The field's
-//! grid buffers are kept per thread between layers (`field::pool`): freed at the end
-//! of each layer, they let glibc hand the pages back and fault them in again for the
-//! next (575 page faults a layer, about 12 % of the time when layers are planned one
-//! after another on one thread, as the daemon does while streaming; 201 plans of
-//! `plan_compare bench` 1.68 -> 1.54 s). Under criterion the heap stayed grown (3,023
-//! faults in all before), so there the gain is the instructions': same-session A/B
-//! medians 8.88 and 8.49 ms before, 8.65 and 8.20 ms after. Tried and not taken:
-//! relaxing the transforms without a branch (bit-mask selects), 1.8-2.3 s -> 2.3-2.7 s
-//! for 201 plans; the contours simplified by the greedy pass the offsets use instead
-//! of Douglas-Peucker, 1.4M fewer but coarser contours make the offsets fall back to
-//! the outline more often (offsets 18.8M -> 20.2M) and move offset ends by up to
-//! 3.8 mm; each offset taken from the contour at i steps instead of one step from the
-//! previous offset (so every certificate uses the contour's index), 76.3M (more
-//! fallbacks to the outline).
+//! 2026-12-02, seventh session, merged with off6: 62.1M instructions per layer
+//! (callgrind, from 69.2M at the session's start). Criterion medians, the session's
+//! start (822d41e) and this code alternating: 9.57, 10.32 and 9.63 ms before, 8.78,
+//! 8.63 and 8.74 ms after (-10 %). Mine, plans byte-identical: the distance transforms
+//! sweep each row only over its stretch of the convex hull of Ce (25.6k of the 35.2k
+//! nodes here), 11.55M -> 9.9M; D_max's samples try the segment that answered the
+//! previous one first, 0.7M. The field's grid buffers are kept per thread between
+//! layers (`field::pool`): freed at the end of each layer, they let glibc hand the
+//! pages back and fault them in again for the next, 575 page faults a layer and about
+//! 12 % of the time where layers are planned one after another on one thread (as the
+//! daemon does while streaming; 201 plans of `plan_compare bench` 1.68 -> 1.54 s).
+//! Under criterion the heap happened to stay grown (3,023 faults in all before), so
+//! there the gain is only the instructions'. Tried and not taken: relaxing the
+//! transforms without a branch (bit-mask selects), 201 plans 1.8-2.3 s -> 2.3-2.7 s;
+//! the contours simplified by the greedy pass the offsets use instead of
+//! Douglas-Peucker, 1.4M fewer in all but the coarser contours make the offsets fall
+//! back to the outline more often (offsets 18.8M -> 20.2M) and move offset ends by up
+//! to 3.8 mm; each offset taken from the contour at i steps instead of one step from
+//! the previous offset (every certificate on the contour's index), 76.3M (more
+//! fallbacks); `SegmentIndex` finding cells by a multiplication instead of a division,
+//! and keeping each segment's 1 / |ab|² for the point queries, no time change beyond
+//! the noise (criterion 7.68 and 8.23 ms against 7.52 and 8.21 ms); `exact_at` with
+//! three divisions instead of seven (plans then differ by rounding, up to 0.00007 mm),
+//! no time change beyond the noise. Where the 62.1M go now (inclusive): level sets
+//! 13.9M (exact distances 5.5M), offsets 13.8M, distance field 11.9M (transforms
+//! 9.9M), trimming 9.5M, the rest (validation, boundary offsets and runs, D_max,
+//! contour simplification, index builds) about 13M. The 5 ms target needs about 1.75
+//! times less on this session's machine.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};
