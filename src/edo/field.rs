@@ -51,11 +51,12 @@ use pool::{give, take};
 ///
 /// A layer's field and level sets fill a few MB of grid-sized arrays. Freed at the end
 /// of every layer, they let the allocator return the pages to the kernel and fault
-/// fresh ones in for the next layer: on the `plan_layer` bench about an eighth of the
-/// layer's time went to those page faults and the allocator. Each thread (the
-/// planner's rayon workers plan many layers each) keeps the arrays of its last field
-/// instead: up to `KEEP_COUNT` buffers of each element type (the level sets take one
-/// per level), together at most `KEEP_BYTES`.
+/// fresh ones in for the next layer: with the `plan_layer` bench's region planned over
+/// and over on one thread (as the daemon plans layer after layer while it streams),
+/// about an eighth of the time went to those page faults and the allocator. Each
+/// thread (the daemon's planning thread, the rayon workers of `plan_layers`) keeps the
+/// arrays of its last field instead: up to `KEEP_COUNT` buffers of each element type
+/// (the level sets take one per level), together at most `KEEP_BYTES`.
 ///
 /// All of them, not only the largest: a big buffer kept while smaller ones come and go
 /// leaves glibc's trim threshold at its default, and the heap's top is handed back and
