@@ -1015,15 +1015,15 @@ impl SegmentIndex {
     /// [`Self::within`], trying the segment `hint` first and leaving in it the segment
     /// found: for a run of nearby points, most of which one segment answers.
     pub fn within_hinted(&self, p: DVec2, r_mm: f64, hint: &mut Option<u32>) -> bool {
-        let hit = |c: DVec2, d: DVec2| sqrt_within(point_segment_distance2(p, c, d), r_mm);
+        let reach = r_mm + reject_slack(r_mm);
         if let Some(&(c, d)) = hint.and_then(|k| self.segments.get(k as usize)) {
-            if hit(c, d) {
+            if point_hit(p, c, d, r_mm, reach) {
                 return true;
             }
         }
         // The cells and box test of `within` (a segment within the radius passes both).
         self.near_candidates(p, p, r_mm, |k, c, d| {
-            let found = hit(c, d);
+            let found = sqrt_within(point_segment_distance2(p, c, d), r_mm);
             if found {
                 *hint = Some(k);
             }

@@ -46,6 +46,7 @@
 use crate::geom::{floor_clamped, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;
 use pool::{give, take};
+use std::ops::Range;
 
 /// Grid-sized buffers kept by each thread between the fields it builds.
 ///
@@ -235,15 +236,14 @@ fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
 /// from a material node to its neighbour.
 const SPAN_MARGIN: usize = 2;
 
-/// Per grid row, the columns (inclusive) the distance transforms sweep: the row's
-/// stretch of the convex hull of the nodes inside Ce, [`SPAN_MARGIN`] wider, over the
-/// rows up to [`SPAN_MARGIN`] either side; an empty range (1, 0) for a row with none
-/// near.
+/// Per grid row, the columns the distance transforms sweep: the row's stretch of the
+/// convex hull of the nodes inside Ce, [`SPAN_MARGIN`] wider, over the rows up to
+/// [`SPAN_MARGIN`] either side; empty for a row with none near.
 ///
 /// The hull, not the nodes inside Ce themselves: a material node's nearest point on Ci
 /// can lie across a gap outside Ce (a C-shaped part), and the straight line to it
 /// (along which the transform carries it) stays inside the hull.
-fn row_spans(grid: &Grid, in_outer: &[bool]) -> Vec<(usize, usize)> {
+fn row_spans(grid: &Grid, in_outer: &[bool]) -> Vec<Range<usize>> {
     let own: Vec<(f64, f64, f64)> = in_outer
         .chunks_exact(grid.nx)
         .enumerate()
@@ -266,12 +266,10 @@ fn row_spans(grid: &Grid, in_outer: &[bool]) -> Vec<(usize, usize)> {
                     (a.min(f), b.max(l))
                 });
             if first > last {
-                (1, 0)
+                0..0
             } else {
-                (
-                    (first.floor().max(0.0) as usize).saturating_sub(SPAN_MARGIN),
-                    ((last.ceil().max(0.0) as usize) + SPAN_MARGIN).min(grid.nx - 1),
-                )
+                (first.floor().max(0.0) as usize).saturating_sub(SPAN_MARGIN)
+                    ..((last.ceil().max(0.0) as usize) + SPAN_MARGIN + 1).min(grid.nx)
             }
         })
         .collect()
@@ -432,14 +430,14 @@ impl Boundary {
 /// their nearest boundary point and the squared distance to it: squared distances
 /// order the same as distances and spare a square root per relaxation.
 ///
-/// The passes sweep each row only over `spans[row]` (columns, inclusive; see
+/// The passes sweep each row only over `spans[row]` (columns; see
 /// [`row_spans`]): the nodes inside Ce and a margin about them, all that the
 /// field's values are read at. Nodes beyond keep their exact distance where they lie
 /// near an edge and infinity elsewhere.
 fn distance_to_loops(
     grid: &Grid,
     boundary: &Boundary,
-    spans: &[(usize, usize)],
+    spans: &[Range<usize>],
 ) -> (Vec<f64>, Vec<u32>) {
     let (nx, ny) = (grid.nx, grid.ny);
     let n = nx * ny;
@@ -496,13 +494,13 @@ fn distance_to_loops(
     // Forward pass: rows upwards, each from the left (left, lower-left, below,
     // lower-right), then back from the right (right). Rows are split off so the
     // neighbours are plain slice reads.
-    for (r, &(lo, hi)) in spans.iter().enumerate() {
+    for (r, span) in spans.iter().enumerate() {
         let y = grid.origin.y + r as f64 * grid.h;
         let (done, rest) = near.split_at_mut(r * nx);
         let row = &mut rest[..nx];
         let below = r.checked_sub(1).map(|b| &done[b * nx..(b + 1) * nx]);
-        // Exclusive ends no further than the row (so the indexing needs no checks).
-        let end = (hi + 1).min(nx);
+        // Ends no further than the row (so the indexing needs no checks).
+        let (lo, end) = (span.start, span.end.min(nx));
         for c in lo..end {
             let p = node(c, y);
             if c > 0 {
@@ -525,12 +523,12 @@ fn distance_to_loops(
         }
     }
     // Backward pass, mirrored.
-    for (r, &(lo, hi)) in spans.iter().enumerate().rev() {
+    for (r, span) in spans.iter().enumerate().rev() {
         let y = grid.origin.y + r as f64 * grid.h;
         let (head, done) = near.split_at_mut((r + 1) * nx);
         let row = &mut head[r * nx..];
         let above = (r + 1 < ny).then(|| &done[..nx]);
-        let end = (hi + 1).min(nx);
+        let (lo, end) = (span.start, span.end.min(nx));
         for c in (lo..end).rev() {
             let p = node(c, y);
             if c + 1 < nx {
@@ -1354,15 +1352,9 @@ mod tests {
         let region = slotted_ring();
         let grid = Grid::over(&region, 0.35, 1 << 20);
         let in_outer = fill_inside(&grid, &[&region.outer]);
-        let whole = vec![(0, grid.nx - 1); grid.ny];
+        let whole = vec![0..grid.nx; grid.ny];
         let spans = row_spans(&grid, &in_outer);
-        assert!(
-            spans
-                .iter()
-                .map(|(a, b)| (b + 1).saturating_sub(*a))
-                .sum::<usize>()
-                < grid.nx * grid.ny * 9 / 10
-        );
+        assert!(spans.iter().map(|s| s.len()).sum::<usize>() < grid.nx * grid.ny * 9 / 10);
         let holes: Vec<&Vec<DVec2>> = region.holes.iter().collect();
         for boundary in [Boundary::of(&[&region.outer]), Boundary::of(&holes)] {
             let (d_whole, seg_whole) = distance_to_loops(&grid, &boundary, &whole);
@@ -1370,7 +1362,6 @@ mod tests {
             let mut compared = 0;
             for k in 0..in_outer.len() {
                 let (c, r) = (k % grid.nx, k / grid.nx);
-                let (lo, hi) = spans[r];
                 // Every node a level's crossing can be read at: inside Ce and its
                 // neighbours.
                 let near_material = (c.saturating_sub(1)..=(c + 1).min(grid.nx - 1))
@@ -1379,7 +1370,7 @@ mod tests {
                     })
                     .any(|(cc, rr)| in_outer[rr * grid.nx + cc]);
                 if near_material {
-                    assert!(lo <= c && c <= hi, "node {c},{r} outside its row's span");
+                    assert!(spans[r].contains(&c), "node {c},{r} outside its row's span");
                     assert_eq!(d_whole[k], d_spans[k], "node {c},{r}");
                     assert_eq!(seg_whole[k], seg_spans[k], "node {c},{r}");
                     compared += 1;
@@ -1412,14 +1403,18 @@ mod tests {
 
     #[test]
     fn pooled_buffers_come_back_filled() {
+        // An empty shelf, whatever tests ran on this thread before.
+        pool::F64.with(|s| s.borrow_mut().clear());
         let mut v = take(&pool::F64, 100, 0.0);
         v.iter_mut().for_each(|x| *x = 7.0);
-        let capacity = v.capacity();
+        let (capacity, at) = (v.capacity(), v.as_ptr());
         give(&pool::F64, v);
         let w = take(&pool::F64, 50, 1.5);
         assert_eq!(w.len(), 50);
         assert!(w.iter().all(|&x| x == 1.5));
-        assert!(w.capacity() >= capacity.min(50));
+        // The buffer given back, not a new one.
+        assert_eq!(w.as_ptr(), at);
+        assert_eq!(w.capacity(), capacity);
     }
 
     #[test]
