@@ -310,6 +310,15 @@ fn bench(c: &mut Criterion) {
     c.bench_function("plan_layer_2000v_2holes_m20", |b| {
         b.iter(|| plan_region(black_box(&region), 0, &design, &opts).unwrap())
     });
+    // The same with the inner contours simplified at the 0.01 mm chord tolerance
+    // instead of the default contour deviation (0.025 mm).
+    let fine = PlanOptions {
+        contour_deviation_mm: 0.01,
+        ..opts.clone()
+    };
+    c.bench_function("plan_layer_2000v_2holes_m20_contours_0.01mm", |b| {
+        b.iter(|| plan_region(black_box(&region), 0, &design, &fine).unwrap())
+    });
 }
 
 criterion_group!(benches, bench);

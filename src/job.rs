@@ -156,6 +156,7 @@ struct RawProcess {
     min_road: Option<f64>,
     radial_lines: Option<usize>,
     field_cell: Option<f64>,
+    contour_deviation: Option<f64>,
     cusp: Option<f64>,
     max_gap: Option<f64>,
     thin_regions: Option<crate::edo::ThinRegions>,
@@ -322,6 +323,16 @@ impl Job {
         if let Some(c) = p.field_cell {
             positive(c, "process.field_cell", &bad)?;
             plan.field_cell_mm = Some(c);
+        }
+        if let Some(c) = p.contour_deviation {
+            let (lo, hi) = (plan.tolerances.chord_mm, p.nozzle / 4.0);
+            if !(c.is_finite() && c >= lo && c <= hi) {
+                return Err(bad(
+                    "process.contour_deviation",
+                    format!("must be a length from the planner's chord tolerance ({lo} mm) to a quarter of the nozzle ({hi} mm), got {c}"),
+                ));
+            }
+            plan.contour_deviation_mm = c;
         }
         let (min_mm, max_mm) = match p.layer {
             None => (p.nozzle / 2.0, p.nozzle / 2.0),
@@ -969,6 +980,13 @@ nozzle = 0.5
         let job = Job::from_toml(GOOD, "job.toml").unwrap();
         assert_eq!(job.materials, ["A", "B"]);
         assert_eq!(job.plan.r_mach_mm, 2.0);
+        assert_eq!(
+            job.plan.contour_deviation_mm,
+            crate::edo::DEFAULT_CONTOUR_DEVIATION_MM
+        );
+        let finer = GOOD.replace("[process]", "[process]\ncontour_deviation = 0.01");
+        let job2 = Job::from_toml(&finer, "job.toml").unwrap();
+        assert_eq!(job2.plan.contour_deviation_mm, 0.01);
         let layers = job.extruded_layers().unwrap();
         assert_eq!(layers.len(), 2);
         assert!((layers[1].z_mm - 0.4).abs() < 1e-12);

@@ -45,6 +45,7 @@ pub struct Settings {
     pub boundary_offset_mm: f64,
     pub offset_end_clearance_mm: f64,
     pub min_road_mm: f64,
+    pub contour_deviation_mm: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -349,6 +350,7 @@ pub fn build(
             boundary_offset_mm: job.plan.boundary_offset_mm,
             offset_end_clearance_mm: job.plan.offset_end_clearance_mm,
             min_road_mm: job.plan.min_road_mm,
+            contour_deviation_mm: job.plan.contour_deviation_mm,
         },
         mesh: notes.mesh,
         slicing: notes.slicing,

@@ -161,6 +161,21 @@ fn bad_jobs_fail_with_named_errors() {
         ("[process]", "[process]\nmin_road = nan", "process.min_road"),
         (
             "[process]",
+            "[process]\ncontour_deviation = 0.001",
+            "process.contour_deviation",
+        ),
+        (
+            "[process]",
+            "[process]\ncontour_deviation = 0.5",
+            "process.contour_deviation",
+        ),
+        (
+            "[process]",
+            "[process]\ncontour_deviation = inf",
+            "process.contour_deviation",
+        ),
+        (
+            "[process]",
             "[toolpath]\npurge_pad_mm = -1.0\n[process]",
             "toolpath.purge_pad_mm",
         ),

@@ -35,13 +35,16 @@
 //!    within its stretch (the grid cut the tip of a corner short) is left out between
 //!    two that lie on it, so the corner between those is found.
 //!
-//! Distance from the exact level sets, after the chord-tolerance simplification the
-//! planner applies (`examples/plan_compare.rs levels`; cell R_mach / 2, against the
-//! linear interpolant on a grid of R_mach / 3 before): the `plan_layer` bench region
-//! mean 0.0029 mm, 99.9th percentile 0.012 mm (was 0.0032, 0.023); every 5th femur
-//! layer mean 0.0046 mm, 99th percentile 0.021 mm, 99.9th 0.041 mm (was 0.0058,
-//! 0.042, 0.127); the non-star example mean 0.0035 mm, largest 0.017 mm (was 0.0045,
-//! 0.037).
+//! Distance from the exact level sets (`examples/plan_compare.rs levels`; cell R_mach /
+//! 2), after the planner simplifies them by the contour deviation (default 0.025 mm):
+//! the `plan_layer` bench region mean 0.0074 mm, 99.9th percentile 0.026 mm, largest
+//! 0.032 mm; every 5th femur layer mean 0.0078 mm, 99th percentile 0.026 mm, 99.9th
+//! 0.043 mm; the non-star example mean 0.0077 mm, largest 0.028 mm. Simplified by
+//! the 0.01 mm chord tolerance instead, the traced level sets themselves: the bench
+//! region mean 0.0029 mm, 99.9th percentile 0.012 mm (against the linear interpolant
+//! on a grid of R_mach / 3 before: 0.0032, 0.023); the femur mean 0.0046 mm, 99th
+//! percentile 0.021 mm, 99.9th 0.041 mm (before: 0.0058, 0.042, 0.127); the non-star
+//! example mean 0.0035 mm, largest 0.017 mm (before: 0.0045, 0.037).
 
 use crate::geom::{floor_clamped, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;

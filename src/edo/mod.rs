@@ -141,6 +141,15 @@ pub struct PlanOptions {
     pub field_cell_mm: Option<f64>,
     /// Cap on distance-field grid nodes (the cell grows to respect it).
     pub max_field_nodes: usize,
+    /// How far the inner contours C2..Cm (the iso-composition curves the planner
+    /// draws itself) may stray from the exact curve once sampled (radial splines) or
+    /// simplified (distance level sets), mm. Default 0.025 (Cura's maximum deviation):
+    /// on contours at least L_short / m apart it shifts where each composition lies
+    /// by a few percent of one contour step. The part's own outline and the boundary
+    /// offsets C1 and Cm+1 keep `tolerances.chord_mm`. Each offset's work grows with
+    /// its source contour's vertex count, so a finer value plans more slowly.
+    #[serde(default = "default_contour_deviation_mm")]
+    pub contour_deviation_mm: f64,
     pub thin_regions: ThinRegions,
     pub tolerances: Tolerances,
 }
@@ -158,6 +167,7 @@ impl PlanOptions {
             radial_lines: 360,
             field_cell_mm: None,
             max_field_nodes: 1 << 20,
+            contour_deviation_mm: default_contour_deviation_mm(),
             thin_regions: ThinRegions::Refuse,
             tolerances: Tolerances::default(),
         }
@@ -166,6 +176,19 @@ impl PlanOptions {
     fn cell_mm(&self) -> f64 {
         self.field_cell_mm.unwrap_or(self.r_mach_mm / 2.0)
     }
+
+    /// The deviation inner contours are sampled or simplified at: never finer than
+    /// the chord tolerance.
+    fn contour_deviation_mm(&self) -> f64 {
+        self.contour_deviation_mm.max(self.tolerances.chord_mm)
+    }
+}
+
+/// Default of [`PlanOptions::contour_deviation_mm`].
+pub const DEFAULT_CONTOUR_DEVIATION_MM: f64 = 0.025;
+
+fn default_contour_deviation_mm() -> f64 {
+    DEFAULT_CONTOUR_DEVIATION_MM
 }
 
 /// An iso-composition contour C_j and the roads that build it.
@@ -558,7 +581,8 @@ pub fn plan_region(
             SubdivisionMethod::Radial | SubdivisionMethod::Distance => {
                 // Two contour levels of the subdivision (neither boundary offset) are
                 // nested and at least about L_short / m apart: far enough apart
-                // (beyond what simplifying each by the chord tolerance moves them),
+                // (beyond what sampling or simplifying each by the contour deviation
+                // moves them),
                 // their difference is their loops, without the overlay.
                 // Next to a boundary offset (n = 1 or m), whose arcs and the level's
                 // simplification are not so far apart, the same holds where no edge of
@@ -569,7 +593,8 @@ pub fn plan_region(
                 };
                 let nested = !lower_shape.is_empty()
                     && if n >= 2 && n < m {
-                        pre.l_short_mm / m as f64 > NESTED_GAP_CHORDS * chord
+                        pre.l_short_mm / m as f64
+                            > NESTED_GAP_DEVIATIONS * opts.contour_deviation_mm()
                     } else {
                         apart()
                     };
@@ -731,9 +756,10 @@ pub fn plan_region(
     })
 }
 
-/// How many chord tolerances apart consecutive contour levels must be (L_short / m)
-/// for [`plan_region`] to take their difference as nested loops.
-const NESTED_GAP_CHORDS: f64 = 4.0;
+/// How many contour deviations apart consecutive contour levels must be (L_short / m)
+/// for [`plan_region`] to take their difference as nested loops: each may stray that
+/// far from its exact level set.
+const NESTED_GAP_DEVIATIONS: f64 = 4.0;
 
 /// Split the loops of the interior (the region shrunk by the boundary offset) into
 /// runs nearer a hole and runs nearer the outer loop. A loop wholly on one side stays
@@ -938,7 +964,6 @@ fn growth_rings(
     island: usize,
     opts: &PlanOptions,
 ) -> Result<PreSubdivision, PlanError> {
-    let tol = &opts.tolerances;
     let holes_shape = shapes::from_loops(&region.holes);
     let outer_shape = shapes::from_loops(std::slice::from_ref(&region.outer));
     let pole = || {
@@ -964,7 +989,8 @@ fn growth_rings(
                 let mut rs = rs0;
                 let mut result = None;
                 for _ in 0..3 {
-                    match rs.contours(m, &region.outer, &region.holes, tol.chord_mm) {
+                    match rs.contours(m, &region.outer, &region.holes, opts.contour_deviation_mm())
+                    {
                         Ok(cs) => {
                             result = Some(cs);
                             break;
@@ -1037,11 +1063,11 @@ fn growth_rings(
     };
     let m = resolved_m(l_short_mm, island, opts)?;
     let mut levels = vec![Level::Shapes(holes_shape)];
-    let chord = opts.tolerances.chord_mm;
+    let deviation = opts.contour_deviation_mm();
     levels.extend(f.level_sets(m).into_iter().map(|loops| {
         let loops: Vec<Vec<DVec2>> = loops
             .iter()
-            .map(|l| crate::geom::simplify_loop(l, chord))
+            .map(|l| crate::geom::simplify_loop(l, deviation))
             .collect();
         Level::Shapes(shapes::from_loops(&loops))
     }));
@@ -1310,5 +1336,75 @@ mod tests {
         assert_eq!(plan.m, 10);
         let s45 = plan.sub_regions.iter().find(|s| s.n == 4).unwrap();
         assert_eq!(s45.n_max, 4);
+    }
+
+    /// Inner level-set contours simplified at the contour deviation: fewer vertices
+    /// than at the chord tolerance, and each version within its deviation of the
+    /// other (both simplify the same traced level set, keeping its vertices).
+    #[test]
+    fn contours_keep_to_the_contour_deviation() {
+        let outer: Vec<DVec2> = (0..600)
+            .map(|k| {
+                let a = std::f64::consts::TAU * k as f64 / 600.0;
+                DVec2::new(a.cos(), a.sin()) * (20.0 + 1.2 * (5.0 * a).sin())
+            })
+            .collect();
+        let hole = |c: DVec2| -> Vec<DVec2> {
+            (0..64)
+                .rev()
+                .map(|k| {
+                    let a = std::f64::consts::TAU * k as f64 / 64.0;
+                    c + DVec2::new(a.cos(), a.sin()) * 3.0
+                })
+                .collect()
+        };
+        let region = Region::new(
+            outer,
+            vec![hole(DVec2::new(-7.0, 0.0)), hole(DVec2::new(7.0, 0.0))],
+        );
+        let plan_at = |deviation: f64| {
+            let mut opts = PlanOptions::new(1.0, 0.4);
+            opts.contour_deviation_mm = deviation;
+            plan_region(&region, 0, &design(Pattern::GrowthRings), &opts).unwrap()
+        };
+        let (fine, coarse) = (plan_at(0.01), plan_at(0.025));
+        assert_eq!(fine.method, SubdivisionMethod::Distance);
+        assert_eq!(fine.m, coarse.m);
+        let inner = |p: &RegionPlan, j: u32| -> Vec<Vec<DVec2>> {
+            p.contours[(j - 1) as usize]
+                .roads
+                .iter()
+                .map(|r| r.points.clone())
+                .collect()
+        };
+        let (mut fine_count, mut coarse_count) = (0, 0);
+        for j in 2..=fine.m {
+            let (f, c) = (inner(&fine, j), inner(&coarse, j));
+            fine_count += f.iter().map(Vec::len).sum::<usize>();
+            coarse_count += c.iter().map(Vec::len).sum::<usize>();
+            let index = |loops: &[Vec<DVec2>]| {
+                let l: Vec<&[DVec2]> = loops.iter().map(|l| l.as_slice()).collect();
+                SegmentIndex::new(&l, &[])
+            };
+            let (fi, ci) = (index(&f), index(&c));
+            for p in f.iter().flatten() {
+                assert!(
+                    ci.distance(*p) <= 0.025 + 1e-9,
+                    "C{j}: {p} {}",
+                    ci.distance(*p)
+                );
+            }
+            for p in c.iter().flatten() {
+                assert!(
+                    fi.distance(*p) <= 0.01 + 1e-9,
+                    "C{j}: {p} {}",
+                    fi.distance(*p)
+                );
+            }
+        }
+        assert!(
+            (coarse_count as f64) < 0.8 * fine_count as f64,
+            "{coarse_count} vertices at 0.025 mm against {fine_count} at 0.01 mm"
+        );
     }
 }
