@@ -274,6 +274,32 @@
 //! 9.9M), trimming 9.5M, the rest (validation, boundary offsets and runs, D_max,
 //! contour simplification, index builds) about 13M. The 5 ms target needs about 1.75
 //! times less on this session's machine.
+//!
+//! 2026-12-02, eighth session: 54.5M instructions per layer (callgrind, from 62.3M).
+//! The inner contours are simplified at the new contour deviation (`process.
+//! contour_deviation`, default 0.025 mm, Cura's default maximum deviation) instead of
+//! the 0.01 mm chord tolerance; every offset is made from a contour and its work grows
+//! with the contour's vertex count: offsets 13.35M -> 8.9M, trimming 9.45M -> 8.0M.
+//! Criterion medians, the session's start (b99b698) and this code alternating, three
+//! runs each, on a machine slower than earlier the same day: 9.05, 9.48 and 8.79 ms
+//! before, 7.85, 8.18 and 7.26 ms after; the second bench (contours at 0.01 mm, as
+//! before) 8.72, 8.62 and 9.28 ms. Earlier in the session, quieter, one run of this
+//! code: 6.29 ms. Level-set accuracy (`plan_compare levels`) is now the deviation's:
+//! bench mean 0.0074 mm, p99.9 0.026 mm; coverage in docs/toolpath.md. Tried and not
+//! taken: the outline too at 0.025 mm, 51.4M but more void along the part's surface
+//! (annulus 0.009 -> 0.019 %, Benchy 0.434 -> 0.486 %); the field cell R_mach / 1.5
+//! instead of R_mach / 2, 47.6M but the femur's level sets worse at the tail (p99.9
+//! 0.043 -> 0.081 mm, corners of the level sets cut at the medial axis, 0.071 mm with
+//! three bend refinements instead of one) and two offsets falling back to the
+//! outline; looking for such a corner's tip across the chord instead of by Newton
+//! steps from its middle, worse (femur p99.9 0.064 mm even at R_mach / 2); 4-neighbour
+//! transforms, 1.6M fewer but femur p99.9 0.041 -> 0.057 mm; both transforms in one sweep
+//! (plans identical), 54.8M and no time change; the row sweeps split into a
+//! below-neighbour pass and the sequential passes (plans identical), no time change;
+//! fat LTO and one codegen unit, 0.9M more and no time change (201 plans 1.56-1.64
+//! s either way); the offsets' own simplification at chord / 5 or chord / 2 instead of
+//! chord / 20, no gain (their vertices are not micro-edges); Newton's trust step and
+//! the bend threshold raised to the contour deviation's scale, 0.2M.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};
