@@ -177,10 +177,17 @@ impl PlanOptions {
         self.field_cell_mm.unwrap_or(self.r_mach_mm / 2.0)
     }
 
-    /// The deviation inner contours are sampled or simplified at: never finer than
-    /// the chord tolerance.
+    /// The deviation inner contours are sampled or simplified at: the job's limits,
+    /// from the chord tolerance to a quarter of the nozzle, hold for options built in
+    /// code too (a value that is not finite counts as the chord tolerance).
     fn contour_deviation_mm(&self) -> f64 {
-        self.contour_deviation_mm.max(self.tolerances.chord_mm)
+        let chord = self.tolerances.chord_mm;
+        let v = self.contour_deviation_mm;
+        if v.is_finite() {
+            v.min(self.nozzle_mm / 4.0).max(chord)
+        } else {
+            chord
+        }
     }
 }
 
@@ -582,8 +589,7 @@ pub fn plan_region(
                 // Two contour levels of the subdivision (neither boundary offset) are
                 // nested and at least about L_short / m apart: far enough apart
                 // (beyond what sampling or simplifying each by the contour deviation
-                // moves them),
-                // their difference is their loops, without the overlay.
+                // moves them), their difference is their loops, without the overlay.
                 // Next to a boundary offset (n = 1 or m), whose arcs and the level's
                 // simplification are not so far apart, the same holds where no edge of
                 // the lower level comes within a chord tolerance of the upper one.
@@ -1369,6 +1375,10 @@ mod tests {
         };
         let (fine, coarse) = (plan_at(0.01), plan_at(0.025));
         assert_eq!(fine.method, SubdivisionMethod::Distance);
+        // Options built in code keep to the job's limits.
+        assert_eq!(plan_at(f64::NAN).contours, fine.contours);
+        assert_eq!(plan_at(0.0).contours, fine.contours);
+        assert_eq!(plan_at(1.0).contours, plan_at(0.1).contours);
         assert_eq!(fine.m, coarse.m);
         let inner = |p: &RegionPlan, j: u32| -> Vec<Vec<DVec2>> {
             p.contours[(j - 1) as usize]
