@@ -302,22 +302,16 @@
 //! the bend threshold raised to the contour deviation's scale, 0.2M.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use edo::edo::{plan_region, GradientDesign, Pattern, PlanOptions};
-use edo::material::{Composition, GradientFunction};
+use edo::edo::{plan_region, PlanOptions};
 use std::hint::black_box;
 
 #[path = "common/region.rs"]
 mod region;
-use region::bench_region;
+use region::{bench_design, bench_region};
 
 fn bench(c: &mut Criterion) {
     let region = bench_region();
-    let design = GradientDesign {
-        pattern: Pattern::GrowthRings,
-        inner: Composition::new(vec![1.0, 0.0], 1e-9).unwrap(),
-        outer: Composition::new(vec![0.0, 1.0], 1e-9).unwrap(),
-        function: GradientFunction::LINEAR,
-    };
+    let design = bench_design();
     // Choose R_mach so that eq (1) gives m = 20 for this region's L_short.
     let probe = plan_region(&region, 0, &design, &PlanOptions::new(1.0, 0.4)).unwrap();
     let opts = PlanOptions::new(probe.l_short_mm / 20.0, 0.4);

@@ -13,24 +13,18 @@
 //!   every 0.02 mm along their roads: `|d(p) − d_j| · (dist(p, Ci) + dist(p, Ce))`, which
 //!   is the distance to the level set where the wall's two sides face each other.
 
-use edo::edo::{plan_layers, plan_region, GradientDesign, LayerPlan, Pattern, PlanOptions};
+use edo::edo::{plan_layers, plan_region, LayerPlan, PlanOptions};
 use edo::geom::SegmentIndex;
-use edo::material::{Composition, GradientFunction};
 use glam::DVec2;
 use std::path::Path;
 
 #[path = "../benches/common/region.rs"]
 mod region;
-use region::bench_region;
+use region::{bench_design, bench_region};
 
 fn bench(n: usize, out: Option<&str>) -> anyhow::Result<()> {
     let region = bench_region();
-    let design = GradientDesign {
-        pattern: Pattern::GrowthRings,
-        inner: Composition::new(vec![1.0, 0.0], 1e-9)?,
-        outer: Composition::new(vec![0.0, 1.0], 1e-9)?,
-        function: GradientFunction::LINEAR,
-    };
+    let design = bench_design();
     let probe = plan_region(&region, 0, &design, &PlanOptions::new(1.0, 0.4))?;
     let mut opts = PlanOptions::new(probe.l_short_mm / 20.0, 0.4);
     if let Some(div) = std::env::var("EDO_CELL_DIV")

@@ -325,7 +325,7 @@ impl Job {
             plan.field_cell_mm = Some(c);
         }
         if let Some(c) = p.contour_deviation {
-            let (lo, hi) = (plan.tolerances.chord_mm, p.nozzle / 4.0);
+            let (lo, hi) = plan.contour_deviation_limits_mm();
             if !(c.is_finite() && c >= lo && c <= hi) {
                 return Err(bad(
                     "process.contour_deviation",

@@ -176,6 +176,21 @@ fn bad_jobs_fail_with_named_errors() {
         ),
         (
             "[process]",
+            "[process]\ncontour_deviation = nan",
+            "process.contour_deviation",
+        ),
+        (
+            "[process]",
+            "[process]\ncontour_deviation = -0.02",
+            "process.contour_deviation",
+        ),
+        (
+            "[process]",
+            "[process]\ncontour_deviation = \"fine\"",
+            "contour_deviation",
+        ),
+        (
+            "[process]",
             "[toolpath]\npurge_pad_mm = -1.0\n[process]",
             "toolpath.purge_pad_mm",
         ),

@@ -1,7 +1,25 @@
-//! The bench region of `benches/plan_layer.rs`, shared with `examples/plan_compare.rs`.
+//! The bench region of `benches/plan_layer.rs` and its gradient design, shared with
+//! `examples/plan_compare.rs` and `tests/contour_deviation.rs`.
 
+use edo::edo::{GradientDesign, Pattern};
 use edo::geom::Region;
+use edo::material::{Composition, GradientFunction};
 use glam::DVec2;
+
+/// Growth rings from pure material A at the holes to pure B at the outer loop, linear.
+pub fn bench_design() -> GradientDesign {
+    let pure = |k: usize| {
+        let mut f = vec![0.0; 2];
+        f[k] = 1.0;
+        Composition::new(f, 1e-9).expect("a pure material's fractions sum to 1")
+    };
+    GradientDesign {
+        pattern: Pattern::GrowthRings,
+        inner: pure(0),
+        outer: pure(1),
+        function: GradientFunction::LINEAR,
+    }
+}
 
 /// A wavy outline of 2,000 vertices around two round holes.
 pub fn bench_region() -> Region {
