@@ -1,8 +1,13 @@
 //! The contour deviation (`process.contour_deviation`, issue: EDO layer planner): the
 //! inner level-set contours of the `plan_layer` bench region simplified at the default
 //! 0.025 mm have fewer vertices than at the 0.01 mm chord tolerance, and each version
-//! lies within its deviation of the other (both simplify the same traced level sets,
-//! keeping their vertices). Options built in code keep to the job's limits.
+//! lies near the other. Both simplify traced level sets, keeping their vertices; the
+//! trace leaves out crossings where the straight piece between their neighbours strays
+//! at most half the deviation, so the coarse trace keeps a subset of the fine one's
+//! crossings. A coarse vertex, on the fine trace, lies within 0.01 mm of the fine
+//! contour; a fine vertex within half of 0.025 mm of the coarse trace's pieces, so within
+//! 1.5 × 0.025 mm of the coarse contour. Options built in code keep to the job's
+//! limits.
 
 use edo::edo::{plan_region, PlanOptions, RegionPlan, SubdivisionMethod};
 use edo::geom::SegmentIndex;
@@ -46,7 +51,7 @@ fn contours_keep_to_the_contour_deviation() {
         for p in f.iter().flatten() {
             let d = ci.distance(*p);
             assert!(
-                d <= 0.025 + 1e-9,
+                d <= 1.5 * 0.025 + 1e-9,
                 "C{j}: {p} is {d} mm from the coarse contour"
             );
         }

@@ -27,7 +27,11 @@
 //!    every side; the piece of a level through a cell runs straight from side to side,
 //!    and pieces whose ends keep their order do not cross. A first step under 0.01 mm
 //!    where the walks from both nodes find the same nearest boundary points is not
-//!    checked by a second (its quadratic error is far under 1e-4 mm).
+//!    checked by a second (its quadratic error is far under 1e-4 mm). Every other
+//!    crossing round a loop is placed first; one between two that lie on the level
+//!    set, where the exact normal turns so little from one to the other that the
+//!    straight piece joining them strays at most half the contour deviation, is left
+//!    out (the planner simplifies the loops by the deviation anyway).
 //! 7. Where the exact normal turns sharply between two crossings (a corner of the
 //!    level set on the medial axis, where the nearest boundary point jumps), the
 //!    corner is added: from where the two tangents meet, Newton steps along the
@@ -37,9 +41,10 @@
 //!
 //! Distance from the exact level sets (`examples/plan_compare.rs levels`; cell R_mach /
 //! 2), after the planner simplifies them by the contour deviation (default 0.025 mm):
-//! the `plan_layer` bench region mean 0.0074 mm, 99.9th percentile 0.026 mm, largest
-//! 0.032 mm; every 5th femur layer mean 0.0078 mm, 99th percentile 0.026 mm, 99.9th
-//! 0.043 mm; the non-star example mean 0.0077 mm, largest 0.028 mm. Simplified by
+//! the `plan_layer` bench region mean 0.0077 mm, 99.9th percentile 0.027 mm, largest
+//! 0.032 mm; every 5th femur layer mean 0.0079 mm, 99th percentile 0.026 mm, 99.9th
+//! 0.043 mm; the non-star example mean 0.0084 mm, largest 0.028 mm (every crossing
+//! placed: 0.0074, 0.026, 0.032; 0.0078, 0.026, 0.043; 0.0077, 0.028). Simplified by
 //! the 0.01 mm chord tolerance instead, the traced level sets themselves: the bench
 //! region mean 0.0029 mm, 99.9th percentile 0.012 mm (against the linear interpolant
 //! on a grid of R_mach / 3 before: 0.0032, 0.023); the femur mean 0.0046 mm, 99th
@@ -750,6 +755,50 @@ impl DistanceField {
         }
     }
 
+    /// Place the crossings of one loop of level `t` (`keys`, the cell sides in order
+    /// round the loop), every other one first. A crossing between two that lie on the
+    /// level set is left out where the piece joining them strays at most `sparse_mm`
+    /// from it: a piece whose ends' normals turn by θ strays at most chord × θ / 4
+    /// (a corner at its middle; an arc strays half that), so the normals may turn up
+    /// to 4 × `sparse_mm` / chord. A corner of the level set between them turns its
+    /// normals as much, so it is not lost; the crossing is placed wherever they turn
+    /// more or either end is off the level set.
+    fn place_loop(&self, keys: &[u64], t: f64, spacing: f64, sparse_mm: f64) -> Vec<Placed> {
+        let at = |key: u64| {
+            let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
+            self.place(lo, hi, t, spacing)
+        };
+        let n = keys.len();
+        if sparse_mm.is_nan() || sparse_mm <= 0.0 || n < SPARSE_MIN_CROSSINGS {
+            return keys.iter().map(|&k| at(k)).collect();
+        }
+        let straight = |a: &Placed, b: &Placed| {
+            let (Some(ga), Some(gb)) = (a.grad, b.grad) else {
+                return false;
+            };
+            if !(a.on_level && b.on_level) {
+                return false;
+            }
+            // The turn θ at most x: sin θ ≤ x − x³ / 6 ≤ sin x, with the normals
+            // pointing the same way (x under a right angle).
+            let x = (4.0 * sparse_mm / a.p.distance(b.p)).min(1.0);
+            let scale = (ga.length_squared() * gb.length_squared()).sqrt();
+            ga.dot(gb) > 0.0 && ga.perp_dot(gb).abs() <= (x - x * x * x / 6.0) * scale
+        };
+        let even: Vec<Placed> = keys.iter().step_by(2).map(|&k| at(k)).collect();
+        let mut out = Vec::with_capacity(n);
+        for (i, a) in even.iter().enumerate() {
+            out.push(*a);
+            // Odd crossings lie between two even ones; with n odd, the last even one
+            // is next to the first.
+            let k = 2 * i + 1;
+            if k < n && !straight(a, &even[(i + 1) % even.len()]) {
+                out.push(at(keys[k]));
+            }
+        }
+        out
+    }
+
     /// The loop through placed crossings, with a point of the exact level set added
     /// between two crossings where the level set bends enough between them to stray
     /// [`BEND_MM`] from the straight piece (judged by how far its normal turns: the
@@ -906,7 +955,12 @@ impl DistanceField {
     /// cells are visited row by row: a cell's bottom side is the top side of the cell
     /// below (kept from the previous row) and its left side the right side of the cell
     /// before it.
-    pub fn level_sets(&self, m: u32) -> Vec<Vec<Vec<DVec2>>> {
+    ///
+    /// Where the crossings either side of one lie on the exact level set and its
+    /// normal turns so little between them that the straight piece joining them
+    /// strays at most `sparse_mm` from it, that crossing is left out (see
+    /// [`DistanceField::place_loop`]); 0 places every crossing.
+    pub fn level_sets(&self, m: u32, sparse_mm: f64) -> Vec<Vec<Vec<DVec2>>> {
         let levels = m.saturating_sub(1) as usize;
         // A field from [`DistanceField::outer_only`] has no normalised distance to trace.
         if levels == 0 || self.d.len() != self.nx * self.ny {
@@ -1036,14 +1090,12 @@ impl DistanceField {
             .enumerate()
             .map(|(level, segs)| {
                 let t = (level + 1) as f64 / mf;
-                let loops = chain_segments(&segs, |key| {
-                    let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
-                    self.place(lo, hi, t, spacing)
-                });
+                let loops = chain_segments(&segs);
                 give(&pool::SEGMENT, segs);
                 loops
                     .into_iter()
-                    .filter_map(|placed| {
+                    .filter_map(|keys| {
+                        let placed = self.place_loop(&keys, t, spacing, sparse_mm);
                         let l = crate::geom::dedup_loop(&self.bent(&placed, t), 1e-12);
                         (l.len() >= 3).then_some(l)
                     })
@@ -1069,6 +1121,9 @@ const NEWTON_CLOSE_MM: f64 = 1e-3;
 const NEWTON_TRUST_MM: f64 = 1e-2;
 /// How far (cells) from the middle of a piece a corner of the level set may be found.
 const BEND_REACH_CELLS: f64 = 2.0;
+
+/// Loops with fewer crossings are placed whole by [`DistanceField::place_loop`].
+const SPARSE_MIN_CROSSINGS: usize = 8;
 
 /// No segment (an end whose edge no other segment of the level crosses).
 const NO_SEGMENT: u32 = u32::MAX;
@@ -1240,8 +1295,8 @@ const fn walk_to_side(
     }
 }
 
-/// Chain linked pieces into closed loops, each crossing placed by `place`.
-fn chain_segments<T>(segs: &[Segment], place: impl Fn(u64) -> T) -> Vec<Vec<T>> {
+/// Chain linked pieces into closed loops: the keys of the cell sides they cross, in order.
+fn chain_segments(segs: &[Segment]) -> Vec<Vec<u64>> {
     let mut used = take(&pool::BOOL, segs.len(), false);
     let mut loops = Vec::new();
     let mut chained = 0;
@@ -1252,15 +1307,15 @@ fn chain_segments<T>(segs: &[Segment], place: impl Fn(u64) -> T) -> Vec<Vec<T>> 
         used[start] = true;
         let first_key = segs[start].keys[0];
         // Room for every piece not yet chained: a level is mostly one or two loops.
-        let mut pts: Vec<T> = Vec::with_capacity(segs.len().saturating_sub(chained) + 1);
-        pts.push(place(first_key));
+        let mut pts: Vec<u64> = Vec::with_capacity(segs.len().saturating_sub(chained) + 1);
+        pts.push(first_key);
         let mut key = segs[start].keys[1];
         let mut next = segs[start].links[1];
         loop {
             if key == first_key {
                 break;
             }
-            pts.push(place(key));
+            pts.push(key);
             if next == NO_SEGMENT || used[next as usize] {
                 break;
             }
@@ -1286,6 +1341,7 @@ fn chain_segments<T>(segs: &[Segment], place: impl Fn(u64) -> T) -> Vec<Vec<T>> 
 /// normalised distance there (none where the linear interpolant placed it), and one
 /// end node of its edge (whose nearest boundary edges start the walks of
 /// [`Boundary::near`] for points nearby).
+#[derive(Clone, Copy)]
 struct Placed {
     p: DVec2,
     grad: Option<DVec2>,
@@ -1313,7 +1369,7 @@ mod tests {
         hole.reverse();
         let region = Region::new(outer, vec![hole]);
         let field = DistanceField::new(&region, None, 0.25, 1 << 22);
-        let levels = field.level_sets(10);
+        let levels = field.level_sets(10, 0.0);
         assert_eq!(levels.len(), 9);
         for (k, loops) in levels.iter().enumerate() {
             assert_eq!(loops.len(), 1, "level {k}");
@@ -1386,20 +1442,20 @@ mod tests {
     #[test]
     fn fields_built_from_reused_buffers_are_the_same() {
         let ring = slotted_ring();
-        let first = DistanceField::new(&ring, None, 0.35, 1 << 20).level_sets(8);
+        let first = DistanceField::new(&ring, None, 0.35, 1 << 20).level_sets(8, 0.0);
         // A larger and a smaller grid in between, so the buffers come back resized.
         let big = Region::new(circle(DVec2::ZERO, 40.0, 0.01), Vec::new());
         let centre = DistanceField::outer_only(&big, 0.3, 1 << 20)
             .pole()
             .map(|(p, _)| p);
         assert!(!DistanceField::new(&big, centre, 0.3, 1 << 20)
-            .level_sets(5)
+            .level_sets(5, 0.0)
             .is_empty());
         let small = Region::new(circle(DVec2::ZERO, 3.0, 0.01), Vec::new());
         assert!(!DistanceField::new(&small, None, 0.3, 1 << 20)
-            .level_sets(3)
+            .level_sets(3, 0.0)
             .is_empty());
-        let again = DistanceField::new(&ring, None, 0.35, 1 << 20).level_sets(8);
+        let again = DistanceField::new(&ring, None, 0.35, 1 << 20).level_sets(8, 0.0);
         assert!(!first.is_empty());
         assert_eq!(first, again);
     }
@@ -1420,8 +1476,8 @@ mod tests {
         assert_eq!(w.capacity(), capacity);
     }
 
-    #[test]
-    fn coarse_levels_lie_on_the_exact_level_sets() {
+    /// A wavy outline about two round holes (and the loops it is made of).
+    fn wavy_two_holes() -> (Region, Vec<DVec2>, Vec<Vec<DVec2>>) {
         let outer: Vec<DVec2> = (0..720)
             .map(|k| {
                 let a = std::f64::consts::TAU * k as f64 / 720.0;
@@ -1435,8 +1491,14 @@ mod tests {
         };
         let holes = vec![hole(DVec2::new(-11.0, 0.0)), hole(DVec2::new(11.0, 0.0))];
         let region = Region::new(outer.clone(), holes.clone());
+        (region, outer, holes)
+    }
+
+    #[test]
+    fn coarse_levels_lie_on_the_exact_level_sets() {
+        let (region, outer, holes) = wavy_two_holes();
         let m = 10;
-        let levels = DistanceField::new(&region, None, 0.4, 1 << 22).level_sets(m);
+        let levels = DistanceField::new(&region, None, 0.4, 1 << 22).level_sets(m, 0.0);
         let (mut worst, mut off, mut total, mut corners) = (0.0f64, 0, 0, 0);
         let lo = region.bounds().0 / 0.4;
         let on_side = |v: f64| (v - v.round()).abs() < 1e-6;
@@ -1469,11 +1531,59 @@ mod tests {
     /// it traces no level sets. Broken regions (a NaN vertex, a hole outside the outer
     /// loop, a degenerate outer loop) give a field without a panic.
     #[test]
+    fn sparse_levels_keep_to_their_share_of_the_deviation() {
+        // Where crossings are left out, the straight pieces still lie within `sparse`
+        // of the exact level sets, and the corners on the medial axis are kept.
+        let (region, outer, holes) = wavy_two_holes();
+        let to_outer = crate::geom::SegmentIndex::new(&[outer.as_slice()], &[]);
+        let hole_refs: Vec<&[DVec2]> = holes.iter().map(|h| h.as_slice()).collect();
+        let to_holes = crate::geom::SegmentIndex::new(&hole_refs, &[]);
+        let m = 10;
+        let field = DistanceField::new(&region, None, 0.4, 1 << 22);
+        let sparse = 0.01;
+        let dense = field.level_sets(m, 0.0);
+        let levels = field.level_sets(m, sparse);
+        // How far the sparse levels' pieces stray from the dense ones (which lie on
+        // the exact level sets but where the grid cuts a corner, and keep every
+        // vertex the sparse ones have).
+        let (mut worst, mut off_level) = (0.0f64, 0.0f64);
+        for (k, (sparse_loops, dense_loops)) in levels.iter().zip(&dense).enumerate() {
+            let t = (k + 1) as f64 / m as f64;
+            let refs: Vec<&[DVec2]> = dense_loops.iter().map(|l| l.as_slice()).collect();
+            let to_dense = crate::geom::SegmentIndex::new(&refs, &[]);
+            for l in sparse_loops {
+                for (i, &a) in l.iter().enumerate() {
+                    let (di, de) = (to_holes.distance(a), to_outer.distance(a));
+                    off_level = off_level.max((di / (di + de) - t).abs() * (di + de));
+                    let b = l[(i + 1) % l.len()];
+                    for s in [0.25, 0.5, 0.75] {
+                        worst = worst.max(to_dense.distance(a.lerp(b, s)));
+                    }
+                }
+            }
+        }
+        let count =
+            |levels: &[Vec<Vec<DVec2>>]| levels.iter().flatten().map(Vec::len).sum::<usize>();
+        let (kept, all) = (count(&levels), count(&dense));
+        assert!(
+            worst <= sparse,
+            "pieces stray {worst} mm from the dense levels"
+        );
+        assert!(
+            off_level < 0.01,
+            "a vertex lies {off_level} mm off its level set"
+        );
+        assert!(kept * 4 < all * 3, "{kept} vertices kept of {all}");
+        let all: Vec<&[DVec2]> = levels.iter().flatten().map(|l| l.as_slice()).collect();
+        assert!(crate::geom::first_crossing(&all).is_none());
+    }
+
+    #[test]
     fn odd_fields_trace_without_panicking() {
         let outer = circle(DVec2::ZERO, 10.0, 0.01);
         let region = Region::new(outer.clone(), Vec::new());
         assert!(DistanceField::outer_only(&region, 0.5, 1 << 16)
-            .level_sets(5)
+            .level_sets(5, 0.0)
             .is_empty());
         let mut nan = outer.clone();
         nan[3] = DVec2::new(f64::NAN, 0.0);
@@ -1486,7 +1596,7 @@ mod tests {
             Region::new(flat, Vec::new()),
         ] {
             let field = DistanceField::new(&region, None, 0.5, 1 << 16);
-            for loops in field.level_sets(5) {
+            for loops in field.level_sets(5, 0.0) {
                 assert!(loops.iter().all(|l| l.len() >= 3));
             }
         }

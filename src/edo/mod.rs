@@ -770,6 +770,11 @@ pub fn plan_region(
     })
 }
 
+/// The share of the contour deviation that the straight pieces of a traced level set
+/// may stray where crossings are left out of it (see
+/// [`field::DistanceField::level_sets`]); the simplification takes the rest.
+const LEVEL_SPARSE_SHARE: f64 = 0.5;
+
 /// How many contour deviations apart consecutive contour levels must be (L_short / m)
 /// for [`plan_region`] to take their difference as nested loops: each may stray that
 /// far from its exact level set.
@@ -1078,13 +1083,17 @@ fn growth_rings(
     let m = resolved_m(l_short_mm, island, opts)?;
     let mut levels = vec![Level::Shapes(holes_shape)];
     let deviation = opts.contour_deviation_mm();
-    levels.extend(f.level_sets(m).into_iter().map(|loops| {
-        let loops: Vec<Vec<DVec2>> = loops
-            .iter()
-            .map(|l| crate::geom::simplify_loop(l, deviation))
-            .collect();
-        Level::Shapes(shapes::from_loops(&loops))
-    }));
+    levels.extend(
+        f.level_sets(m, deviation * LEVEL_SPARSE_SHARE)
+            .into_iter()
+            .map(|loops| {
+                let loops: Vec<Vec<DVec2>> = loops
+                    .iter()
+                    .map(|l| crate::geom::simplify_loop(l, deviation))
+                    .collect();
+                Level::Shapes(shapes::from_loops(&loops))
+            }),
+    );
     levels.push(Level::Shapes(outer_shape));
     Ok(PreSubdivision {
         method: SubdivisionMethod::Distance,
