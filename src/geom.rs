@@ -261,8 +261,11 @@ fn beside_line(a: DVec2, b: DVec2, c: DVec2, d: DVec2, reach: f64) -> bool {
 /// and segments inside the box they were gathered for and radii up to its reach.
 #[derive(Debug, Clone, Default)]
 pub struct NearSegments {
-    ids: Vec<u32>,
     segments: Vec<(DVec2, DVec2)>,
+    /// Per indexed segment, the gathering that last took it (`stamp`): each gathering
+    /// takes a segment once, however many of its cells it spans.
+    seen: Vec<u32>,
+    stamp: u32,
 }
 
 impl NearSegments {
@@ -278,13 +281,11 @@ impl NearSegments {
 
     /// Room for `additional` more without growing.
     pub fn reserve(&mut self, additional: usize) {
-        self.ids.reserve(additional);
         self.segments.reserve(additional);
     }
 
     /// Forget those gathered after the first `len`.
     pub fn truncate(&mut self, len: usize) {
-        self.ids.truncate(len);
         self.segments.truncate(len);
     }
 
@@ -1037,11 +1038,21 @@ impl SegmentIndex {
     /// own boxes come within that reach of it. [`NearSegments`] asks those questions of
     /// them alone, with the same answers.
     pub fn near_box(&self, lo: DVec2, hi: DVec2, r_mm: f64, out: &mut NearSegments) {
-        let from = out.ids.len();
+        out.stamp = out.stamp.wrapping_add(1);
+        if out.stamp == 0 {
+            out.seen.fill(0);
+            out.stamp = 1;
+        }
+        if out.seen.len() < self.segments.len() {
+            out.seen.resize(self.segments.len(), 0);
+        }
+        let stamp = out.stamp;
         self.near_candidates(lo, hi, r_mm, |k, c, d| {
-            if !out.ids[from..].contains(&k) {
-                out.ids.push(k);
-                out.segments.push((c, d));
+            if let Some(seen) = out.seen.get_mut(k as usize) {
+                if *seen != stamp {
+                    *seen = stamp;
+                    out.segments.push((c, d));
+                }
             }
             false
         });

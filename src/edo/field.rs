@@ -129,7 +129,7 @@ mod pool {
     thread_local! {
         pub(super) static F64: RefCell<Vec<Vec<f64>>> = const { RefCell::new(Vec::new()) };
         pub(super) static U32: RefCell<Vec<Vec<u32>>> = const { RefCell::new(Vec::new()) };
-        pub(super) static I64: RefCell<Vec<Vec<i64>>> = const { RefCell::new(Vec::new()) };
+        pub(super) static I32: RefCell<Vec<Vec<i32>>> = const { RefCell::new(Vec::new()) };
         pub(super) static BOOL: RefCell<Vec<Vec<bool>>> = const { RefCell::new(Vec::new()) };
         pub(super) static NEAREST: RefCell<Vec<Vec<super::Nearest>>> = const { RefCell::new(Vec::new()) };
         pub(super) static SIDE: RefCell<Vec<Vec<(u64, u32)>>> = const { RefCell::new(Vec::new()) };
@@ -994,13 +994,36 @@ impl DistanceField {
         // floor(d m) per node: a cell crosses level k when the least of its corners'
         // is below k and the greatest at least k (floor is monotone, so this is
         // floor(lo m) and floor(hi m) of the cell's least and greatest value).
-        let mut band = take(&pool::I64, self.d.len(), 0);
-        for (b, v) in band.iter_mut().zip(&self.d) {
-            *b = floor_clamped(v * mf) as i64;
+        //
+        // Per row, the columns from the first to the last node with floor(d m) below m:
+        // a cell crosses a level below m only where one of its corners' is, so cells
+        // further out (beyond Ce, or beyond the transforms' spans) are not visited.
+        let mut band = take(&pool::I32, self.d.len(), 0);
+        let mut rows: Vec<Range<usize>> = Vec::with_capacity(ny);
+        let below_m = m.min(i32::MAX as u32) as i32;
+        for (bs, vs) in band.chunks_exact_mut(nx).zip(self.d.chunks_exact(nx)) {
+            for (b, v) in bs.iter_mut().zip(vs) {
+                // floor without a branch (d lies in [-1, 2], so d m fits).
+                let x = v * mf;
+                let i = x as i32;
+                *b = i - i32::from(f64::from(i) > x);
+            }
+            rows.push(match bs.iter().position(|&b| b < below_m) {
+                Some(first) => first..nx - bs.iter().rev().position(|&b| b < below_m).unwrap_or(0),
+                None => 0..0,
+            });
         }
         for r in 0..ny - 1 {
             std::mem::swap(&mut top_below, &mut top_here);
-            for c in 0..nx - 1 {
+            // Cells with a corner in either row's stretch (see `rows`).
+            let (lo, hi) = (&rows[r], &rows[r + 1]);
+            let cells = match (lo.is_empty(), hi.is_empty()) {
+                (true, true) => 0..0,
+                (false, true) => lo.clone(),
+                (true, false) => hi.clone(),
+                (false, false) => lo.start.min(hi.start)..lo.end.max(hi.end),
+            };
+            for c in cells.start.saturating_sub(1)..cells.end.min(nx - 1) {
                 let ids = [
                     (r * nx + c) as u64,
                     (r * nx + c + 1) as u64,
@@ -1015,7 +1038,7 @@ impl DistanceField {
                 ];
                 // Level k/m is crossed when lo < k/m <= hi.
                 let k_lo = (b[0].min(b[1]).min(b[2]).min(b[3]) + 1).max(1);
-                let k_hi = b[0].max(b[1]).max(b[2]).max(b[3]).min(m as i64 - 1);
+                let k_hi = b[0].max(b[1]).max(b[2]).max(b[3]).min(below_m - 1);
                 if k_lo > k_hi {
                     continue;
                 }
@@ -1089,7 +1112,7 @@ impl DistanceField {
         // steer the marching through saddle cells and are left out. A level's piece
         // through a cell then runs straight from side to side, and pieces of different
         // levels, whose ends keep their order along every side, do not cross.
-        give(&pool::I64, band);
+        give(&pool::I32, band);
         give(&pool::SIDE, top_below);
         give(&pool::SIDE, top_here);
         let spacing = 1.0 / mf;

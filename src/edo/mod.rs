@@ -531,7 +531,7 @@ pub fn plan_region(
     let (hole_runs, outer_runs) = if parallel {
         (Vec::new(), Vec::new())
     } else {
-        split_boundary_runs(&interior, &region)
+        split_boundary_runs(&interior, &region, b)
     };
 
     // Step 3: contours and their compositions, eq (2) and (4).
@@ -784,7 +784,15 @@ const NESTED_GAP_DEVIATIONS: f64 = 4.0;
 /// runs nearer a hole and runs nearer the outer loop. A loop wholly on one side stays
 /// one closed path; otherwise each run ends on the first vertex of the next, so the
 /// runs share end points and together trace the whole loop.
-fn split_boundary_runs(interior: &Shapes, region: &Region) -> (Vec<Path>, Vec<Path>) {
+///
+/// `offset_mm` is how far the interior lies inside the region: most of its vertices
+/// lie that far from one boundary and farther from the other, which two bounded looks
+/// tell without measuring either distance.
+fn split_boundary_runs(
+    interior: &Shapes,
+    region: &Region,
+    offset_mm: f64,
+) -> (Vec<Path>, Vec<Path>) {
     let to_outer = SegmentIndex::new(&[region.outer.as_slice()], &[]);
     let holes: Vec<&[DVec2]> = region.holes.iter().map(|h| h.as_slice()).collect();
     let to_holes = SegmentIndex::new(&holes, &[]);
@@ -797,10 +805,15 @@ fn split_boundary_runs(interior: &Shapes, region: &Region) -> (Vec<Path>, Vec<Pa
         // `dist(p, outer) <= dist(p, holes)`, measuring first the boundary the previous
         // vertex was nearer: the far one needs measuring only if it comes within that.
         let mut last = true;
+        let reach = offset_mm.abs() * (1.0 + 1e-6) + 1e-9;
         let near_outer: Vec<bool> = l
             .iter()
             .map(|&p| {
-                last = if last {
+                // Only one boundary within the reach: that one is the nearer.
+                let (outer, holes) = (to_outer.within(p, reach), to_holes.within(p, reach));
+                last = if outer != holes {
+                    outer
+                } else if last {
                     let d = to_outer.distance(p);
                     !to_holes.within(p, d) || d <= to_holes.distance(p)
                 } else {
