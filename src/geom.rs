@@ -962,6 +962,38 @@ impl SegmentIndex {
         self.segments.is_empty()
     }
 
+    /// Is `p` inside an odd number of the indexed loops? The answer of
+    /// [`point_in_loop`] over each loop (crossings of the ray from `p` towards +x, each
+    /// edge taken as it does), from the segments in the cells the ray passes: each
+    /// counted in the first of those cells it lies in. Only for an index of closed
+    /// loops alone (no polylines).
+    pub fn inside_odd(&self, p: DVec2) -> bool {
+        if self.segments.is_empty() {
+            return false;
+        }
+        let (pc, pr) = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, p);
+        let mut inside = false;
+        for c in pc..self.nx {
+            let cell = pr * self.nx + c;
+            for &k in &self.items[self.starts[cell]..self.starts[cell + 1]] {
+                // `point_in_loop`'s edge: from the later vertex to the earlier.
+                let (b, a) = self.segments[k as usize];
+                if (a.y > p.y) == (b.y > p.y) {
+                    continue;
+                }
+                let first = Self::cell_of(self.origin, self.cell_mm, self.nx, self.ny, a.min(b)).0;
+                if first.max(pc) != c {
+                    continue;
+                }
+                let x = a.x + (p.y - a.y) / (b.y - a.y) * (b.x - a.x);
+                if p.x < x {
+                    inside = !inside;
+                }
+            }
+        }
+        inside
+    }
+
     /// Does every edge of the closed loop `l` stay farther than `r_mm` from every indexed
     /// segment?
     pub fn clear_of_loop(&self, l: &[DVec2], r_mm: f64) -> bool {
@@ -1218,6 +1250,50 @@ impl SegmentIndex {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn the_index_tells_inside_as_point_in_loop_does() {
+        // A wavy ring with a hole and a small island in the hole, and points on a grid
+        // through them (many on the loops' vertex heights and beyond the index's box).
+        let wavy = |r: f64, n: usize, rev: bool| -> Vec<DVec2> {
+            let mut l: Vec<DVec2> = (0..n)
+                .map(|k| {
+                    let t = std::f64::consts::TAU * k as f64 / n as f64;
+                    DVec2::from_angle(t) * (r + 0.3 * (7.0 * t).sin())
+                })
+                .collect();
+            if rev {
+                l.reverse();
+            }
+            l
+        };
+        let loops = [
+            wavy(10.0, 300, false),
+            wavy(5.0, 120, true),
+            wavy(2.0, 40, false),
+        ];
+        let refs: Vec<&[DVec2]> = loops.iter().map(|l| l.as_slice()).collect();
+        let index = SegmentIndex::new(&refs, &[]);
+        let (mut inside, mut total) = (0, 0);
+        for i in -60..=60 {
+            for j in -60..=60 {
+                let p = DVec2::new(i as f64 * 0.2 + 0.013, j as f64 * 0.2);
+                let want = loops.iter().filter(|l| point_in_loop(p, l)).count() % 2 == 1;
+                assert_eq!(index.inside_odd(p), want, "at {p}");
+                inside += usize::from(want);
+                total += 1;
+            }
+        }
+        // The vertices themselves, on the loops' own heights.
+        for p in loops.iter().flatten() {
+            let want = loops.iter().filter(|l| point_in_loop(*p, l)).count() % 2 == 1;
+            assert_eq!(index.inside_odd(*p), want, "at {p}");
+        }
+        assert!(
+            inside > total / 5 && inside < total / 2,
+            "{inside} of {total}"
+        );
+    }
+
     use super::*;
 
     /// Nearest distances from points far outside the index's box, where the nearest

@@ -627,9 +627,9 @@ pub fn plan_region(
         }
         // The offsets stop `offset_end_clearance_mm` short of the contour they run
         // towards (C_n inward, C_n+1 outward).
-        let (facing, facing_j, start_j) = match opts.direction {
-            OffsetDirection::Inward => (lower_shape, n - 1, n),
-            OffsetDirection::Outward => (upper_shape, n, n - 1),
+        let (facing_j, start_j) = match opts.direction {
+            OffsetDirection::Inward => (n - 1, n),
+            OffsetDirection::Outward => (n, n - 1),
         };
         let facing_index = level_index(facing_j);
         let d_max_mm = match (lower, upper) {
@@ -728,7 +728,7 @@ pub fn plan_region(
                     kept.retain(|p| {
                         p.points
                             .get(p.points.len() / 2)
-                            .is_some_and(|q| shapes::contains(facing, *q) == keep_inside_facing)
+                            .is_some_and(|q| facing_index.inside_odd(*q) == keep_inside_facing)
                     });
                     kept
                 }
