@@ -20,7 +20,9 @@
 //!    and how the crossings connect. Level sets of one continuous piecewise-linear
 //!    function never cross each other. Which cell sides a level's piece joins is read
 //!    off a 32-case table built from those triangles, and the pieces are linked into
-//!    loops through the sides they share, as the cells are visited.
+//!    loops through the sides they share, as the cells are visited. Only cells with
+//!    a corner where d < 1 (per row, from the first such node to the last) are
+//!    visited: the levels, all below 1, cross no other cell.
 //! 6. Each crossing of a cell side is moved along that side onto the exact level set
 //!    (Newton steps on d computed from the boundary edges nearest the side's two
 //!    nodes), within its own stretch of the side, so levels keep their order along
