@@ -321,6 +321,31 @@
 //! identical): 11.8M for the transforms against 9.95M, since without AVX the selects
 //! cost more than the branches they replace (with AVX2 for the whole build, 9.8M:
 //! not worth a second code path chosen at run time).
+//!
+//! 2026-12-02, tenth session: 48.75M instructions per layer (callgrind, from 50.66M),
+//! the plans byte-identical (this region, every `config/examples` job, the femur every
+//! 5th layer). The level sets march only the cells with a corner inside Ce (per row,
+//! from the first node with floor(d m) below m to the last), on i32 bands floored
+//! without a branch, 10.97M -> 10.13M; the interior's boundary is split into hole and
+//! outer runs by two bounded looks (only one boundary within the boundary offset
+//! decides) before measuring distances, 0.37M; the trimming's gathering takes each
+//! segment once by a per-segment stamp instead of scanning those already taken, and
+//! the growth-ring offsets are kept on their side of the facing contour by crossings of
+//! a ray in the cells of its index instead of a point-in-loop pass over every loop
+//! (trimming 8.00M -> 7.68M). Wall time: the session's start (f6aa34f) and this code
+//! alternating, criterion medians 7.05, 6.90 and 6.25 ms before, 6.83, 7.02 and 6.37
+//! ms after; 150 plans of `plan_compare bench`, eight alternations each, median
+//! 7.10 ms before and 7.04 ms after a plan: within the noise of a machine whose speed
+//! moved by 10 % from one minute to the next (one earlier criterion run of the old
+//! code, quiet: 6.16 ms). Tried and not taken: each split point and bisection of the
+//! trimming trying first the segment that answered the edge (49.03M -> 49.70M: the
+//! first segment in the window mostly answers anyway, and far points pay for the
+//! extra test); the transforms without the sideways passes along each row (8
+//! relaxations a node instead of 10), 78.2M, as the worse seeds lengthen the walks,
+//! and the femur's p99.9 0.043 -> 0.152 mm. Where the 48.75M go (inclusive): distance
+//! field 12.0M (transforms 9.95M), level sets 10.1M (placement 4.7M), offsets 9.3M,
+//! trimming 7.7M, the rest about 9.6M. The 5 ms target needs about 1.25 times less at
+//! this session's quietest (6.16 ms for the old code).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, PlanOptions};
