@@ -965,8 +965,9 @@ impl SegmentIndex {
     /// Is `p` inside an odd number of the indexed loops? The answer of
     /// [`point_in_loop`] over each loop (crossings of the ray from `p` towards +x, each
     /// edge taken as it does), from the segments in the cells the ray passes: each
-    /// counted in the first of those cells it lies in. Only for an index of closed
-    /// loops alone (no polylines).
+    /// counted in the first of those cells it lies in. (A point within rounding of an
+    /// edge at a cell's side can go either way, as points on a loop do for
+    /// `point_in_loop`.) Only for an index of closed loops alone (no polylines).
     pub fn inside_odd(&self, p: DVec2) -> bool {
         if self.segments.is_empty() {
             return false;
@@ -1250,6 +1251,8 @@ impl SegmentIndex {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn the_index_tells_inside_as_point_in_loop_does() {
         // A wavy ring with a hole and a small island in the hole, and points on a grid
@@ -1293,8 +1296,6 @@ mod tests {
             "{inside} of {total}"
         );
     }
-
-    use super::*;
 
     /// Nearest distances from points far outside the index's box, where the nearest
     /// segment lies off to the side of the cell the point projects to, match the brute
