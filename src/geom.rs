@@ -1286,6 +1286,16 @@ mod tests {
                 total += 1;
             }
         }
+        // Points that are not finite answer as point_in_loop does (outside), without
+        // a panic.
+        for p in [
+            DVec2::NAN,
+            DVec2::new(f64::INFINITY, 0.0),
+            DVec2::new(0.0, -f64::INFINITY),
+        ] {
+            let want = loops.iter().filter(|l| point_in_loop(p, l)).count() % 2 == 1;
+            assert_eq!(index.inside_odd(p), want, "at {p}");
+        }
         // The vertices themselves, on the loops' own heights.
         for p in loops.iter().flatten() {
             let want = loops.iter().filter(|l| point_in_loop(*p, l)).count() % 2 == 1;
