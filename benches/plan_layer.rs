@@ -346,6 +346,23 @@
 //! field 12.0M (transforms 9.95M), level sets 10.1M (placement 4.7M), offsets 9.3M,
 //! trimming 7.7M, the rest about 9.6M. The 5 ms target needs about 1.25 times less at
 //! this session's quietest (6.16 ms for the old code).
+//!
+//! 2026-12-02, eleventh session: 48.73M instructions per layer, the plan of this
+//! region and of every `config/examples` job but the femur byte-identical. The corner
+//! search between two crossings now starts only where their tangents meet ahead of one
+//! and behind the other (across an S-bend they met beyond both, and the placed point
+//! made the contour double back: 25 spikes on every 5th femur layer before, 5 after;
+//! test `femur_contours_have_no_spikes`); femur level-set p99.9 0.043 -> 0.042 mm.
+//! Criterion median 6.81 ms at the session's start on the idle machine; 100 plans of
+//! `plan_compare bench`, ten runs back to back: 5.67 to 7.49 ms a plan. Tried and
+//! not taken: a coarser field made as exact by bending more. With pieces also bent
+//! where chord x turn / 4 exceeds the sparse share of the deviation (the rule the
+//! left-out crossings keep), R_mach / 1.5 still gave the femur p99 0.028 mm (over the
+//! 0.025 mm deviation) at one bend a piece, and 0.024 mm at up to three (p99.9 0.071
+//! mm) but then 50.1M a layer here, more than at R_mach / 2: the bends cost more than
+//! the coarser grid saves. At R_mach / 2 the same rule gives the femur p99 0.024 and
+//! p99.9 0.041 mm for 0.5M more a layer (not taken: the target is speed). mimalloc
+//! as the allocator: 48.08M, wall time within the noise (not worth a dependency).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, PlanOptions};

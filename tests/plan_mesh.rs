@@ -128,3 +128,45 @@ fn bad_meshes_are_refused_with_the_place_named() {
         );
     }
 }
+
+/// Contour roads of real layers do not double back on themselves: no vertex where the
+/// road turns back by more than 150° with an edge beside it shorter than 0.2 mm (a
+/// spike; level-set tips on the medial axis turn as sharply but over edges about a
+/// field cell long). Femur layers 65 and 1000 had such spikes where the corner search
+/// between two crossings started from tangents that meet beyond both (an S-bend).
+#[test]
+fn femur_contours_have_no_spikes() {
+    let path = examples().join("femur-graded.toml");
+    let job = edo::cli::plan::load_job(&path).unwrap();
+    for k in [65, 1000] {
+        let (slices, _) = edo::cli::plan::job_layers(&job, &path, Some(k..k + 1), true).unwrap();
+        let layers = edo::edo::plan_layers(&slices, &job.plan, None).unwrap();
+        for plan in layers.iter().flat_map(|l| &l.regions) {
+            for c in &plan.contours {
+                for road in &c.roads {
+                    let p = &road.points;
+                    let n = p.len();
+                    for i in 0..n {
+                        if !road.closed && (i == 0 || i + 1 == n) {
+                            continue;
+                        }
+                        let (a, b, d) = (p[(i + n - 1) % n], p[i], p[(i + 1) % n]);
+                        let (e1, e2) = (b - a, d - b);
+                        let shortest = e1.length().min(e2.length());
+                        if shortest == 0.0 {
+                            continue;
+                        }
+                        let cos = e1.dot(e2) / (e1.length() * e2.length());
+                        assert!(
+                            !(cos < 150f64.to_radians().cos() && shortest < 0.2),
+                            "layer {k} C{} turns back at ({:.3}, {:.3}) (cos {cos:.3}, edge {shortest:.3} mm)",
+                            c.j,
+                            b.x,
+                            b.y
+                        );
+                    }
+                }
+            }
+        }
+    }
+}
