@@ -7,8 +7,9 @@
 
 use crate::edo::{shapes, GradientDesign, Pattern, PlanOptions, Subdivision};
 use crate::geom::{Region, Tolerances};
+use crate::machine::placement::PlacementMode;
 use crate::material::{Composition, GradientFunction, OffsetDirection};
-use glam::DVec2;
+use glam::{DVec2, DVec3};
 use serde::Deserialize;
 
 /// A job file that cannot be used, with where and why.
@@ -48,6 +49,15 @@ struct RawGeometry {
     regions: Option<Vec<RawRegion>>,
     height: Option<f64>,
     mesh: Option<String>,
+    placement: Option<PlacementSpec>,
+}
+
+/// `geometry.placement`: "centre" | "keep" | { at = [x, y] }.
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum PlacementSpec {
+    Named(String),
+    At { at: [f64; 2] },
 }
 
 #[derive(Debug, Deserialize)]
@@ -221,6 +231,9 @@ pub struct Job {
     /// The `[toolpath]` table: feeds, cessation, flow limits, mixing chamber, purge,
     /// seams (defaults where absent), with `nozzle_mm` = `process.nozzle`.
     pub toolpath: crate::pipeline::ProcessSettings,
+    /// Where the part goes on the machine's bed (`geometry.placement`, see
+    /// [`crate::machine::placement`]).
+    pub placement: PlacementMode,
 }
 
 /// One layer to plan: its index in the job's stack, its geometry and the gradient design
@@ -457,6 +470,28 @@ impl Job {
         }
         // Geometry.
         let geo = raw.geometry;
+        let placement = match geo.placement {
+            None => PlacementMode::Centre,
+            Some(PlacementSpec::Named(n)) => match n.as_str() {
+                "centre" | "center" => PlacementMode::Centre,
+                "keep" => PlacementMode::Keep,
+                other => {
+                    return Err(bad(
+                        "geometry.placement",
+                        format!("unknown placement {other:?}; use \"centre\" (the default), \"keep\" or {{ at = [x, y] }}"),
+                    ))
+                }
+            },
+            Some(PlacementSpec::At { at }) => {
+                if !at.iter().all(|v| v.is_finite() && *v >= 0.0) {
+                    return Err(bad(
+                        "geometry.placement.at",
+                        format!("{at:?} is not a point of the bed (x, y in mm, not negative)"),
+                    ));
+                }
+                PlacementMode::At(at)
+            }
+        };
         let geometry = match (geo.mesh, geo.polygon.is_some() || geo.regions.is_some()) {
             (Some(_), true) => {
                 return Err(bad(
@@ -605,6 +640,7 @@ impl Job {
         }
         Ok(Job {
             toolpath,
+            placement,
             name: raw.name,
             geometry,
             materials,
@@ -674,6 +710,17 @@ impl Job {
             }
         }
         lo
+    }
+
+    /// An extruded part's bounding box (min, max), mm, in the job's coordinates: its
+    /// islands' outline from z = 0 to the height. `None` for a mesh job (see
+    /// [`MeshLayers::bounds`]).
+    pub fn extruded_bounds(&self) -> Option<(DVec3, DVec3)> {
+        let Geometry::Extruded { islands, height_mm } = &self.geometry else {
+            return None;
+        };
+        let (lo, hi) = crate::geom::bounds_of(islands);
+        Some((lo.extend(0.0), hi.extend(*height_mm)))
     }
 
     /// The layer stack of an extruded polygon: equal layers no thicker than the maximum
@@ -760,6 +807,14 @@ pub struct MeshLayers {
 }
 
 impl MeshLayers {
+    /// The part's bounding box (min, max), mm, in the mesh's coordinates.
+    pub fn bounds(&self) -> (DVec3, DVec3) {
+        self.slicer
+            .mesh()
+            .bounds()
+            .unwrap_or((DVec3::ZERO, DVec3::ZERO))
+    }
+
     /// Layers in the stack.
     pub fn len(&self) -> usize {
         self.spans.len()
@@ -952,6 +1007,28 @@ fn islands_overlap(a: &Region, b: &Region) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn placement_is_centre_by_default_keep_or_a_bed_point() {
+        let base = GOOD;
+        let with = |line: &str| base.replace("[geometry]", &format!("[geometry]\n{line}"));
+        let job = Job::from_toml(base, "j").unwrap();
+        assert_eq!(job.placement, PlacementMode::Centre);
+        let job = Job::from_toml(&with("placement = \"keep\""), "j").unwrap();
+        assert_eq!(job.placement, PlacementMode::Keep);
+        let job = Job::from_toml(&with("placement = { at = [40.0, 60.0] }"), "j").unwrap();
+        assert_eq!(job.placement, PlacementMode::At([40.0, 60.0]));
+        let e = Job::from_toml(&with("placement = \"middle\""), "j").unwrap_err();
+        assert!(e.to_string().contains("geometry.placement"), "{e}");
+        let e = Job::from_toml(&with("placement = { at = [-1.0, 60.0] }"), "j").unwrap_err();
+        assert!(e.to_string().contains("geometry.placement.at"), "{e}");
+        let (lo, hi) = job.extruded_bounds().unwrap();
+        assert_eq!((lo.z, hi.z), (0.0, 0.4));
+        assert!(
+            (lo.x + 30.0).abs() < 0.02 && (hi.y - 30.0).abs() < 0.02,
+            "{lo} {hi}"
+        );
+    }
 
     const GOOD: &str = r#"
 name = "t"

@@ -29,6 +29,9 @@ pub struct PlanReport {
     /// Toolpath totals (when the toolpaths were made: `--report` of `edoctl plan`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub toolpath: Option<ToolpathTotals>,
+    /// Where the part goes on the machine and whether it fits (`edoctl plan`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub placement: Option<PlacementReport>,
     pub planning_time_ms: f64,
 }
 
@@ -287,6 +290,51 @@ pub fn voxel_grid_bytes(
 pub struct MeshNotes {
     pub mesh: Option<crate::mesh::MeshReport>,
     pub slicing: Option<crate::slice::SliceReport>,
+    /// The mesh's bounding box (min, max), mm, in its own coordinates.
+    pub bounds: Option<(glam::DVec3, glam::DVec3)>,
+}
+
+/// Where the part goes on the machine (`geometry.placement`) and whether it fits the
+/// build volume `edoctl plan` was given.
+#[derive(Debug, Clone, Serialize)]
+pub struct PlacementReport {
+    pub mode: crate::machine::placement::PlacementMode,
+    pub build_volume_mm: [f64; 3],
+    /// The part's bounding box in its own coordinates (the layers' and previews').
+    pub part_min_mm: [f64; 3],
+    pub part_max_mm: [f64; 3],
+    /// Added to every move's position (`null` when the part does not fit).
+    pub offset_mm: Option<[f64; 3]>,
+    /// The bounding box on the machine (`null` when the part does not fit).
+    pub machine_min_mm: Option<[f64; 3]>,
+    pub machine_max_mm: Option<[f64; 3]>,
+    /// Why the part cannot be built on this volume (`null` when it fits).
+    pub problem: Option<String>,
+}
+
+impl PlacementReport {
+    /// The report of placing a part with bounding box `bounds` (its own coordinates)
+    /// into `build_volume_mm`: `placed` is the placement or why there is none.
+    pub fn new(
+        mode: crate::machine::placement::PlacementMode,
+        build_volume_mm: [f64; 3],
+        bounds: (glam::DVec3, glam::DVec3),
+        placed: &Result<crate::machine::placement::Placement, String>,
+    ) -> PlacementReport {
+        let (lo, hi) = (bounds.0.to_array(), bounds.1.to_array());
+        let offset = placed.as_ref().ok().map(|p| p.offset_mm());
+        let shifted = |v: [f64; 3]| offset.map(|o| [v[0] + o[0], v[1] + o[1], v[2] + o[2]]);
+        PlacementReport {
+            mode,
+            build_volume_mm,
+            part_min_mm: lo,
+            part_max_mm: hi,
+            offset_mm: offset,
+            machine_min_mm: shifted(lo),
+            machine_max_mm: shifted(hi),
+            problem: placed.as_ref().err().cloned(),
+        }
+    }
 }
 
 /// Build the report for a planned job.
@@ -357,6 +405,7 @@ pub fn build(
         layers: reports,
         totals,
         toolpath: None,
+        placement: None,
         planning_time_ms,
     }
 }

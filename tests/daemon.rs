@@ -530,19 +530,14 @@ fn cancel_stops_retracts_and_parks() {
     assert_eq!(service, ["retract", "travel", "travel"]);
 }
 
-/// A graded tube (STL) as a mesh job: sent over the socket with its mesh by `edoctl submit`,
-/// sliced and planned by edod as it streams; the machine executes exactly the moves the
-/// same job plans offline, each once and in order. Bad meshes are refused at submission.
-#[test]
-fn mesh_job_streams_exactly_the_planned_moves() {
-    let dir = tempfile::tempdir().unwrap();
-    let tube = edo::mesh::primitives::tube(4.0, 8.0, 0.8, 64);
-    let tris: Vec<stl_io::Triangle> = tube
+/// A mesh as binary STL bytes.
+fn stl_of(mesh: &edo::mesh::Mesh) -> Vec<u8> {
+    let tris: Vec<stl_io::Triangle> = mesh
         .triangles
         .iter()
         .map(|t| {
             let v = |i: u32| {
-                let p = tube.vertices[i as usize].as_vec3();
+                let p = mesh.vertices[i as usize].as_vec3();
                 stl_io::Vertex::new([p.x, p.y, p.z])
             };
             stl_io::Triangle {
@@ -553,6 +548,16 @@ fn mesh_job_streams_exactly_the_planned_moves() {
         .collect();
     let mut stl = Vec::new();
     stl_io::write_stl(&mut stl, tris.iter()).unwrap();
+    stl
+}
+
+/// A graded tube (STL) as a mesh job: sent over the socket with its mesh by `edoctl submit`,
+/// sliced and planned by edod as it streams; the machine executes exactly the moves the
+/// same job plans offline, each once and in order. Bad meshes are refused at submission.
+#[test]
+fn mesh_job_streams_exactly_the_planned_moves() {
+    let dir = tempfile::tempdir().unwrap();
+    let stl = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 0.8, 64));
     std::fs::write(dir.path().join("tube.stl"), &stl).unwrap();
     let job_toml = r#"name = "graded tube"
 [geometry]
@@ -590,6 +595,33 @@ layer = 0.2
         .unwrap_err();
     assert_eq!(e["code"], json!(-32003));
     assert!(e["message"].as_str().unwrap().contains("tube.stl"), "{e}");
+    // Refused at submission: parts that do not fit the 200 x 200 x 150 mm build volume.
+    let wide = job_toml.replace(
+        "mesh = \"tube.stl\"",
+        "polygon = { outer = { rect = { min = [0.0, 0.0], max = [300.0, 20.0] } } }\nheight = 0.4",
+    );
+    let e = c.call("job.submit", json!({"job": wide})).unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    assert!(
+        e["message"]
+            .as_str()
+            .unwrap()
+            .contains("100.0 mm too wide along x"),
+        "{e}"
+    );
+    let tall = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 160.0, 16));
+    let e = c
+        .call(
+            "job.submit",
+            json!({"job": job_toml, "mesh_base64": edo::daemon::api::base64_encode(&tall)}),
+        )
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    let msg = e["message"].as_str().unwrap();
+    assert!(
+        msg.contains("tube.stl") && msg.contains("10.0 mm too tall along z"),
+        "{e}"
+    );
 
     let out = Command::new(env!("CARGO_BIN_EXE_edoctl"))
         .arg("--socket")
@@ -648,4 +680,11 @@ layer = 0.2
         }
     }
     assert!(extrusions > 50, "{extrusions} extrusions");
+    // Built mid-bed: the tube (outer radius 8 mm about the origin) centred at (100, 100).
+    let xs: Vec<f64> = executed
+        .iter()
+        .filter(|e| e["kind"] == json!("extrude"))
+        .map(|e| e["to_mm"][0].as_f64().unwrap())
+        .collect();
+    assert!(xs.iter().all(|x| (91.9..=108.1).contains(x)), "{xs:?}");
 }

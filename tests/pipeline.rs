@@ -84,6 +84,7 @@ fn example_jobs_become_exact_move_streams() {
 #[test]
 fn gcode_drive_sums_equal_plan_volumes() {
     use edo::machine::gcode::{summed_drive_e, Flavor, GcodeSettings};
+    use edo::machine::placement::{place, BuildVolume};
     let job = job("paper-annulus");
     let slices = job.layer_slices(0, job.extruded_layers().unwrap());
     let layers = plan_layers(&slices, &job.plan, None).unwrap();
@@ -100,8 +101,33 @@ fn gcode_drive_sums_equal_plan_volumes() {
             marlin_direct_mixing: direct,
         };
         let path = dir.path().join(format!("{flavor:?}-{direct}.gcode"));
-        let summary = edo::cli::gcode::write(&job, &layers, &process, &settings, &path).unwrap();
+        // On a 200 x 200 x 150 mm machine, the annulus centred on the bed.
+        let volume = BuildVolume::new([200.0, 200.0, 150.0]).unwrap();
+        let (lo, hi) = job.extruded_bounds().unwrap();
+        let placement = place(job.placement, lo, hi, &volume).unwrap();
+        let summary = edo::cli::gcode::write(
+            &job,
+            &layers,
+            &process,
+            &settings,
+            (&placement, &volume),
+            &path,
+        )
+        .unwrap();
         let text = std::fs::read_to_string(&path).unwrap();
+        // Every G1 X lies on the bed, within the annulus' 60 mm about its centre.
+        let xs: Vec<f64> = text
+            .lines()
+            .filter_map(|l| l.strip_prefix("G1 X"))
+            .filter_map(|r| r.split_whitespace().next()?.parse().ok())
+            .collect();
+        assert!(xs.len() > 100);
+        assert!(
+            xs.iter().all(|x| (69.5..=130.5).contains(x)),
+            "{:?}",
+            xs.iter()
+                .fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(*x), b.max(*x)))
+        );
         let sums = summed_drive_e(&text, 2, flavor);
         for (d, (e, v)) in sums.iter().zip(&summary.commanded_nl).enumerate() {
             let want = *v as f64 / 1000.0 / 165.0;

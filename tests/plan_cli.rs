@@ -255,7 +255,7 @@ fn toolpath_table_sets_the_purge() {
     let good = std::fs::read_to_string(example("paper-annulus.toml")).unwrap();
     let text = good.replace(
         "[process]",
-        "[toolpath]\nv_dead_ul = 2.0\npurge_xy_mm = [-45.0, -45.0]\n\n[process]",
+        "[toolpath]\nv_dead_ul = 2.0\npurge_xy_mm = [5.0, 5.0]\n\n[process]",
     );
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("job.toml");

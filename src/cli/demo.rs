@@ -322,11 +322,21 @@ struct Planned {
     moves: u64,
     state: StreamState,
     road_width_mm: f64,
+    /// Where edod puts the part on the bed (the moves are placed; `layers`' paths and
+    /// `islands` stay in the part's coordinates).
+    placement: crate::machine::placement::Placement,
 }
 
 fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Result<Planned> {
     let settings = crate::daemon::planner::process_settings(job, machine, &job.name)
         .map_err(anyhow::Error::msg)?;
+    let bounds = job
+        .extruded_bounds()
+        .context("the demo job is an extruded polygon")?;
+    let placement =
+        crate::daemon::planner::place_part(job, bounds, machine).map_err(anyhow::Error::msg)?;
+    let settings = crate::daemon::planner::placed_settings(&settings, &placement);
+    let volume = machine.build_volume().map_err(anyhow::Error::msg)?;
     let stack = job
         .extruded_layers()
         .context("the demo job is an extruded polygon")?;
@@ -336,7 +346,11 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
     let mut layers = Vec::with_capacity(plans.len());
     let mut next = 0u32;
     for plan in &plans {
-        let lm = crate::pipeline::layer_moves(plan, &settings, 0, next, &mut state)?;
+        let mut lm = crate::pipeline::layer_moves(plan, &settings, 0, next, &mut state)?;
+        for m in &mut lm.moves {
+            placement.apply(m);
+            volume.check(m).map_err(anyhow::Error::msg)?;
+        }
         next = lm.next_index;
         layers.push(lm);
     }
@@ -346,6 +360,7 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
         moves: u64::from(next),
         state,
         road_width_mm: settings.road_width(),
+        placement,
     })
 }
 
@@ -451,7 +466,14 @@ fn previews(
     job_id: u32,
     out: &Path,
 ) -> Result<crate::toolpath::coverage::Coverage> {
-    let built = record::built_roads(recording, Some(job_id));
+    // As built on the machine, drawn in the part's coordinates over the planned roads.
+    let [dx, dy, _] = planned.placement.offset_mm();
+    let shift = glam::DVec2::new(dx, dy);
+    let mut built = record::built_roads(recording, Some(job_id));
+    for r in built.values_mut().flatten() {
+        r.from -= shift;
+        r.to -= shift;
+    }
     let mut total = crate::toolpath::coverage::Coverage::default();
     for (k, (lm, islands)) in planned.layers.iter().zip(&planned.islands).enumerate() {
         let (cov, voids) = crate::toolpath::coverage::measure_with_voids(

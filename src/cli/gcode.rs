@@ -5,6 +5,7 @@
 use crate::edo::LayerPlan;
 use crate::job::Job;
 use crate::machine::gcode::{write_gcode, Flavor, GcodeSettings, GcodeStats};
+use crate::machine::placement::{BuildVolume, Placement};
 use crate::machine::{Move, MoveKind};
 use crate::pipeline::{layer_moves, LayerStats, ProcessSettings, StreamState};
 use anyhow::{Context, Result};
@@ -47,11 +48,13 @@ pub struct GcodeSummary {
     pub commanded_nl: Vec<u64>,
 }
 
-/// All moves of a job (job id 0), starting with `Home`.
+/// All moves of a job (job id 0), starting with `Home`, placed on the machine by
+/// `placement` and each checked to lie inside `volume`.
 pub fn job_moves(
     job: &Job,
     layers: &[LayerPlan],
     process: &ProcessSettings,
+    (placement, volume): (&Placement, &BuildVolume),
 ) -> Result<(Vec<Move>, Vec<LayerStats>, StreamState)> {
     let mut state = StreamState::new();
     let mut moves = vec![Move {
@@ -61,24 +64,32 @@ pub fn job_moves(
     }];
     let mut stats = Vec::with_capacity(layers.len());
     for layer in layers {
-        let out = layer_moves(layer, process, 0, moves.len() as u32, &mut state)
+        let mut out = layer_moves(layer, process, 0, moves.len() as u32, &mut state)
             .with_context(|| format!("job {}: turning layers into moves", job.name))?;
+        for m in &mut out.moves {
+            placement.apply(m);
+            volume
+                .check(m)
+                .map_err(|e| anyhow::anyhow!("job {} layer {}: {e}", job.name, layer.index))?;
+        }
         moves.extend(out.moves);
         stats.push(out.stats);
     }
     Ok((moves, stats, state))
 }
 
-/// Turn planned layers into moves with `process` settings and write them as G-code to
-/// `path`.
+/// Turn planned layers into moves with `process` settings, place them on the machine
+/// (`placement`, inside `volume`: see [`crate::machine::placement`]) and write them as
+/// G-code to `path`.
 pub fn write(
     job: &Job,
     layers: &[LayerPlan],
     process: &ProcessSettings,
     settings: &GcodeSettings,
+    on_machine: (&Placement, &BuildVolume),
     path: &Path,
 ) -> Result<GcodeSummary> {
-    let (moves, stats, state) = job_moves(job, layers, process)?;
+    let (moves, stats, state) = job_moves(job, layers, process, on_machine)?;
     let header = vec![
         format!(
             "edo job {}: {} layer(s), {} moves",

@@ -36,8 +36,27 @@ pub struct PlanArgs {
     /// (always done for the layers drawn with --svg).
     #[arg(long)]
     pub coverage: bool,
+    /// The machine's build volume X,Y,Z in mm (edod.toml `machine.build_volume_mm`):
+    /// where `geometry.placement` puts the part, whether it fits, and the frame of the
+    /// G-code.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_build_volume, default_value = "200,200,150")]
+    pub build_volume: [f64; 3],
     #[command(flatten)]
     pub gcode: crate::cli::gcode::GcodeArgs,
+}
+
+/// Parse a build volume `X,Y,Z` (mm).
+pub fn parse_build_volume(s: &str) -> Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("\"{s}\" is not X,Y,Z in mm (e.g. 200,200,150)"))?;
+    let v: [f64; 3] = v
+        .try_into()
+        .map_err(|_| format!("\"{s}\" is not three sides X,Y,Z in mm (e.g. 200,200,150)"))?;
+    crate::machine::placement::BuildVolume::new(v)?;
+    Ok(v)
 }
 
 /// Parse `A..B` (half-open) or a single index `A`.
@@ -141,12 +160,14 @@ pub fn job_layers(
             if let Some(b) = b {
                 b.finish_and_clear();
             }
+            let bounds = part.bounds();
             let mesh_report = part.mesh_report;
             Ok((
                 job.layer_slices(r.start, layers),
                 MeshNotes {
                     mesh: Some(mesh_report),
                     slicing: Some(slice_report),
+                    bounds: Some(bounds),
                 },
             ))
         }
@@ -175,7 +196,17 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let layers = plan_with_progress(&job, &slices, args.quiet)
         .with_context(|| format!("planning {}", args.job.display()))?;
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
+    let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
+    // Where edod would put the part on a machine of this build volume.
+    let machine = crate::daemon::config::MachineConfig {
+        build_volume_mm: args.build_volume,
+        ..Default::default()
+    };
+    let placed = bounds.map(|b| (b, crate::daemon::planner::place_part(&job, b, &machine)));
+    report.placement = placed
+        .as_ref()
+        .map(|(b, p)| crate::report::PlacementReport::new(job.placement, args.build_volume, *b, p));
 
     let to_stdout = args.report.as_deref() == Some("-");
     let mut human: Box<dyn Write> = if to_stdout {
@@ -183,7 +214,11 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     } else {
         Box::new(std::io::stdout())
     };
-    let process = process_settings(&job);
+    // The purge position is a point of the bed: in the part's coordinates for planning.
+    let process = match &placed {
+        Some((_, Ok(p))) => crate::daemon::planner::placed_settings(&process_settings(&job), p),
+        _ => process_settings(&job),
+    };
     let mut toolpath_line = None;
     if args.report.is_some() || args.svg.is_some() || args.coverage {
         let toolpaths = layer_toolpaths(&job, &layers, &process)?;
@@ -251,8 +286,21 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     }
     let gcode = match &args.gcode.gcode {
         Some(path) => {
-            let summary =
-                crate::cli::gcode::write(&job, &layers, &process, &args.gcode.settings(), path)?;
+            let placement = match &placed {
+                Some((_, Ok(p))) => *p,
+                Some((_, Err(e))) => anyhow::bail!("--gcode {}: {e}", path.display()),
+                None => anyhow::bail!("--gcode {}: the part has no extent", path.display()),
+            };
+            let volume = crate::machine::placement::BuildVolume::new(args.build_volume)
+                .map_err(anyhow::Error::msg)?;
+            let summary = crate::cli::gcode::write(
+                &job,
+                &layers,
+                &process,
+                &args.gcode.settings(),
+                (&placement, &volume),
+                path,
+            )?;
             Some((path, summary))
         }
         None => None,
@@ -298,6 +346,9 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     if let Some(line) = toolpath_line {
         writeln!(human, "  {line}")?;
     }
+    if let Some(p) = &report.placement {
+        writeln!(human, "  {}", placement_summary(p))?;
+    }
     if let Some(dir) = &args.svg {
         writeln!(
             human,
@@ -322,6 +373,25 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         )?;
     }
     Ok(())
+}
+
+/// One line: where the part goes on the machine, or why it does not fit.
+fn placement_summary(p: &crate::report::PlacementReport) -> String {
+    let [sx, sy, sz] = p.build_volume_mm;
+    match (&p.problem, p.machine_min_mm, p.machine_max_mm) {
+        (None, Some(lo), Some(hi)) => format!(
+            "placement ({}): on the machine x {:.1} to {:.1}, y {:.1} to {:.1}, z {:.1} to {:.1} mm of the {sx} × {sy} × {sz} mm build volume",
+            serde_json::to_value(p.mode)
+                .ok()
+                .map(|v| v.to_string())
+                .unwrap_or_default(),
+            lo[0], hi[0], lo[1], hi[1], lo[2], hi[2]
+        ),
+        (Some(e), _, _) => format!(
+            "placement: does not fit the {sx} × {sy} × {sz} mm build volume (--build-volume), edod would refuse it: {e}"
+        ),
+        _ => String::new(),
+    }
 }
 
 /// The process settings `edoctl plan` makes toolpaths and G-code with.

@@ -188,16 +188,23 @@ struct Submit {
     name: Option<String>,
 }
 
-/// A mesh job needs its mesh, and the mesh must load and stack into layers: checked
-/// here (on a blocking worker) so a bad part is refused at submission, naming the
+/// A mesh job needs its mesh, and the mesh must load and stack into layers; the part
+/// must fit the machine's build volume where `geometry.placement` puts it. Checked here
+/// (a mesh on a blocking worker) so a bad part is refused at submission, naming the
 /// problem, instead of failing when it starts. A polygon job must not carry a mesh.
-async fn check_mesh(
+async fn check_part(
     job: &crate::job::Job,
     mesh: Option<Vec<u8>>,
+    machine: &super::config::MachineConfig,
 ) -> Result<Option<Vec<u8>>, ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
     match (&job.geometry, mesh) {
-        (crate::job::Geometry::Extruded { .. }, None) => Ok(None),
+        (crate::job::Geometry::Extruded { .. }, None) => {
+            if let Some(bounds) = job.extruded_bounds() {
+                super::planner::place_part(job, bounds, machine).map_err(bad)?;
+            }
+            Ok(None)
+        }
         (crate::job::Geometry::Extruded { .. }, Some(_)) => Err(bad(
             "mesh_base64: the job builds a polygon ([geometry] polygon/regions), not a mesh"
                 .into(),
@@ -208,12 +215,17 @@ async fn check_mesh(
         (crate::job::Geometry::Mesh { path }, Some(bytes)) => {
             let job = job.clone();
             let path = path.clone();
+            let machine = machine.clone();
             tokio::task::spawn_blocking(move || {
                 match job.mesh_layers(&bytes, &crate::mesh::MeshLimits::default()) {
                     Ok(part) if part.is_empty() => {
                         Err(bad(format!("{path}: the mesh has no height to slice")))
                     }
-                    Ok(_) => Ok(Some(bytes)),
+                    Ok(part) => {
+                        super::planner::place_part(&job, part.bounds(), &machine)
+                            .map_err(|e| bad(format!("{path}: {e}")))?;
+                        Ok(Some(bytes))
+                    }
                     Err(e) => Err(bad(format!("{path}: {e}"))),
                 }
             })
@@ -332,7 +344,7 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
                             })
                         })
                         .transpose()?;
-                    let mesh = check_mesh(&job, mesh).await?;
+                    let mesh = check_part(&job, mesh, &shared.config.machine).await?;
                     (JobSpec::Toml { toml, mesh }, s.name.unwrap_or(job.name))
                 }
                 (None, Some(moves)) if moves > 0 => (

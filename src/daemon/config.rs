@@ -190,6 +190,13 @@ fn default_lift() -> f64 {
     2.0
 }
 
+impl MachineConfig {
+    /// `build_volume_mm` as a [`BuildVolume`] (an error names the bad side).
+    pub fn build_volume(&self) -> Result<crate::machine::placement::BuildVolume, String> {
+        crate::machine::placement::BuildVolume::new(self.build_volume_mm)
+    }
+}
+
 impl Default for MachineConfig {
     fn default() -> Self {
         Self {
@@ -437,6 +444,27 @@ impl Config {
             if !(v > 0.0 && v.is_finite()) {
                 return Err(bad(key, format!("{v} must be positive")));
             }
+        }
+        let volume = self
+            .machine
+            .build_volume()
+            .map_err(|e| bad("machine.build_volume_mm", e))?;
+        if !volume.contains_mm(self.machine.park_mm) {
+            let [x, y, z] = self.machine.park_mm;
+            let [sx, sy, sz] = volume.size_mm();
+            return Err(bad(
+                "machine.park_mm",
+                format!("[{x}, {y}, {z}] is outside the build volume (0 to {sx}, 0 to {sy}, 0 to {sz} mm)"),
+            ));
+        }
+        if !(self.machine.resume_lift_mm.is_finite() && self.machine.resume_lift_mm >= 0.0) {
+            return Err(bad(
+                "machine.resume_lift_mm",
+                format!(
+                    "{} must be a distance, 0 or more",
+                    self.machine.resume_lift_mm
+                ),
+            ));
         }
         if u32::from_str_radix(self.api.mode.trim_start_matches("0o"), 8)
             .ok()

@@ -9,7 +9,9 @@
 
 use tokio::sync::mpsc;
 
+use crate::machine::placement::{place, BuildVolume, Placement};
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT};
+use glam::DVec3;
 
 /// Produces a job's moves one layer at a time, indices counting from 0 without gaps.
 pub trait LayerSource: Send {
@@ -192,6 +194,46 @@ pub struct JobSource {
     settings: crate::pipeline::ProcessSettings,
     state: crate::pipeline::StreamState,
     next_index: u32,
+    machine: super::config::MachineConfig,
+    volume: BuildVolume,
+    /// Where the part goes on the bed (a mesh job's once its mesh is loaded).
+    placement: Option<Placement>,
+}
+
+/// Where a job's part (bounding box `bounds`, in its own coordinates) goes on this
+/// machine: `geometry.placement` in `machine.build_volume_mm` (see
+/// [`crate::machine::placement`]). The job's purge pad (`toolpath.purge_xy_mm`, a point
+/// of the bed, and `purge_pad_mm` from there along +x and +y) must lie on the bed too.
+/// An error names what does not fit and by how much.
+pub fn place_part(
+    job: &crate::job::Job,
+    bounds: (DVec3, DVec3),
+    machine: &super::config::MachineConfig,
+) -> Result<Placement, String> {
+    let volume = machine.build_volume()?;
+    let placement = place(job.placement, bounds.0, bounds.1, &volume)?;
+    if let Some([x, y]) = job.toolpath.purge_xy_mm {
+        let side = job.toolpath.purge_pad_mm;
+        if !(volume.contains_mm([x, y, 0.0]) && volume.contains_mm([x + side, y + side, 0.0])) {
+            let [sx, sy, _] = volume.size_mm();
+            return Err(format!(
+                "toolpath.purge_xy_mm = [{x}, {y}]: the {side} mm purge pad from there is not on the bed (0 to {sx} × 0 to {sy} mm)"
+            ));
+        }
+    }
+    Ok(placement)
+}
+
+/// The process settings of a job placed by `placement`: the purge position, a point
+/// of the bed, in the part's coordinates the planner works in (the moves are placed
+/// afterwards, which puts the purge pad back where the job asked).
+pub fn placed_settings(
+    settings: &crate::pipeline::ProcessSettings,
+    placement: &Placement,
+) -> crate::pipeline::ProcessSettings {
+    let mut s = settings.clone();
+    s.purge_xy_mm = settings.purge_xy_mm.map(|xy| placement.bed_to_part_xy(xy));
+    s
 }
 
 /// The process settings a job streams with on a machine: the job's nozzle, the
@@ -258,7 +300,19 @@ impl JobSource {
         machine: &super::config::MachineConfig,
     ) -> Result<Self, String> {
         let job = crate::job::Job::from_toml(toml, source_name).map_err(|e| e.to_string())?;
-        let settings = process_settings(&job, machine, source_name)?;
+        let mut settings = process_settings(&job, machine, source_name)?;
+        let volume = machine
+            .build_volume()
+            .map_err(|e| format!("machine.build_volume_mm: {e}"))?;
+        let placement = match job.extruded_bounds() {
+            Some(bounds) => {
+                let p =
+                    place_part(&job, bounds, machine).map_err(|e| format!("{source_name}: {e}"))?;
+                settings = placed_settings(&settings, &p);
+                Some(p)
+            }
+            None => None,
+        };
         let layers = match (job.extruded_layers(), mesh) {
             (Some(stack), _) => Layers::Extruded(job.layer_slices(0, stack)),
             (None, Some(bytes)) => Layers::MeshBytes(bytes.to_vec()),
@@ -275,7 +329,15 @@ impl JobSource {
             settings,
             state: crate::pipeline::StreamState::new(),
             next_index: 0,
+            volume,
+            placement,
+            machine: machine.clone(),
         })
+    }
+
+    /// Where the part goes on the bed (`None` for a mesh job until its mesh is loaded).
+    pub fn placement(&self) -> Option<Placement> {
+        self.placement
     }
 
     /// Job name.
@@ -293,6 +355,12 @@ impl JobSource {
                 Ok(p) => p,
                 Err(e) => return Some(Err(e.to_string())),
             };
+            let placement = match place_part(&self.job, part.bounds(), &self.machine) {
+                Ok(p) => p,
+                Err(e) => return Some(Err(e)),
+            };
+            self.settings = placed_settings(&self.settings, &placement);
+            self.placement = Some(placement);
             self.layers = Layers::Mesh {
                 part: Box::new(part),
                 ready: Default::default(),
@@ -350,7 +418,16 @@ impl LayerSource for JobSource {
             )
             .map_err(|e| format!("layer {}: {e}", s.index))?;
             self.next_index = lm.next_index;
-            Ok(lm.moves)
+            // Into the machine frame, and nothing outside the build volume.
+            let placement = self.placement.unwrap_or_default();
+            let mut moves = lm.moves;
+            for m in &mut moves {
+                placement.apply(m);
+                self.volume
+                    .check(m)
+                    .map_err(|e| format!("layer {}: {e}", s.index))?;
+            }
+            Ok(moves)
         }))
     }
 }
@@ -359,14 +436,18 @@ impl LayerSource for JobSource {
 mod tests {
     use super::*;
 
-    #[test]
-    fn a_job_file_becomes_moves_layer_by_layer() {
+    fn annulus_on_default_machine() -> (String, super::super::config::MachineConfig) {
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/config/examples/paper-annulus.toml"
         );
         let text = std::fs::read_to_string(path).unwrap();
-        let machine = super::super::config::MachineConfig::default();
+        (text, super::super::config::MachineConfig::default())
+    }
+
+    #[test]
+    fn a_job_file_becomes_moves_layer_by_layer() {
+        let (text, machine) = annulus_on_default_machine();
         let mut src = JobSource::new(&text, None, "annulus", &machine).unwrap();
         let first = src.next_layer().unwrap().unwrap();
         assert!(matches!(
@@ -379,6 +460,59 @@ mod tests {
         assert!(second
             .iter()
             .any(|m| matches!(m.kind, MoveKind::Extrude { .. })));
+    }
+
+    #[test]
+    fn a_job_is_placed_on_the_bed_and_refused_where_it_does_not_fit() {
+        let (text, machine) = annulus_on_default_machine();
+        // Centred on the 200 x 200 mm bed: the annulus (outer radius 30 about the
+        // origin) lands about (100, 100), every move inside the volume.
+        let mut src = JobSource::new(&text, None, "annulus", &machine).unwrap();
+        assert_eq!(
+            src.placement().map(|p| p.offset_um),
+            Some([100_000, 100_000, 0])
+        );
+        let volume = machine.build_volume().unwrap();
+        let mut xs = Vec::new();
+        while let Some(layer) = src.next_layer() {
+            for m in layer.unwrap() {
+                assert!(volume.check(&m).is_ok());
+                if let MoveKind::Extrude { to, .. } = m.kind {
+                    xs.push(f64::from(to.x_um) / 1000.0);
+                }
+            }
+        }
+        let (lo, hi) = xs
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(a, b), x| (a.min(*x), b.max(*x)));
+        assert!(
+            lo > 69.0 && hi < 131.0 && lo < 72.0 && hi > 128.0,
+            "{lo} {hi}"
+        );
+        // Kept at its own coordinates it lies off the bed; too small a machine.
+        let keep = text.replace("[geometry]", "[geometry]\nplacement = \"keep\"");
+        let e = JobSource::new(&keep, None, "annulus", &machine)
+            .err()
+            .unwrap();
+        assert!(e.contains("\"keep\"") && e.contains("x = -30.000"), "{e}");
+        let small = super::super::config::MachineConfig {
+            build_volume_mm: [50.0, 200.0, 150.0],
+            ..machine.clone()
+        };
+        let e = JobSource::new(&text, None, "annulus", &small)
+            .err()
+            .unwrap();
+        assert!(e.contains("10.0 mm too wide along x"), "{e}");
+        // A purge pad off the bed.
+        let purge = text.replace(
+            "[process]",
+            "[toolpath]\npurge_xy_mm = [198.0, 5.0]\n\n[process]",
+        );
+        assert_ne!(purge, text);
+        let e = JobSource::new(&purge, None, "annulus", &machine)
+            .err()
+            .unwrap();
+        assert!(e.contains("purge_xy_mm"), "{e}");
     }
 
     #[tokio::test]

@@ -425,7 +425,11 @@ impl Streamer {
             let feed_um_s = um(m.max_feed_mm_s).max(1) as u32;
             kinds.push(MoveKind::Travel {
                 to: PositionUm {
-                    z_um: p.z_um + lift,
+                    // Lifted, but not above the build volume's top.
+                    z_um: p
+                        .z_um
+                        .saturating_add(lift)
+                        .min(um(m.build_volume_mm[2]).max(p.z_um)),
                     ..p
                 },
                 feed_um_s,

@@ -18,6 +18,7 @@
 //! bytes, well inside one link frame (see `docs/protocol.md`).
 
 pub mod gcode;
+pub mod placement;
 pub mod record;
 
 use serde::{Deserialize, Serialize};

@@ -273,6 +273,11 @@ impl<'m> Slicer<'m> {
         z
     }
 
+    /// The mesh being sliced.
+    pub fn mesh(&self) -> &Mesh {
+        &self.mesh
+    }
+
     /// Bottom and top of the part, mm.
     pub fn z_range_mm(&self) -> (f64, f64) {
         self.z_range
