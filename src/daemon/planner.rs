@@ -121,24 +121,42 @@ pub fn spawn(
 /// A dry-run job: `moves` zero-volume extrusion moves zig-zagging 1 mm along X at
 /// 10 mm/s (100 ms of machine time each, so the machine, not the line, sets the pace),
 /// with a layer mark opening every layer of `per_layer` moves.
+///
+/// Layers step up 0.2 mm from z = 0.2 mm and start again at the bottom once the next
+/// would be above the build volume's top (nothing is extruded, so nothing is in the
+/// way), so a dry run of any length stays inside the volume.
 pub struct DryRunSource {
     moves: u32,
     per_layer: u32,
     next: u32,
     layer: u32,
     syringes: usize,
+    /// How many 0.2 mm layers fit under the volume's top, and that top (µm).
+    levels: u32,
+    top_z_um: i32,
 }
 
+/// The dry run's layer height, µm.
+const DRY_RUN_LAYER_UM: i32 = 200;
+
 impl DryRunSource {
-    /// A dry run of `moves` moves (layer marks included) for `syringes` syringes.
-    pub fn new(moves: u32, per_layer: u32, syringes: usize) -> Self {
+    /// A dry run of `moves` moves (layer marks included) for `syringes` syringes, in a
+    /// build volume `top_z_um` tall.
+    pub fn new(moves: u32, per_layer: u32, syringes: usize, top_z_um: i32) -> Self {
         Self {
             moves,
             per_layer: per_layer.max(2),
             next: 0,
             layer: 0,
             syringes,
+            levels: (top_z_um / DRY_RUN_LAYER_UM).max(1) as u32,
+            top_z_um: top_z_um.max(0),
         }
+    }
+
+    /// The height of dry-run layer `layer`, µm.
+    fn z_um(&self, layer: u32) -> i32 {
+        (DRY_RUN_LAYER_UM * ((layer % self.levels) as i32 + 1)).min(self.top_z_um)
     }
 }
 
@@ -149,18 +167,19 @@ impl LayerSource for DryRunSource {
         }
         let end = (self.next + self.per_layer).min(self.moves);
         let mut out = Vec::with_capacity((end - self.next) as usize);
+        let z_um = self.z_um(self.layer);
         for index in self.next..end {
             let kind = if index == self.next {
                 MoveKind::LayerMark {
                     layer: self.layer,
-                    z_um: 200 * (self.layer as i32 + 1),
+                    z_um,
                 }
             } else {
                 MoveKind::Extrude {
                     to: PositionUm {
                         x_um: (index % 2) as i32 * 1000,
                         y_um: 0,
-                        z_um: 200 * (self.layer as i32 + 1),
+                        z_um,
                     },
                     feed_um_s: 10_000,
                     volumes_nl: vec![0; self.syringes],
@@ -515,9 +534,39 @@ mod tests {
         assert!(e.contains("purge_xy_mm"), "{e}");
     }
 
+    #[test]
+    fn a_dry_run_of_any_length_stays_inside_the_build_volume() {
+        // 1 mm tall: five 0.2 mm layers, then back to the bottom.
+        let volume = BuildVolume::new([200.0, 200.0, 1.0]).unwrap();
+        let mut src = DryRunSource::new(100, 10, 2, 1_000);
+        let mut marks = Vec::new();
+        let mut count = 0;
+        while let Some(layer) = src.next_layer() {
+            for m in layer.unwrap() {
+                assert!(volume.check(&m).is_ok(), "{m:?}");
+                if let MoveKind::LayerMark { z_um, .. } = m.kind {
+                    marks.push(z_um);
+                }
+                count += 1;
+            }
+        }
+        assert_eq!(count, 100);
+        assert_eq!(marks, [200, 400, 600, 800, 1000, 200, 400, 600, 800, 1000]);
+        // A volume lower than one layer: every layer at its top.
+        let mut src = DryRunSource::new(6, 3, 1, 150);
+        let z: Vec<i32> = std::iter::from_fn(|| src.next_layer())
+            .flat_map(|l| l.unwrap())
+            .filter_map(|m| match m.kind {
+                MoveKind::Extrude { to, .. } => Some(to.z_um),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(z, [150, 150, 150, 150]);
+    }
+
     #[tokio::test]
     async fn resume_skips_executed_moves_and_reports_where_it_stands() {
-        let mut rx = spawn(Box::new(DryRunSource::new(25, 10, 2)), 7, 13, 2);
+        let mut rx = spawn(Box::new(DryRunSource::new(25, 10, 2, 150_000)), 7, 13, 2);
         let mut got = Vec::new();
         let mut resume = None;
         let mut total = None;

@@ -556,6 +556,7 @@ impl Streamer {
                 *moves,
                 self.shared.config.planner.dry_run_moves_per_layer,
                 syringes,
+                um(self.shared.config.machine.build_volume_mm[2]),
             ))),
             JobSpec::Toml { toml, .. } => JobSource::new(
                 toml,
