@@ -21,7 +21,8 @@
 //!    non-continuous segments where the neighbouring contour cuts them, Fig. 4(a)),
 //!    their compositions by eq (6) and the step width W by eq (7). Offsets stop
 //!    `offset_end_clearance_mm` short of the contour they run into (§4 narrow areas).
-//!    Inner contour and offset roads shorter than `min_road_mm` are left out.
+//!    Inner contour and offset roads shorter than `min_road_mm` are left out, and a
+//!    loop round less than a line's area is printed once, as that line.
 //!
 //! The result is a compact [`LayerPlan`] (§3.2, last paragraph): per sub-region one
 //! contour composition, W and N_max, plus the road geometry.
@@ -426,6 +427,20 @@ fn resolved_m(l_short_mm: f64, island: usize, opts: &PlanOptions) -> Result<u32,
     }
 }
 
+/// The roads of an inner contour or an equal distance offset as the printer is to lay
+/// them down: a loop whose mean width is under the contour deviation (within the
+/// tolerance the contours are traced to, a line: a level set touching a ridge of d, an
+/// offset pinched off in a narrow sub-region) printed once along that line, not out
+/// and back; then roads shorter than `min_road_mm` left out.
+fn printable(roads: Vec<Path>, opts: &PlanOptions) -> Vec<Path> {
+    let width = opts.contour_deviation_mm();
+    roads
+        .into_iter()
+        .map(|r| r.flattened_if_thinner_than(width))
+        .filter(|r| r.length_mm() >= opts.min_road_mm)
+        .collect()
+}
+
 /// Plan one region: validate it, subdivide it, and fill every sub-region (steps 1–4).
 pub fn plan_region(
     region: &Region,
@@ -559,13 +574,14 @@ pub fn plan_region(
             } else if j == 1 && pre.inner_is_boundary && !parallel {
                 hole_runs.clone()
             } else {
-                let mut roads = levels[(j - 1) as usize].roads(
-                    &interior_area,
-                    parallel && (j == 1 || j == m + 1),
-                    eps,
-                );
-                roads.retain(|r| r.length_mm() >= opts.min_road_mm);
-                roads
+                printable(
+                    levels[(j - 1) as usize].roads(
+                        &interior_area,
+                        parallel && (j == 1 || j == m + 1),
+                        eps,
+                    ),
+                    opts,
+                )
             },
         })
         .collect();
@@ -708,7 +724,7 @@ pub fn plan_region(
             if level.is_empty() {
                 break;
             }
-            let mut roads = match &s_area {
+            let roads = match &s_area {
                 None => {
                     let owned;
                     let offset_shapes = match &level {
@@ -737,8 +753,7 @@ pub fn plan_region(
                 }
                 Some(area) => level.roads(area, false, eps),
             };
-            roads.retain(|r| r.length_mm() >= opts.min_road_mm);
-            offsets.push(roads);
+            offsets.push(printable(roads, opts));
         }
         sub_regions.push(SubRegion {
             n,
@@ -1367,13 +1382,14 @@ mod tests {
     /// mm (a spike; level-set tips on the medial axis turn as sharply but over edges
     /// about a field cell long). Femur layers 65 and 1000 had such spikes where the
     /// corner search between two crossings started from tangents that meet beyond
-    /// both (an S-bend).
+    /// both (an S-bend); layer 110 a loop of C8 3 µm wide round a ridge of d (now
+    /// printed once along it). No contour is a loop round less than a line's area.
     #[test]
     fn femur_contours_have_no_spikes() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
             .join("config/examples/femur-graded.toml");
         let job = crate::cli::plan::load_job(&path).unwrap();
-        for k in [65, 1000] {
+        for k in [65, 110, 1000] {
             let (slices, _) =
                 crate::cli::plan::job_layers(&job, &path, Some(k..k + 1), true).unwrap();
             let layers = plan_layers(&slices, &job.plan, None).unwrap();
@@ -1381,6 +1397,15 @@ mod tests {
             for plan in layers.iter().flat_map(|l| &l.regions) {
                 assert_eq!(plan.method, SubdivisionMethod::Distance, "layer {k}");
                 for c in &plan.contours {
+                    for r in c.roads.iter().filter(|r| r.closed) {
+                        let width = 2.0 * crate::geom::signed_area(&r.points).abs() / r.length_mm();
+                        assert!(
+                            width >= job.plan.contour_deviation_mm,
+                            "layer {k} C{}: a loop {width:.4} mm wide at {:?}",
+                            c.j,
+                            r.points[0]
+                        );
+                    }
                     for (a, b, d) in c.roads.iter().flat_map(turns) {
                         let (u, v) = (b - a, d - b);
                         let shortest = u.length().min(v.length());
