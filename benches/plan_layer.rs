@@ -364,6 +364,23 @@
 //! the coarser grid saves. At R_mach / 2 the same rule gives the femur p99 0.024 and
 //! p99.9 0.041 mm for 0.5M more a layer (not taken: the target is speed). mimalloc
 //! as the allocator: 48.08M, wall time within the noise (not worth a dependency).
+//!
+//! 2026-12-03, twelfth session: 48.73M instructions per layer, unchanged (the plan of
+//! this region byte-identical). Criterion median 7.10 ms at the session's start, 9.34 ms
+//! later on the same code while the machine was slower (load average about 1 with
+//! nothing else of ours running); `perf` self time: the distance transform 16.6 %,
+//! trimming offsets to the end clearance 10 %, `within_both` 6.4 %, marching the
+//! level sets 6.2 %, allocation about 5 %. Tried and not taken: the distance
+//! transform on a grid twice as coarse, each node then taking the exact distance to
+//! the edges nearest its (up to four) coarse neighbours: the transforms 10.5M ->
+//! 8.1M, but 1.0M a layer saved in all (one offset more falls back to the outline), the
+//! femur's level sets worse at the tail (every 5th layer p99.9 0.042 -> 0.052 mm; bench
+//! largest 0.032 -> 0.034 mm), and no better with the edges of the node's left and
+//! lower neighbours offered too (53.5M); four times as coarse, 58.0M and the bench
+//! largest 0.10 mm; keeping each node's best in a local through the sweeps, 49.35M;
+//! `target-cpu=native`, about 5 % of wall time at best and not portable. The 5 ms
+//! target needs about 1.3 to 1.8 times less than this machine's medians: a method
+//! change (the fifth session's note names two), not tuning.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::edo::{plan_region, PlanOptions};
