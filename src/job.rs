@@ -618,6 +618,23 @@ impl Job {
                 "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
             ));
         }
+        if let Geometry::Extruded { height_mm, .. } = &geometry {
+            // Uniform layers of the maximum, or (a Z gradient) no thinner than the minimum.
+            let (thinnest, key) = if z_stations.is_empty() {
+                (layers.max_mm, "process.layer")
+            } else {
+                (layers.min_mm, "process.layer.min")
+            };
+            let count = (height_mm / thinnest).ceil();
+            if count > MAX_LAYERS as f64 {
+                return Err(bad(
+                    "geometry.height",
+                    format!(
+                        "{height_mm} mm is {count} layers of {thinnest} mm ({key}), more than a job may have ({MAX_LAYERS}); is the height in mm?"
+                    ),
+                ));
+            }
+        }
         let default_nozzle = crate::pipeline::ProcessSettings::default().nozzle_mm;
         let mut toolpath = raw.toolpath.unwrap_or_default();
         if toolpath.nozzle_mm != default_nozzle && toolpath.nozzle_mm != p_nozzle {
@@ -789,6 +806,13 @@ pub enum MeshJobError {
     /// The mesh bytes do not decode or cannot be repaired.
     #[error("geometry.mesh: {0}")]
     Mesh(#[from] crate::mesh::MeshError),
+    /// The mesh is taller than [`MAX_LAYERS`] of the thinnest layer allowed.
+    #[error("geometry.mesh: the part is {height_mm} mm tall, {layers} layers of at least {layer_mm} mm (process.layer), more than a job may have ({MAX_LAYERS}); is the mesh in mm?")]
+    TooManyLayers {
+        height_mm: f64,
+        layer_mm: f64,
+        layers: f64,
+    },
     /// The mesh cannot be sliced soundly (names the layer and the place).
     #[error("slicing the mesh: {0}")]
     Slice(#[from] crate::slice::SliceError),
@@ -857,6 +881,17 @@ impl Job {
         }
         let (mesh, mesh_report) =
             crate::mesh::load_and_repair(bytes, limits, &crate::mesh::RepairOptions::default())?;
+        if let Some((lo, hi)) = mesh.bounds() {
+            // No layer is thinner than the minimum (uniform layers are the maximum).
+            let layers = ((hi.z - lo.z) / self.layers.min_mm).ceil();
+            if layers > MAX_LAYERS as f64 {
+                return Err(MeshJobError::TooManyLayers {
+                    height_mm: hi.z - lo.z,
+                    layer_mm: self.layers.min_mm,
+                    layers,
+                });
+            }
+        }
         let limit = |z: f64| self.z_step_limit_mm(z);
         let tolerances = crate::slice::SliceTolerances {
             max_gap_mm: self.layers.max_gap_mm,
@@ -884,6 +919,11 @@ impl Job {
         })
     }
 }
+
+/// Most layers a job may have: 20 m of 0.2 mm layers, 5 m of 0.05 mm ones. A taller
+/// stack is a wrong unit or a typo (a mesh in micrometres, `height = 4000` for 0.4),
+/// which would otherwise plan for hours and fill the host's memory.
+pub const MAX_LAYERS: usize = 100_000;
 
 /// Default largest fraction change across one layer of a Z-varying gradient.
 pub const DEFAULT_Z_STEP: f64 = 0.02;
@@ -1076,6 +1116,11 @@ nozzle = 0.5
         let e = err(&GOOD.replace("inner = [1.0, 0.0]", "inner = [1.0]"));
         assert!(
             e.contains("gradient.inner") && e.contains("2 materials"),
+            "{e}"
+        );
+        let e = err(&GOOD.replace("height = 0.4", "height = 400000.0"));
+        assert!(
+            e.contains("geometry.height") && e.contains("1600000 layers of 0.25 mm"),
             "{e}"
         );
         let e = err(&GOOD.replace("r_mach = 2.0", "r_mach = -2.0"));

@@ -111,6 +111,21 @@ fn bad_meshes_are_refused_with_the_place_named() {
     .unwrap();
     let (ok, _, err) = run_plan(&write_job(dir.path(), "junk.stl"), &[]);
     assert!(!ok && err.contains("junk.stl"), "{err}");
+    // A part in micrometres: the femur's 466 mm as 466,000 "mm" is 2.3 million layers.
+    let v = ["0 0 0", "50000 0 0", "0 50000 0", "0 0 466000"];
+    let mut stl = String::from("solid tall\n");
+    for [a, b, c] in [[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]] {
+        stl += &format!(
+            " facet normal 0 0 0\n  outer loop\n   vertex {}\n   vertex {}\n   vertex {}\n  endloop\n endfacet\n",
+            v[a], v[b], v[c]
+        );
+    }
+    std::fs::write(dir.path().join("tall.stl"), stl + "endsolid tall\n").unwrap();
+    let (ok, _, err) = run_plan(&write_job(dir.path(), "tall.stl"), &[]);
+    assert!(
+        !ok && err.contains("466000 mm tall") && err.contains("in mm?"),
+        "{err}"
+    );
     let (ok, _, err) = run_plan(
         &examples().join("femur-graded.toml"),
         &["--layers", "5000..5001"],
