@@ -293,6 +293,15 @@ impl Job {
         let p_nozzle = p.nozzle;
         positive(p.r_mach, "process.r_mach", &bad)?;
         positive(p.nozzle, "process.nozzle", &bad)?;
+        if p.nozzle < MIN_NOZZLE_MM {
+            return Err(bad(
+                "process.nozzle",
+                format!(
+                    "{} mm is finer than any extrusion nozzle (at least {MIN_NOZZLE_MM} mm; the finest dispensing needles are about 0.05 mm); is it in mm?",
+                    p.nozzle
+                ),
+            ));
+        }
         if p.nozzle > p.r_mach {
             return Err(bad(
                 "process.nozzle",
@@ -618,6 +627,18 @@ impl Job {
                 "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
             ));
         }
+        if let Geometry::Extruded { islands, .. } = &geometry {
+            let area_mm2: f64 = islands.iter().map(|r| r.area()).sum();
+            let road_mm = area_mm2 / p_nozzle;
+            if road_mm > MAX_ROAD_PER_LAYER_MM {
+                return Err(bad(
+                    "geometry",
+                    format!(
+                        "the part's section is {area_mm2:.0} mm², about {road_mm:.0} mm of road a layer at the {p_nozzle} mm nozzle, more than a job may have ({MAX_ROAD_PER_LAYER_MM} mm: days of printing a layer); are the coordinates in mm?"
+                    ),
+                ));
+            }
+        }
         if let Geometry::Extruded { height_mm, .. } = &geometry {
             // Uniform layers of the maximum, or (a Z gradient) no thinner than the minimum.
             let (thinnest, key) = if z_stations.is_empty() {
@@ -813,6 +834,13 @@ pub enum MeshJobError {
         layer_mm: f64,
         layers: f64,
     },
+    /// The mesh's footprint would take more than [`MAX_ROAD_PER_LAYER_MM`] of road.
+    #[error("geometry.mesh: the part is {x_mm} x {y_mm} mm across, up to {} mm of road a layer at the {nozzle_mm} mm nozzle, more than a job may have ({MAX_ROAD_PER_LAYER_MM} mm); is the mesh in mm?", (x_mm * y_mm / nozzle_mm).round())]
+    TooWide {
+        x_mm: f64,
+        y_mm: f64,
+        nozzle_mm: f64,
+    },
     /// The mesh cannot be sliced soundly (names the layer and the place).
     #[error("slicing the mesh: {0}")]
     Slice(#[from] crate::slice::SliceError),
@@ -891,6 +919,15 @@ impl Job {
                     layers,
                 });
             }
+            // No section is larger than the footprint.
+            let footprint_mm2 = (hi.x - lo.x) * (hi.y - lo.y);
+            if footprint_mm2 / self.plan.nozzle_mm > MAX_ROAD_PER_LAYER_MM {
+                return Err(MeshJobError::TooWide {
+                    x_mm: hi.x - lo.x,
+                    y_mm: hi.y - lo.y,
+                    nozzle_mm: self.plan.nozzle_mm,
+                });
+            }
         }
         let limit = |z: f64| self.z_step_limit_mm(z);
         let tolerances = crate::slice::SliceTolerances {
@@ -919,6 +956,16 @@ impl Job {
         })
     }
 }
+
+/// The finest nozzle a job may name, mm. Eq (5) puts D_max / D_noz offsets in each
+/// sub-region, so a nozzle typed in metres (0.0004 for 0.4 mm) asked for hundreds of
+/// thousands of offsets a layer and gigabytes of roads.
+pub const MIN_NOZZLE_MM: f64 = 0.01;
+
+/// Most road a job's layer may have, mm (10 km, the section over the nozzle: a 200 x
+/// 200 mm bed full at a 0.01 mm nozzle is 4 km). More is coordinates in the wrong unit,
+/// which would plan for hours.
+pub const MAX_ROAD_PER_LAYER_MM: f64 = 1e7;
 
 /// Most layers a job may have: 20 m of 0.2 mm layers, 5 m of 0.05 mm ones. A taller
 /// stack is a wrong unit or a typo (a mesh in micrometres, `height = 4000` for 0.4),
@@ -1127,6 +1174,16 @@ nozzle = 0.5
         assert!(e.contains("process.r_mach"), "{e}");
         let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 0.0"));
         assert!(e.contains("process.nozzle"), "{e}");
+        let e = err(&GOOD.replace("radius = 30.0", "radius = 30000.0"));
+        assert!(
+            e.contains("geometry: the part's section is") && e.contains("in mm?"),
+            "{e}"
+        );
+        let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 0.0005"));
+        assert!(
+            e.contains("process.nozzle") && e.contains("0.0005 mm is finer"),
+            "{e}"
+        );
         let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 2.5"));
         assert!(e.contains("process.nozzle") && e.contains("r_mach"), "{e}");
         let e = err(&GOOD.replace("r_mach = 2.0", "r_mach = nan"));

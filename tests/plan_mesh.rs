@@ -126,6 +126,16 @@ fn bad_meshes_are_refused_with_the_place_named() {
         !ok && err.contains("466000 mm tall") && err.contains("in mm?"),
         "{err}"
     );
+    // A flat part in micrometres: 50,000 mm across is days of road a layer.
+    let flat = std::fs::read_to_string(dir.path().join("tall.stl"))
+        .unwrap()
+        .replace("0 0 466000", "0 0 40");
+    std::fs::write(dir.path().join("flat.stl"), flat).unwrap();
+    let (ok, _, err) = run_plan(&write_job(dir.path(), "flat.stl"), &[]);
+    assert!(
+        !ok && err.contains("50000 x 50000 mm across") && err.contains("in mm?"),
+        "{err}"
+    );
     let (ok, _, err) = run_plan(
         &examples().join("femur-graded.toml"),
         &["--layers", "5000..5001"],
