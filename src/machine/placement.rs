@@ -127,16 +127,21 @@ impl Placement {
         [xy_mm[0] - o[0], xy_mm[1] - o[1]]
     }
 
-    /// Move `m`'s target into the machine frame (saturating: a target that would not fit
-    /// in `i32` µm is left at the limit, where [`BuildVolume::check`] refuses it).
+    /// Move `m`'s target, or a layer mark's height, into the machine frame (saturating:
+    /// a target that would not fit in `i32` µm is left at the limit, where
+    /// [`BuildVolume::check`] refuses it).
     pub fn apply(&self, m: &mut Move) {
-        if let MoveKind::Travel { to, .. } | MoveKind::Extrude { to, .. } = &mut m.kind {
-            let [dx, dy, dz] = self.offset_um;
-            *to = PositionUm {
-                x_um: to.x_um.saturating_add(dx),
-                y_um: to.y_um.saturating_add(dy),
-                z_um: to.z_um.saturating_add(dz),
-            };
+        let [dx, dy, dz] = self.offset_um;
+        match &mut m.kind {
+            MoveKind::Travel { to, .. } | MoveKind::Extrude { to, .. } => {
+                *to = PositionUm {
+                    x_um: to.x_um.saturating_add(dx),
+                    y_um: to.y_um.saturating_add(dy),
+                    z_um: to.z_um.saturating_add(dz),
+                };
+            }
+            MoveKind::LayerMark { z_um, .. } => *z_um = z_um.saturating_add(dz),
+            _ => {}
         }
     }
 }
@@ -337,5 +342,24 @@ mod tests {
         assert!(BuildVolume::new([200.0, 200.0, f64::NAN]).is_err());
         assert!(BuildVolume::new([3000.0, 200.0, 150.0]).is_err());
         assert_eq!(p.bed_to_part_xy([190.0, 10.0]), [90.0, -90.0]);
+        // A layer mark's height goes with the moves (a mesh lifted onto the bed).
+        let lifted = Placement {
+            offset_um: [0, 0, 77_250],
+        };
+        let mut mark = Move {
+            kind: MoveKind::LayerMark {
+                layer: 3,
+                z_um: -76_850,
+            },
+            ..m
+        };
+        lifted.apply(&mut mark);
+        assert!(matches!(
+            mark.kind,
+            MoveKind::LayerMark {
+                layer: 3,
+                z_um: 400
+            }
+        ));
     }
 }
