@@ -627,7 +627,7 @@ impl Job {
                 "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
             ));
         }
-        if let Geometry::Extruded { islands, .. } = &geometry {
+        if let Geometry::Extruded { islands, height_mm } = &geometry {
             let area_mm2: f64 = islands.iter().map(|r| r.area()).sum();
             let road_mm = area_mm2 / p_nozzle;
             if road_mm > MAX_ROAD_PER_LAYER_MM {
@@ -638,8 +638,6 @@ impl Job {
                     ),
                 ));
             }
-        }
-        if let Geometry::Extruded { height_mm, .. } = &geometry {
             // Uniform layers of the maximum, or (a Z gradient) no thinner than the minimum.
             let (thinnest, key) = if z_stations.is_empty() {
                 (layers.max_mm, "process.layer")
@@ -1107,8 +1105,13 @@ mod tests {
         assert_eq!(job.placement, PlacementMode::At([40.0, 60.0]));
         let e = Job::from_toml(&with("placement = \"middle\""), "j").unwrap_err();
         assert!(e.to_string().contains("geometry.placement"), "{e}");
-        let e = Job::from_toml(&with("placement = { at = [-1.0, 60.0] }"), "j").unwrap_err();
-        assert!(e.to_string().contains("geometry.placement.at"), "{e}");
+        for at in ["[-1.0, 60.0]", "[nan, 60.0]", "[40.0, inf]"] {
+            let e =
+                Job::from_toml(&with(&format!("placement = {{ at = {at} }}")), "j").unwrap_err();
+            assert!(e.to_string().contains("geometry.placement.at"), "{at}: {e}");
+        }
+        let e = Job::from_toml(&with("placement = 3"), "j").unwrap_err();
+        assert!(e.to_string().contains("placement"), "{e}");
         let (lo, hi) = job.extruded_bounds().unwrap();
         assert_eq!((lo.z, hi.z), (0.0, 0.4));
         assert!(

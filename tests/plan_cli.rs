@@ -92,6 +92,58 @@ fn paper_annulus_report_matches_the_paper() {
     assert!(cov["outside_fraction"].as_f64().unwrap() < 0.005, "{cov}");
     let ul = r["toolpath"]["syringe_volumes_ul"].as_array().unwrap();
     assert_eq!(ul.len(), 2);
+    // Centred on the default 200 x 200 x 150 mm build volume.
+    let p = &r["placement"];
+    assert_eq!(p["mode"], "centre");
+    assert_eq!(p["offset_mm"], serde_json::json!([100.0, 100.0, 0.0]));
+    assert!(p["problem"].is_null(), "{p}");
+    let lo = p["machine_min_mm"][0].as_f64().unwrap();
+    assert!((lo - 70.0).abs() < 0.05, "{p}");
+}
+
+/// `--build-volume`: a value that is not three positive sides is refused; a part that
+/// does not fit is planned and reported as edod would refuse it, and no G-code is
+/// written for it.
+#[test]
+fn build_volume_is_checked_and_reported() {
+    let job = example("paper-annulus.toml");
+    for bad in ["5,5", "0,200,150", "200,x,150", "200,200,nan"] {
+        let out = edoctl()
+            .arg("plan")
+            .arg(&job)
+            .args(["--build-volume", bad, "--quiet"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{bad}: {err}");
+        assert!(err.contains("--build-volume"), "{bad}: {err}");
+    }
+    let out = edoctl()
+        .arg("plan")
+        .arg(&job)
+        .args(["--build-volume", "50,50,50", "--report", "-", "--quiet"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let problem = r["placement"]["problem"].as_str().unwrap_or_default();
+    assert!(problem.contains("10.0 mm too wide along x"), "{problem}");
+    assert!(r["placement"]["offset_mm"].is_null());
+    let dir = tempfile::tempdir().unwrap();
+    let gcode = dir.path().join("out.gcode");
+    let out = edoctl()
+        .arg("plan")
+        .arg(&job)
+        .args(["--build-volume", "50,50,50", "--quiet", "--gcode"])
+        .arg(&gcode)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("too wide along x"),
+        "{err}"
+    );
+    assert!(!gcode.exists());
 }
 
 #[test]

@@ -333,10 +333,10 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
     let bounds = job
         .extruded_bounds()
         .context("the demo job is an extruded polygon")?;
-    let placement =
-        crate::daemon::planner::place_part(job, bounds, machine).map_err(anyhow::Error::msg)?;
-    let settings = crate::daemon::planner::placed_settings(&settings, &placement);
     let volume = machine.build_volume().map_err(anyhow::Error::msg)?;
+    let placement =
+        crate::daemon::planner::place_part(job, bounds, &volume).map_err(anyhow::Error::msg)?;
+    let settings = crate::daemon::planner::placed_settings(&settings, &placement);
     let stack = job
         .extruded_layers()
         .context("the demo job is an extruded polygon")?;
@@ -347,10 +347,9 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
     let mut next = 0u32;
     for plan in &plans {
         let mut lm = crate::pipeline::layer_moves(plan, &settings, 0, next, &mut state)?;
-        for m in &mut lm.moves {
-            placement.apply(m);
-            volume.check(m).map_err(anyhow::Error::msg)?;
-        }
+        placement
+            .put_on_machine(&mut lm.moves, &volume)
+            .map_err(anyhow::Error::msg)?;
         next = lm.next_index;
         layers.push(lm);
     }

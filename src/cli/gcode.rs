@@ -66,12 +66,9 @@ pub fn job_moves(
     for layer in layers {
         let mut out = layer_moves(layer, process, 0, moves.len() as u32, &mut state)
             .with_context(|| format!("job {}: turning layers into moves", job.name))?;
-        for m in &mut out.moves {
-            placement.apply(m);
-            volume
-                .check(m)
-                .map_err(|e| anyhow::anyhow!("job {} layer {}: {e}", job.name, layer.index))?;
-        }
+        placement
+            .put_on_machine(&mut out.moves, volume)
+            .map_err(|e| anyhow::anyhow!("job {} layer {}: {e}", job.name, layer.index))?;
         moves.extend(out.moves);
         stats.push(out.stats);
     }

@@ -198,12 +198,11 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
     let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
-    // Where edod would put the part on a machine of this build volume.
-    let machine = crate::daemon::config::MachineConfig {
-        build_volume_mm: args.build_volume,
-        ..Default::default()
-    };
-    let placed = bounds.map(|b| (b, crate::daemon::planner::place_part(&job, b, &machine)));
+    // Where edod would put the part on a machine of this build volume (checked when
+    // the option was parsed).
+    let volume = crate::machine::placement::BuildVolume::new(args.build_volume)
+        .map_err(|e| anyhow::anyhow!("--build-volume: {e}"))?;
+    let placed = bounds.map(|b| (b, crate::daemon::planner::place_part(&job, b, &volume)));
     report.placement = placed
         .as_ref()
         .map(|(b, p)| crate::report::PlacementReport::new(job.placement, args.build_volume, *b, p));
@@ -291,8 +290,6 @@ pub fn run(args: &PlanArgs) -> Result<()> {
                 Some((_, Err(e))) => anyhow::bail!("--gcode {}: {e}", path.display()),
                 None => anyhow::bail!("--gcode {}: the part has no extent", path.display()),
             };
-            let volume = crate::machine::placement::BuildVolume::new(args.build_volume)
-                .map_err(anyhow::Error::msg)?;
             let summary = crate::cli::gcode::write(
                 &job,
                 &layers,

@@ -198,10 +198,14 @@ async fn check_part(
     machine: &super::config::MachineConfig,
 ) -> Result<Option<Vec<u8>>, ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
+    // Checked when the configuration was loaded.
+    let volume = machine
+        .build_volume()
+        .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("machine.build_volume_mm: {e}")))?;
     match (&job.geometry, mesh) {
         (crate::job::Geometry::Extruded { .. }, None) => {
             if let Some(bounds) = job.extruded_bounds() {
-                super::planner::place_part(job, bounds, machine).map_err(bad)?;
+                super::planner::place_part(job, bounds, &volume).map_err(bad)?;
             }
             Ok(None)
         }
@@ -215,14 +219,13 @@ async fn check_part(
         (crate::job::Geometry::Mesh { path }, Some(bytes)) => {
             let job = job.clone();
             let path = path.clone();
-            let machine = machine.clone();
             tokio::task::spawn_blocking(move || {
                 match job.mesh_layers(&bytes, &crate::mesh::MeshLimits::default()) {
                     Ok(part) if part.is_empty() => {
                         Err(bad(format!("{path}: the mesh has no height to slice")))
                     }
                     Ok(part) => {
-                        super::planner::place_part(&job, part.bounds(), &machine)
+                        super::planner::place_part(&job, part.bounds(), &volume)
                             .map_err(|e| bad(format!("{path}: {e}")))?;
                         Ok(Some(bytes))
                     }

@@ -526,6 +526,27 @@ mod tests {
         assert!(e.to_string().contains("api.mode"), "{e}");
         let e = Config::from_toml("[machine]\nsyringes = []\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("machine.syringes"), "{e}");
+        for (text, key) in [
+            (
+                "build_volume_mm = [200.0, 0.0, 150.0]",
+                "machine.build_volume_mm",
+            ),
+            (
+                "build_volume_mm = [200.0, 200.0, nan]",
+                "machine.build_volume_mm",
+            ),
+            (
+                "build_volume_mm = [5000.0, 200.0, 150.0]",
+                "machine.build_volume_mm",
+            ),
+            ("park_mm = [0.0, 250.0, 50.0]", "machine.park_mm"),
+            ("park_mm = [-1.0, 0.0, 50.0]", "machine.park_mm"),
+            ("resume_lift_mm = -2.0", "machine.resume_lift_mm"),
+            ("resume_lift_mm = nan", "machine.resume_lift_mm"),
+        ] {
+            let e = Config::from_toml(&format!("[machine]\n{text}\n"), "m.toml").unwrap_err();
+            assert!(e.to_string().contains(key), "{text}: {e}");
+        }
     }
 
     #[test]

@@ -131,8 +131,7 @@ pub struct DryRunSource {
     next: u32,
     layer: u32,
     syringes: usize,
-    /// How many 0.2 mm layers fit under the volume's top, and that top (µm).
-    levels: u32,
+    /// The build volume's top, µm.
     top_z_um: i32,
 }
 
@@ -149,14 +148,15 @@ impl DryRunSource {
             next: 0,
             layer: 0,
             syringes,
-            levels: (top_z_um / DRY_RUN_LAYER_UM).max(1) as u32,
             top_z_um: top_z_um.max(0),
         }
     }
 
     /// The height of dry-run layer `layer`, µm.
     fn z_um(&self, layer: u32) -> i32 {
-        (DRY_RUN_LAYER_UM * ((layer % self.levels) as i32 + 1)).min(self.top_z_um)
+        // How many layers fit under the top (at least one, at the top itself).
+        let levels = (self.top_z_um / DRY_RUN_LAYER_UM).max(1) as u32;
+        (DRY_RUN_LAYER_UM * ((layer % levels) as i32 + 1)).min(self.top_z_um)
     }
 }
 
@@ -213,24 +213,22 @@ pub struct JobSource {
     settings: crate::pipeline::ProcessSettings,
     state: crate::pipeline::StreamState,
     next_index: u32,
-    machine: super::config::MachineConfig,
     volume: BuildVolume,
     /// Where the part goes on the bed (a mesh job's once its mesh is loaded).
     placement: Option<Placement>,
 }
 
 /// Where a job's part (bounding box `bounds`, in its own coordinates) goes on this
-/// machine: `geometry.placement` in `machine.build_volume_mm` (see
+/// machine: `geometry.placement` in its build volume (see
 /// [`crate::machine::placement`]). The job's purge pad (`toolpath.purge_xy_mm`, a point
 /// of the bed, and `purge_pad_mm` from there along +x and +y) must lie on the bed too.
 /// An error names what does not fit and by how much.
 pub fn place_part(
     job: &crate::job::Job,
     bounds: (DVec3, DVec3),
-    machine: &super::config::MachineConfig,
+    volume: &BuildVolume,
 ) -> Result<Placement, String> {
-    let volume = machine.build_volume()?;
-    let placement = place(job.placement, bounds.0, bounds.1, &volume)?;
+    let placement = place(job.placement, bounds.0, bounds.1, volume)?;
     if let Some([x, y]) = job.toolpath.purge_xy_mm {
         let side = job.toolpath.purge_pad_mm;
         if !(volume.contains_mm([x, y, 0.0]) && volume.contains_mm([x + side, y + side, 0.0])) {
@@ -326,7 +324,7 @@ impl JobSource {
         let placement = match job.extruded_bounds() {
             Some(bounds) => {
                 let p =
-                    place_part(&job, bounds, machine).map_err(|e| format!("{source_name}: {e}"))?;
+                    place_part(&job, bounds, &volume).map_err(|e| format!("{source_name}: {e}"))?;
                 settings = placed_settings(&settings, &p);
                 Some(p)
             }
@@ -350,7 +348,6 @@ impl JobSource {
             next_index: 0,
             volume,
             placement,
-            machine: machine.clone(),
         })
     }
 
@@ -374,7 +371,7 @@ impl JobSource {
                 Ok(p) => p,
                 Err(e) => return Some(Err(e.to_string())),
             };
-            let placement = match place_part(&self.job, part.bounds(), &self.machine) {
+            let placement = match place_part(&self.job, part.bounds(), &self.volume) {
                 Ok(p) => p,
                 Err(e) => return Some(Err(e)),
             };
@@ -438,14 +435,11 @@ impl LayerSource for JobSource {
             .map_err(|e| format!("layer {}: {e}", s.index))?;
             self.next_index = lm.next_index;
             // Into the machine frame, and nothing outside the build volume.
-            let placement = self.placement.unwrap_or_default();
             let mut moves = lm.moves;
-            for m in &mut moves {
-                placement.apply(m);
-                self.volume
-                    .check(m)
-                    .map_err(|e| format!("layer {}: {e}", s.index))?;
-            }
+            self.placement
+                .unwrap_or_default()
+                .put_on_machine(&mut moves, &self.volume)
+                .map_err(|e| format!("layer {}: {e}", s.index))?;
             Ok(moves)
         }))
     }

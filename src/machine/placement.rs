@@ -144,6 +144,16 @@ impl Placement {
             _ => {}
         }
     }
+
+    /// Put `moves` on the machine: each one placed ([`Placement::apply`]), then checked
+    /// to lie inside `volume` ([`BuildVolume::check`]); the first outside is the error.
+    pub fn put_on_machine(&self, moves: &mut [Move], volume: &BuildVolume) -> Result<(), String> {
+        for m in moves {
+            self.apply(m);
+            volume.check(m)?;
+        }
+        Ok(())
+    }
 }
 
 /// Put a part whose bounding box (its own coordinates, mm) is `min`..`max` into
@@ -338,6 +348,20 @@ mod tests {
         };
         let e = volume().check(&high).unwrap_err();
         assert!(e.contains("move 7") && e.contains("z = 150.002"), "{e}");
+        // A layer's moves put on the machine: placed, and the first outside refused.
+        let mut layer = [high.clone(), m.clone()];
+        layer[0].kind = m.kind.clone();
+        layer[1].index = 8;
+        let back = Placement {
+            offset_um: [-100_000, 0, 0],
+        };
+        let e = back.put_on_machine(&mut layer, &volume()).unwrap_err();
+        assert!(e.contains("move 7") && e.contains("x = -30.000"), "{e}");
+        let mut layer = [m.clone()];
+        Placement::default()
+            .put_on_machine(&mut layer, &volume())
+            .unwrap();
+        assert_eq!(layer[0], m);
         assert!(BuildVolume::new([200.0, 0.0, 150.0]).is_err());
         assert!(BuildVolume::new([200.0, 200.0, f64::NAN]).is_err());
         assert!(BuildVolume::new([3000.0, 200.0, 150.0]).is_err());
