@@ -317,9 +317,14 @@ pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> Str
     let mut out = String::new();
     let thin = input.road_width_mm * 0.1;
     f.open(&mut out, input.title, input.islands, thin);
-    // Roads, edge by edge so widths can vary.
+    // Roads, edge by edge so widths can vary. Each road is one translucent group, so
+    // where two roads overlap the colour darkens but the joins inside one road (its
+    // pieces' round caps over each other) do not: per-piece opacity drew a dark dot at
+    // every vertex of a road whose width steps, which read as blobs on the part.
     for p in paths {
         let colour = mix_colour(&p.composition);
+        out.push_str(r#"<g opacity="0.85">"#);
+        out.push('\n');
         let n = p.points.len();
         let edges = if p.closed { n } else { n.saturating_sub(1) };
         let mut k = 0;
@@ -342,9 +347,10 @@ pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> Str
                 },
                 &colour,
                 input.road_width_mm * w,
-                r#" stroke-opacity="0.85""#,
+                "",
             );
         }
+        out.push_str("</g>\n");
     }
     // Travel and seams.
     for w in paths.windows(2) {
@@ -459,4 +465,58 @@ pub fn side_by_side(panels: &[(&str, &str)], title: &str) -> String {
     }
     out.push_str("</svg>\n");
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::toolpath::{PathRole, ToolPath};
+
+    /// A road whose width steps at every vertex is drawn as pieces inside one translucent
+    /// group, with no opacity of their own (their round caps would darken each join).
+    #[test]
+    fn a_road_of_varying_width_is_one_translucent_group() {
+        let points: Vec<DVec2> = (0..6).map(|k| DVec2::new(k as f64, 0.0)).collect();
+        let road = |y: f64| ToolPath {
+            role: PathRole::Offset {
+                island: 0,
+                n: 0,
+                i: 1,
+            },
+            points: points.iter().map(|p| *p + DVec2::new(0.0, y)).collect(),
+            closed: false,
+            width_factors: vec![1.0, 1.1, 1.2, 1.3, 1.4, 1.5],
+            composition: vec![0.5, 0.5],
+            seam_at_corner: false,
+        };
+        let islands = [Region::new(
+            vec![
+                DVec2::new(-1.0, -1.0),
+                DVec2::new(6.0, -1.0),
+                DVec2::new(6.0, 2.0),
+                DVec2::new(-1.0, 2.0),
+            ],
+            vec![],
+        )];
+        let svg = roads_svg(
+            &[road(0.0), road(0.4)],
+            &RoadsInput {
+                title: "widths",
+                islands: &islands,
+                road_width_mm: 0.4,
+                voids: &[],
+                void_cell_mm: 0.05,
+            },
+        );
+        assert_eq!(svg.matches(r#"<g opacity="0.85">"#).count(), 2, "{svg}");
+        assert_eq!(svg.matches("</g>").count(), 2, "{svg}");
+        assert!(!svg.contains("stroke-opacity"), "{svg}");
+        // Five pieces a road (the width steps by 0.1 at every vertex), inside its group.
+        let first = svg
+            .split(r#"<g opacity="0.85">"#)
+            .nth(1)
+            .unwrap_or_default();
+        let group = first.split("</g>").next().unwrap_or_default();
+        assert_eq!(group.matches("<polyline").count(), 5, "{group}");
+    }
 }
