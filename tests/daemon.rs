@@ -254,6 +254,10 @@ fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
     // Second job: bad requests of every kind while it streams, and pause/resume.
     let b = submit(&mut c, 2000);
     c.wait("job b streaming", |c| c.executed(b) > 100);
+    // Its progress counts layers too: 20 of 100 moves each (layer marks included).
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["progress"]["layers"], json!(20), "{m}");
+    assert!(m["progress"]["layer"].as_u64() >= Some(1), "{m}");
     let mut bad = d.client();
     let e = bad.send_raw("{not json");
     assert_eq!(e["error"]["code"], json!(-32700));
@@ -533,23 +537,7 @@ fn cancel_stops_retracts_and_parks() {
 
 /// A mesh as binary STL bytes.
 fn stl_of(mesh: &edo::mesh::Mesh) -> Vec<u8> {
-    let tris: Vec<stl_io::Triangle> = mesh
-        .triangles
-        .iter()
-        .map(|t| {
-            let v = |i: u32| {
-                let p = mesh.vertices[i as usize].as_vec3();
-                stl_io::Vertex::new([p.x, p.y, p.z])
-            };
-            stl_io::Triangle {
-                normal: stl_io::Normal::new([0.0, 0.0, 0.0]),
-                vertices: [v(t[0]), v(t[1]), v(t[2])],
-            }
-        })
-        .collect();
-    let mut stl = Vec::new();
-    stl_io::write_stl(&mut stl, tris.iter()).unwrap();
-    stl
+    mesh.to_binary_stl().unwrap()
 }
 
 /// A graded tube (STL) as a mesh job: sent over the socket with its mesh by `edoctl submit`,

@@ -86,6 +86,7 @@ fn binary_and_ascii_stl_load_and_merge() {
     for bytes in [
         binary_stl(&m, b"binary"),
         binary_stl(&m, b"solid but binary"),
+        m.to_binary_stl().unwrap(),
         ascii_stl(&m, "solid test").into_bytes(),
         ascii_stl(&m, "solid").into_bytes(),
     ] {

@@ -141,11 +141,8 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
                 },
                 m["state"].as_str().unwrap_or("unknown state")
             );
-            if let Some(p) = m["progress"].as_object() {
-                human.push_str(&format!(
-                    "\njob {}: {}/{} moves executed, layer {}",
-                    p["job_id"], p["executed"], p["total"], p["layer"]
-                ));
+            if let Some(p) = m.get("progress").filter(|p| p.is_object()) {
+                human.push_str(&format!("\n{}", edo::cli::client::progress_line(p)));
             }
             print(&m, human);
         }

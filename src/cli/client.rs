@@ -127,16 +127,60 @@ pub fn job_line(j: &Value) -> String {
     let total = j["total_moves"]
         .as_u64()
         .map_or("?".to_string(), |t| t.to_string());
+    // Numbers as strings: a JSON value's Display ignores width and alignment.
+    let number = |v: &Value| v.as_u64().map_or("?".to_string(), |n| n.to_string());
     let mut s = format!(
         "{:>4}  {:<11}  {:>7}/{:<7}  {}",
-        j["id"],
+        number(&j["id"]),
         j["state"].as_str().unwrap_or("?"),
-        j["checkpoint"]["next_index"],
+        number(&j["checkpoint"]["next_index"]),
         total,
         j["name"].as_str().unwrap_or("")
     );
     if let Some(r) = j["reason"].as_str() {
         s.push_str(&format!("  ({r})"));
+    }
+    s
+}
+
+/// A layer number for people: layer `l` (0-based) of `count` is `l + 1` of them.
+fn layer_of(layer: Option<u64>, count: Option<u64>) -> Option<String> {
+    let l = layer? + 1;
+    Some(match count {
+        Some(n) => format!("layer {l} of {n}"),
+        None => format!("layer {l}"),
+    })
+}
+
+/// Seconds left, as people read them.
+fn eta_text(s: f64) -> String {
+    let s = s.max(0.0).round() as u64;
+    match s {
+        0..=99 => format!("{s} s"),
+        100..=5999 => format!("{} min", (s + 30) / 60),
+        _ => {
+            let min = (s + 30) / 60;
+            format!("{} h {:02} min", min / 60, min % 60)
+        }
+    }
+}
+
+/// One line about the active job's progress (`machine.status` / `job.get` `progress`):
+/// moves executed (of how many, once every move is planned), layer of layers, ETA.
+pub fn progress_line(p: &Value) -> String {
+    let executed = p["executed"].as_u64().unwrap_or(0);
+    let mut s = match p["total"].as_u64() {
+        Some(t) => format!("job {}: {executed} of {t} moves executed", p["job_id"]),
+        None => format!(
+            "job {}: {executed} moves executed (total known once every layer is planned)",
+            p["job_id"]
+        ),
+    };
+    if let Some(l) = layer_of(p["layer"].as_u64(), p["layers"].as_u64()) {
+        s.push_str(&format!(", {l}"));
+    }
+    if let Some(e) = p["eta_s"].as_f64() {
+        s.push_str(&format!(", about {} left", eta_text(e)));
     }
     s
 }
@@ -147,12 +191,29 @@ pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
     use indicatif::{ProgressBar, ProgressStyle};
     let mut job = client.call("job.get", json!({"id": id}))?;
     client.call("subscribe", json!({}))?;
-    let bar = ProgressBar::new(job["total_moves"].as_u64().unwrap_or(0));
-    bar.set_style(
+    // A bar once the move total is known; until then a count (a bar of unknown length
+    // would show full, or empty, whatever the progress).
+    let with_bar = || {
         ProgressStyle::with_template("{spinner} job {prefix} [{bar:30}] {pos}/{len} moves {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
+            .progress_chars("=> ")
+    };
+    let counting = || {
+        ProgressStyle::with_template("{spinner} job {prefix} {pos} moves {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_spinner())
+    };
+    let bar = match job["total_moves"].as_u64() {
+        Some(t) => {
+            let bar = ProgressBar::new(t);
+            bar.set_style(with_bar());
+            bar
+        }
+        None => {
+            let bar = ProgressBar::no_length();
+            bar.set_style(counting());
+            bar
+        }
+    };
     if json_out {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
@@ -168,7 +229,10 @@ pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
         match v["method"].as_str() {
             Some("notify_job_progress") => {
                 if let Some(t) = p["total"].as_u64() {
-                    bar.set_length(t);
+                    if bar.length() != Some(t) {
+                        bar.set_length(t);
+                        bar.set_style(with_bar());
+                    }
                 }
                 bar.set_position(p["executed"].as_u64().unwrap_or(0));
                 let comp = p["composition"]
@@ -182,11 +246,10 @@ pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
                     .unwrap_or_default();
                 let eta = p["eta_s"]
                     .as_f64()
-                    .map_or(String::new(), |e| format!(" ETA {e:.0} s"));
-                bar.set_message(format!(
-                    "layer {} comp {comp}{eta}",
-                    p["layer"].as_u64().map_or("-".into(), |l| l.to_string())
-                ));
+                    .map_or(String::new(), |e| format!(", about {} left", eta_text(e)));
+                let layer = layer_of(p["layer"].as_u64(), p["layers"].as_u64())
+                    .map_or(String::new(), |l| format!("{l}, "));
+                bar.set_message(format!("{layer}composition {comp}{eta}"));
             }
             Some("notify_job_state") => {
                 job["state"] = p["state"].clone();
@@ -205,4 +268,59 @@ pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
     }
     bar.finish_and_clear();
     client.call("job.get", json!({"id": id}))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn progress_reads_as_people_count() {
+        let planning = json!({"job_id": 1, "executed": 891, "total": null, "layers": 2,
+            "layer": 0, "eta_s": null});
+        assert_eq!(
+            progress_line(&planning),
+            "job 1: 891 moves executed (total known once every layer is planned), layer 1 of 2"
+        );
+        let planned = json!({"job_id": 3, "executed": 1201, "total": 48210, "layers": 12,
+            "layer": 3, "eta_s": 412.5});
+        assert_eq!(
+            progress_line(&planned),
+            "job 3: 1201 of 48210 moves executed, layer 4 of 12, about 7 min left"
+        );
+        // A mesh job before its mesh is sliced: no layer count, no layer yet.
+        let early = json!({"job_id": 4, "executed": 0, "total": null, "layers": null,
+            "layer": null, "eta_s": null});
+        assert_eq!(
+            progress_line(&early),
+            "job 4: 0 moves executed (total known once every layer is planned)"
+        );
+    }
+
+    #[test]
+    fn job_lines_line_up() {
+        let a = job_line(
+            &json!({"id": 1, "state": "done", "checkpoint": {"next_index": 7721},
+            "total_moves": 7721, "name": "tooth-crown", "reason": null}),
+        );
+        let b = job_line(
+            &json!({"id": 12, "state": "failed", "checkpoint": {"next_index": 0},
+            "total_moves": null, "name": "bunny", "reason": "the mesh is open"}),
+        );
+        assert_eq!(a, "   1  done            7721/7721     tooth-crown");
+        assert_eq!(
+            b,
+            "  12  failed             0/?        bunny  (the mesh is open)"
+        );
+        assert_eq!(a.find('/'), b.find('/'));
+    }
+
+    #[test]
+    fn time_left_in_seconds_minutes_or_hours() {
+        assert_eq!(eta_text(42.4), "42 s");
+        assert_eq!(eta_text(-3.0), "0 s");
+        assert_eq!(eta_text(412.5), "7 min");
+        assert_eq!(eta_text(7170.0), "2 h 00 min");
+        assert_eq!(eta_text(5.0 * 3600.0 + 7.0 * 60.0), "5 h 07 min");
+    }
 }

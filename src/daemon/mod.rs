@@ -143,11 +143,14 @@ pub struct Progress {
     pub executed: u32,
     /// Moves planned in total (once known).
     pub total: Option<u32>,
-    /// Current layer.
+    /// Layers in the job (once known: a mesh job's after its mesh is sliced).
+    pub layers: Option<u32>,
+    /// Current layer (0-based: layer `layer` of `layers` is `layer + 1` of them).
     pub layer: Option<u32>,
     /// Composition of the last executed extrusion.
     pub composition: Option<Vec<f64>>,
-    /// Estimated seconds left (from the execution rate so far).
+    /// Estimated seconds left: from the move rate so far once `total` is known, before
+    /// that from the layer rate (after the first layer finished since the start).
     pub eta_s: Option<f64>,
     /// From submission to the machine executing the first move (ms).
     pub first_move_after_ms: Option<i64>,

@@ -17,6 +17,12 @@ use glam::DVec3;
 pub trait LayerSource: Send {
     /// The next layer's moves, `None` after the last layer.
     fn next_layer(&mut self) -> Option<Result<Vec<Move>, String>>;
+
+    /// How many layers the job has, once known (a mesh job's after its mesh is sliced,
+    /// that is after the first [`LayerSource::next_layer`]).
+    fn layer_count(&self) -> Option<u32> {
+        None
+    }
 }
 
 /// What the planner worker sends the streamer.
@@ -31,6 +37,12 @@ pub enum PlannerMsg {
         layer_mark: Option<(u32, i32)>,
         /// Volumes of the last skipped extrusion.
         volumes_nl: Option<Vec<u32>>,
+    },
+    /// The job has this many layers (sent once, as soon as it is known, before the
+    /// moves of the layer that made it known).
+    Layers {
+        /// Layers in the job.
+        count: u32,
     },
     /// Moves to stream (in order).
     Moves(Vec<Move>),
@@ -58,7 +70,16 @@ pub fn spawn(
         let mut layer_mark = None;
         let mut volumes = None;
         let mut resume_sent = start_index == 0;
+        let mut count_sent = false;
         while let Some(layer) = source.next_layer() {
+            if !count_sent {
+                if let Some(count) = source.layer_count() {
+                    count_sent = true;
+                    if tx.blocking_send(PlannerMsg::Layers { count }).is_err() {
+                        return;
+                    }
+                }
+            }
             let moves = match layer {
                 Ok(m) => m,
                 Err(e) => {
@@ -195,6 +216,10 @@ impl LayerSource for DryRunSource {
         self.next = end;
         self.layer += 1;
         Some(Ok(out))
+    }
+
+    fn layer_count(&self) -> Option<u32> {
+        Some(self.moves.div_ceil(self.per_layer))
     }
 }
 
@@ -443,6 +468,14 @@ impl LayerSource for JobSource {
             Ok(moves)
         }))
     }
+
+    fn layer_count(&self) -> Option<u32> {
+        match &self.layers {
+            Layers::Extruded(slices) => u32::try_from(slices.len()).ok(),
+            Layers::Mesh { part, .. } => u32::try_from(part.len()).ok(),
+            Layers::MeshBytes(_) => None,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -462,6 +495,8 @@ mod tests {
     fn a_job_file_becomes_moves_layer_by_layer() {
         let (text, machine) = annulus_on_default_machine();
         let mut src = JobSource::new(&text, None, "annulus", &machine).unwrap();
+        // 0.4 mm extruded in 0.2 mm layers: known before planning.
+        assert_eq!(src.layer_count(), Some(2));
         let first = src.next_layer().unwrap().unwrap();
         assert!(matches!(
             first[0].kind,
@@ -473,6 +508,27 @@ mod tests {
         assert!(second
             .iter()
             .any(|m| matches!(m.kind, MoveKind::Extrude { .. })));
+    }
+
+    /// A mesh job knows its layer count once its mesh is sliced (at the first layer).
+    #[test]
+    fn a_mesh_job_counts_its_layers_once_sliced() {
+        let mesh = crate::mesh::primitives::tube(4.0, 8.0, 0.8, 32);
+        let stl = mesh.to_binary_stl().unwrap();
+        let text = "name = \"tube\"\n[geometry]\nmesh = \"tube.stl\"\n[materials]\n\
+                    names = [\"A\", \"B\"]\n[gradient]\npattern = \"growth-rings\"\n\
+                    inner = [1.0, 0.0]\nouter = [0.0, 1.0]\n[process]\nr_mach = 0.8\n\
+                    nozzle = 0.4\nlayer = 0.2\n";
+        let machine = super::super::config::MachineConfig::default();
+        let mut src = JobSource::new(text, Some(&stl), "tube", &machine).unwrap();
+        assert_eq!(src.layer_count(), None);
+        let mut layers = 0;
+        while let Some(layer) = src.next_layer() {
+            layer.unwrap();
+            layers += 1;
+            assert_eq!(src.layer_count(), Some(4));
+        }
+        assert_eq!(layers, 4);
     }
 
     #[test]
@@ -564,8 +620,16 @@ mod tests {
         let mut got = Vec::new();
         let mut resume = None;
         let mut total = None;
+        let mut layers = None;
         while let Some(m) = rx.recv().await {
             match m {
+                PlannerMsg::Layers { count } => {
+                    assert!(
+                        layers.is_none() && got.is_empty(),
+                        "the count comes once, first"
+                    );
+                    layers = Some(count);
+                }
                 PlannerMsg::ResumeAt {
                     position,
                     layer_mark,
@@ -577,6 +641,7 @@ mod tests {
             }
         }
         assert_eq!(total, Some(25));
+        assert_eq!(layers, Some(3));
         assert_eq!(got.first().map(|m| (m.job_id, m.index)), Some((7, 13)));
         assert_eq!(got.len(), 12);
         let (pos, mark) = resume.unwrap();

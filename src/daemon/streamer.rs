@@ -76,6 +76,10 @@ struct Active {
     queue: VecDeque<Move>,
     sent: VecDeque<Move>,
     total: Option<u32>,
+    /// Layers in the job, once the planner knows.
+    layers: Option<u32>,
+    /// The layer the job (re)started at, for the estimate by layers.
+    layer_at_start: Option<u32>,
     checkpoint: Checkpoint,
     saved: Instant,
     dirty: bool,
@@ -89,6 +93,33 @@ struct Active {
     printing: bool,
     /// The machine has executed a move sent since the job (re)started.
     ran: bool,
+}
+
+/// Seconds left of a job that has run `elapsed_s` since it (re)started: from the move
+/// rate once the move total is known (`moves`: total, executed, executed since the
+/// start), else from the layer rate (`layers`: the job's layer count and the current
+/// layer, 0-based; layers finished since `layer_at_start` over the time they took, for
+/// the layers not finished, the current one counted whole). Layers differ in size, so
+/// the second is the rougher estimate. `None` until there is a rate.
+fn time_left_s(
+    moves: Option<(u32, u32, u32)>,
+    layers: Option<(u32, u32)>,
+    layer_at_start: u32,
+    elapsed_s: f64,
+) -> Option<f64> {
+    let elapsed_s = elapsed_s.max(1e-3);
+    match (moves, layers) {
+        (Some((total, executed, done_since)), _) => {
+            let rate = f64::from(done_since) / elapsed_s;
+            (rate > 0.0).then(|| f64::from(total.saturating_sub(executed)) / rate)
+        }
+        (None, Some((count, layer))) => {
+            let finished = layer.saturating_sub(layer_at_start);
+            (finished > 0)
+                .then(|| f64::from(count.saturating_sub(layer)) * elapsed_s / f64::from(finished))
+        }
+        (None, None) => None,
+    }
 }
 
 /// The streamer task.
@@ -492,6 +523,8 @@ impl Streamer {
             queue: VecDeque::new(),
             sent: VecDeque::new(),
             total: job.total_moves,
+            layers: None,
+            layer_at_start: checkpoint.layer,
             checkpoint,
             saved: Instant::now(),
             dirty: false,
@@ -618,6 +651,7 @@ impl Streamer {
         let id = a.id;
         match m {
             None => a.planner = None,
+            Some(PlannerMsg::Layers { count }) => a.layers = Some(count),
             Some(PlannerMsg::Moves(v)) => a.queue.extend(v),
             Some(r @ PlannerMsg::ResumeAt { .. }) => {
                 a.resume_point = Some(r);
@@ -1079,14 +1113,17 @@ impl Streamer {
         a.notified = Instant::now();
         let executed = a.checkpoint.next_index;
         let done_since = executed.saturating_sub(a.executed_at_start);
-        let eta_s = a.total.and_then(|t| {
-            let rate = f64::from(done_since) / a.started.elapsed().as_secs_f64().max(1e-3);
-            (rate > 0.0).then(|| f64::from(t.saturating_sub(executed)) / rate)
-        });
+        let eta_s = time_left_s(
+            a.total.map(|t| (t, executed, done_since)),
+            a.layers.zip(a.checkpoint.layer),
+            a.layer_at_start.unwrap_or(0),
+            a.started.elapsed().as_secs_f64(),
+        );
         let p = Progress {
             job_id: a.id,
             executed,
             total: a.total,
+            layers: a.layers,
             layer: a.checkpoint.layer,
             composition: a.checkpoint.composition.clone(),
             eta_s,
@@ -1139,5 +1176,35 @@ impl Streamer {
 impl Active {
     fn phase_is_final_wait(&self) -> bool {
         matches!(self.phase, Phase::Empty | Phase::Interrupted)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::time_left_s;
+
+    #[test]
+    fn time_left_from_moves_once_known_else_from_layers() {
+        // 1,000 of 4,000 moves in 10 s since a fresh start: 30 s left.
+        assert_eq!(
+            time_left_s(Some((4000, 1000, 1000)), Some((8, 2)), 0, 10.0),
+            Some(30.0)
+        );
+        // Resumed at move 600: the rate counts only moves since the restart.
+        assert_eq!(
+            time_left_s(Some((4000, 1000, 400)), None, 0, 10.0),
+            Some(75.0)
+        );
+        // Total not planned yet: layer 3 of 10 (0-based 2) after 20 s: 2 layers a 10 s,
+        // 8 layers (the current one whole) left.
+        assert_eq!(time_left_s(None, Some((10, 2)), 0, 20.0), Some(80.0));
+        // Resumed at layer 5: only layers finished since then count.
+        assert_eq!(time_left_s(None, Some((10, 7)), 5, 20.0), Some(30.0));
+        // No rate yet: still in the first layer, nothing executed, or nothing known.
+        assert_eq!(time_left_s(None, Some((10, 0)), 0, 20.0), None);
+        assert_eq!(time_left_s(Some((4000, 0, 0)), None, 0, 5.0), None);
+        assert_eq!(time_left_s(None, None, 0, 5.0), None);
+        // Past the last layer (a count from an older plan): nothing left, not negative.
+        assert_eq!(time_left_s(None, Some((10, 12)), 0, 20.0), Some(0.0));
     }
 }

@@ -93,6 +93,27 @@ impl Mesh {
         ]
     }
 
+    /// The mesh as binary STL (normals left zero: readers take them from the winding),
+    /// single precision as the format has it. Indices must be in range.
+    pub fn to_binary_stl(&self) -> std::io::Result<Vec<u8>> {
+        let tris: Vec<stl_io::Triangle> = (0..self.triangles.len())
+            .map(|t| {
+                let v = |p: DVec3| {
+                    let p = p.as_vec3();
+                    stl_io::Vertex::new([p.x, p.y, p.z])
+                };
+                let [a, b, c] = self.corners(t);
+                stl_io::Triangle {
+                    normal: stl_io::Normal::new([0.0, 0.0, 0.0]),
+                    vertices: [v(a), v(b), v(c)],
+                }
+            })
+            .collect();
+        let mut out = Vec::with_capacity(84 + 50 * tris.len());
+        stl_io::write_stl(&mut out, tris.iter())?;
+        Ok(out)
+    }
+
     /// Signed enclosed volume, mm³ (positive for a closed mesh with outward normals).
     pub fn signed_volume(&self) -> f64 {
         (0..self.triangles.len())
