@@ -413,3 +413,11 @@ proptest! {
         }
     }
 }
+
+/// Writing STL refuses a triangle whose vertex index is out of range instead of panicking.
+#[test]
+fn binary_stl_writer_refuses_bad_indices() {
+    let mut m = part();
+    m.triangles[0][1] = m.vertices.len() as u32;
+    assert!(m.to_binary_stl().is_err());
+}

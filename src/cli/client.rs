@@ -295,6 +295,13 @@ mod tests {
             progress_line(&early),
             "job 4: 0 moves executed (total known once every layer is planned)"
         );
+        // Fields of the wrong type (an older or broken daemon) read as unknown.
+        let odd = json!({"job_id": 5, "executed": "many", "total": -1, "layers": "x",
+            "layer": 2.5, "eta_s": "soon"});
+        assert_eq!(
+            progress_line(&odd),
+            "job 5: 0 moves executed (total known once every layer is planned)"
+        );
     }
 
     #[test]

@@ -78,8 +78,9 @@ struct Active {
     total: Option<u32>,
     /// Layers in the job, once the planner knows.
     layers: Option<u32>,
-    /// The layer the job (re)started at, for the estimate by layers.
-    layer_at_start: Option<u32>,
+    /// The layer the job (re)started at (0 before its first layer), for the estimate by
+    /// layers.
+    layer_at_start: u32,
     checkpoint: Checkpoint,
     saved: Instant,
     dirty: bool,
@@ -524,7 +525,7 @@ impl Streamer {
             sent: VecDeque::new(),
             total: job.total_moves,
             layers: None,
-            layer_at_start: checkpoint.layer,
+            layer_at_start: checkpoint.layer.unwrap_or(0),
             checkpoint,
             saved: Instant::now(),
             dirty: false,
@@ -1116,7 +1117,7 @@ impl Streamer {
         let eta_s = time_left_s(
             a.total.map(|t| (t, executed, done_since)),
             a.layers.zip(a.checkpoint.layer),
-            a.layer_at_start.unwrap_or(0),
+            a.layer_at_start,
             a.started.elapsed().as_secs_f64(),
         );
         let p = Progress {

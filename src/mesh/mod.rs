@@ -94,8 +94,10 @@ impl Mesh {
     }
 
     /// The mesh as binary STL (normals left zero: readers take them from the winding),
-    /// single precision as the format has it. Indices must be in range.
+    /// single precision as the format has it. A vertex index out of range is an error.
     pub fn to_binary_stl(&self) -> std::io::Result<Vec<u8>> {
+        self.check_indices_and_coordinates()
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e.to_string()))?;
         let tris: Vec<stl_io::Triangle> = (0..self.triangles.len())
             .map(|t| {
                 let v = |p: DVec3| {
