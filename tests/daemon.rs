@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
@@ -77,6 +77,27 @@ impl Daemon {
             w: s,
             next: 1,
         }
+    }
+
+    /// Run edoctl against this daemon.
+    fn edoctl<S: AsRef<std::ffi::OsStr>>(&self, args: impl IntoIterator<Item = S>) -> Output {
+        Command::new(env!("CARGO_BIN_EXE_edoctl"))
+            .arg("--socket")
+            .arg(&self.socket)
+            .args(args)
+            .output()
+            .unwrap()
+    }
+
+    /// Run edoctl against this daemon, check it succeeded, and return what it printed.
+    fn edoctl_ok<S: AsRef<std::ffi::OsStr>>(&self, args: impl IntoIterator<Item = S>) -> Vec<u8> {
+        let out = self.edoctl(args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        out.stdout
     }
 
     fn sigterm(&mut self) -> std::process::ExitStatus {
@@ -183,18 +204,29 @@ fn sim_at(dir: &Path, seed: u64, speed: f64) -> (hil_sim::SimHandle, PathBuf) {
     (h, record)
 }
 
+/// The simulator recorder's lines for `job` (0: service moves), in execution order.
+fn recorded(record: &Path, job: u64) -> Vec<Value> {
+    let text = std::fs::read_to_string(record).unwrap();
+    text.lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|v| v["job_id"] == json!(job))
+        .collect()
+}
+
+/// The move indices of `job` the simulator executed, in order.
+fn recorded_indices(record: &Path, job: u64) -> Vec<u64> {
+    recorded(record, job)
+        .iter()
+        .map(|v| v["index"].as_u64().unwrap())
+        .collect()
+}
+
 /// After a machine reset the moves it executed but had not yet reported (at most one
 /// status interval of work) are executed again: the reset machine has forgotten them.
 /// Check every index 0..total executed, in order, repeats only in one run right after
 /// one reset. Returns how many were repeated.
 fn assert_all_executed_repeats_only_at_reset(record: &Path, job: u64, total: u64) -> u64 {
-    let text = std::fs::read_to_string(record).unwrap();
-    let idx: Vec<u64> = text
-        .lines()
-        .map(|l| serde_json::from_str::<Value>(l).unwrap())
-        .filter(|v| v["job_id"] == json!(job))
-        .map(|v| v["index"].as_u64().unwrap())
-        .collect();
+    let idx = recorded_indices(record, job);
     let backs: Vec<usize> = (1..idx.len())
         .filter(|&k| idx[k] != idx[k - 1] + 1)
         .collect();
@@ -210,21 +242,31 @@ fn assert_all_executed_repeats_only_at_reset(record: &Path, job: u64, total: u64
 /// Executed indices of `job` from the recorder, checked to be 0..total each exactly once
 /// and in order.
 fn assert_exactly_once(record: &Path, job: u64, total: u64) {
-    let text = std::fs::read_to_string(record).unwrap();
+    let order = recorded_indices(record, job);
     let mut seen: BTreeMap<u64, u32> = BTreeMap::new();
-    let mut order = Vec::new();
-    for l in text.lines() {
-        let v: Value = serde_json::from_str(l).unwrap();
-        if v["job_id"] == json!(job) {
-            let i = v["index"].as_u64().unwrap();
-            *seen.entry(i).or_default() += 1;
-            order.push(i);
-        }
+    for &i in &order {
+        *seen.entry(i).or_default() += 1;
     }
     let dup: Vec<_> = seen.iter().filter(|(_, &n)| n > 1).collect();
     assert!(dup.is_empty(), "moves executed twice: {dup:?}");
     assert_eq!(seen.len() as u64, total, "moves executed");
     assert!(order.windows(2).all(|w| w[0] + 1 == w[1]), "out of order");
+}
+
+/// A daemon on a simulator seeded `seed` in `dir`, streaming a dry run of `moves`
+/// (past its 300th move): the simulator, its recorder, the daemon, a client, the job.
+fn streaming(
+    dir: &Path,
+    seed: u64,
+    moves: u32,
+) -> (hil_sim::SimHandle, PathBuf, Daemon, Client, u64) {
+    let (sim, record) = sim(dir, seed);
+    let d = Daemon::start(dir, sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, moves);
+    c.wait("streaming", |c| c.executed(a) > 300);
+    (sim, record, d, c, a)
 }
 
 fn submit(c: &mut Client, moves: u32) -> u64 {
@@ -310,12 +352,7 @@ fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
 #[test]
 fn estop_and_machine_reset_then_resume_from_first_move_not_executed() {
     let dir = tempfile::tempdir().unwrap();
-    let (sim, record) = sim(dir.path(), 2);
-    let d = Daemon::start(dir.path(), sim.path());
-    let mut c = d.client();
-    c.wait_connected();
-    let a = submit(&mut c, 3000);
-    c.wait("streaming", |c| c.executed(a) > 300);
+    let (sim, record, d, mut c, a) = streaming(dir.path(), 2, 3000);
     let t = c.call("machine.estop", json!({})).unwrap();
     assert!(t["written_after_us"].as_u64().is_some(), "{t}");
     eprintln!("e-stop timing: {t}");
@@ -405,12 +442,7 @@ fn sigkill_of_edod_with_the_machine_running_loses_and_repeats_nothing() {
 #[test]
 fn syringe_empty_pauses_until_refill() {
     let dir = tempfile::tempdir().unwrap();
-    let (sim, record) = sim(dir.path(), 4);
-    let d = Daemon::start(dir.path(), sim.path());
-    let mut c = d.client();
-    c.wait_connected();
-    let a = submit(&mut c, 2000);
-    c.wait("streaming", |c| c.executed(a) > 300);
+    let (sim, record, d, mut c, a) = streaming(dir.path(), 4, 2000);
     sim.command(hil_sim::Command::Empty(1));
     let j = c.wait_state(a, "paused");
     assert!(
@@ -454,21 +486,9 @@ fn edoctl_submits_watches_and_shows_daemon_errors() {
     let (sim, record) = sim(dir.path(), 5);
     let d = Daemon::start(dir.path(), sim.path());
     d.client().wait_connected();
-    let edoctl = |args: &[&str]| {
-        Command::new(env!("CARGO_BIN_EXE_edoctl"))
-            .arg("--socket")
-            .arg(&d.socket)
-            .args(args)
-            .output()
-            .unwrap()
-    };
-    let out = edoctl(&["submit", "--dry-run-moves", "300", "--watch", "--json"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let j: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let edoctl = |args: &[&str]| d.edoctl(args);
+    let out = d.edoctl_ok(["submit", "--dry-run-moves", "300", "--watch", "--json"]);
+    let j: Value = serde_json::from_slice(&out).unwrap();
     assert_eq!(j["state"], json!("done"));
     assert_eq!(j["checkpoint"]["next_index"], json!(300));
     let out = edoctl(&["jobs"]);
@@ -502,9 +522,15 @@ fn cancel_stops_retracts_and_parks() {
     c.call("job.cancel", json!({"id": queued})).unwrap();
     assert_eq!(c.job(queued)["state"], json!("cancelled"));
     c.wait("streaming", |c| c.executed(a) > 300);
-    c.call("job.cancel", json!({"id": a})).unwrap();
-    let j = c.wait_state(a, "cancelled");
+    // edoctl cancel returns once the job is cancelled (stopped, then parking).
+    let out = d.edoctl_ok(["cancel", &a.to_string()]);
+    let j = c.job(a);
+    assert_eq!(j["state"], json!("cancelled"), "{j}");
     let stopped_at = j["checkpoint"]["next_index"].as_u64().unwrap();
+    assert_eq!(
+        String::from_utf8_lossy(&out).trim(),
+        format!("job {a} cancelled after {stopped_at} moves")
+    );
     assert!(stopped_at < 3000);
     c.wait("parked", |c| {
         let m = c.call("machine.status", json!({})).unwrap();
@@ -515,24 +541,41 @@ fn cancel_stops_retracts_and_parks() {
     drop(c);
     drop(d);
     sim.stop().unwrap();
-    let text = std::fs::read_to_string(&record).unwrap();
-    let lines: Vec<Value> = text
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
-    let idx: Vec<u64> = lines
+    assert_eq!(
+        recorded_indices(&record, a),
+        (0..stopped_at).collect::<Vec<_>>()
+    );
+    assert!(recorded(&record, queued).is_empty());
+    let service: Vec<Value> = recorded(&record, 0)
         .iter()
-        .filter(|v| v["job_id"] == json!(a))
-        .map(|v| v["index"].as_u64().unwrap())
-        .collect();
-    assert_eq!(idx, (0..stopped_at).collect::<Vec<_>>());
-    assert!(lines.iter().all(|v| v["job_id"] != json!(queued)));
-    let service: Vec<&str> = lines
-        .iter()
-        .filter(|v| v["job_id"] == json!(0))
-        .map(|v| v["kind"].as_str().unwrap())
+        .map(|v| v["kind"].clone())
         .collect();
     assert_eq!(service, ["retract", "travel", "travel"]);
+}
+
+#[test]
+fn cancel_ends_the_job_when_the_link_is_lost_before_the_park() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, d, mut c, a) = streaming(dir.path(), 7, 3000);
+    // The machine stops answering, so the cancel's e-stop is never acknowledged.
+    sim.command(hil_sim::Command::Stall(4000));
+    let r = c.call("job.cancel", json!({"id": a})).unwrap();
+    assert_eq!(r["state"], json!("printing"), "{r}");
+    let j = c.wait_state(a, "cancelled");
+    let reason = j["reason"].as_str().unwrap();
+    assert!(
+        reason.starts_with("cancelled by an operator; not parked: link"),
+        "{reason}"
+    );
+    // It stays cancelled once the machine answers again, and nothing else starts.
+    c.wait_connected();
+    assert_eq!(c.job(a)["state"], json!("cancelled"));
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    let idx = recorded_indices(&record, a);
+    assert!(idx.len() < 3000);
+    assert_eq!(idx, (0..idx.len() as u64).collect::<Vec<_>>());
 }
 
 /// A mesh as binary STL bytes.
@@ -612,19 +655,13 @@ layer = 0.2
         "{e}"
     );
 
-    let out = Command::new(env!("CARGO_BIN_EXE_edoctl"))
-        .arg("--socket")
-        .arg(&d.socket)
-        .args(["submit", "--watch", "--json"])
-        .arg(&job_path)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let j: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let out = d.edoctl_ok([
+        "submit".as_ref(),
+        "--watch".as_ref(),
+        "--json".as_ref(),
+        job_path.as_os_str(),
+    ]);
+    let j: Value = serde_json::from_slice(&out).unwrap();
     assert_eq!(j["state"], json!("done"), "{j}");
     let id = j["id"].as_u64().unwrap();
     let total = j["total_moves"].as_u64().unwrap();
@@ -643,12 +680,7 @@ layer = 0.2
     assert_eq!(planned.len() as u64, total);
     assert!(planned.len() > 100, "{} moves", planned.len());
     assert_exactly_once(&record, id, total);
-    let text = std::fs::read_to_string(&record).unwrap();
-    let executed: Vec<Value> = text
-        .lines()
-        .map(|l| serde_json::from_str::<Value>(l).unwrap())
-        .filter(|v| v["job_id"] == json!(id))
-        .collect();
+    let executed = recorded(&record, id);
     let mut extrusions = 0;
     for (m, e) in planned.iter().zip(&executed) {
         assert_eq!(e["index"], json!(m.index));

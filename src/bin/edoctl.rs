@@ -75,7 +75,7 @@ enum Commands {
         /// Job id.
         id: u64,
     },
-    /// Cancel a job (a printing one stops, retracts and parks).
+    /// Cancel a job; a printing one stops, retracts and parks (this waits until it has).
     Cancel {
         /// Job id.
         id: u64,
@@ -164,8 +164,12 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
             print(&r, format!("job {id} resumed"));
         }
         Commands::Cancel { id } => {
-            let r = c.call("job.cancel", json!({"id": id}))?;
-            print(&r, format!("job {id} cancelled"));
+            let j = edo::cli::client::cancel(&mut c, *id, edo::cli::client::CANCEL_WAIT)?;
+            print(&j, edo::cli::client::cancelled_line(&j));
+            if j["state"] != json!("cancelled") {
+                // It ended some other way (done or failed) before the cancel took.
+                return Ok(ExitCode::FAILURE);
+            }
         }
         Commands::Estop => {
             let r = c.call("machine.estop", json!({}))?;

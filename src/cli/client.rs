@@ -185,6 +185,51 @@ pub fn progress_line(p: &Value) -> String {
     s
 }
 
+/// How long `edoctl cancel` waits for a printing job to stop, retract and park.
+pub const CANCEL_WAIT: Duration = Duration::from_secs(30);
+
+/// Cancel job `id` and wait (up to `wait`) until it is cancelled: a printing job stays
+/// `printing` while the machine stops, retracts and parks (about a second). Returns the
+/// job; an error if it has not ended by then.
+pub fn cancel(client: &mut Client, id: u64, wait: Duration) -> Result<Value> {
+    let r = client.call("job.cancel", json!({"id": id}))?;
+    let started = std::time::Instant::now();
+    let mut job = if r["state"] == json!("cancelled") {
+        client.call("job.get", json!({"id": id}))?
+    } else {
+        r
+    };
+    while !matches!(job["state"].as_str(), Some("done" | "failed" | "cancelled")) {
+        if started.elapsed() >= wait {
+            bail!(
+                "job {id} is still {} {} s after the cancel (the machine has not confirmed \
+                 the stop); 'edoctl watch {id}' follows it",
+                job["state"].as_str().unwrap_or("in an unknown state"),
+                wait.as_secs()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(100));
+        job = client.call("job.get", json!({"id": id}))?;
+    }
+    Ok(job)
+}
+
+/// The line `edoctl cancel` prints for the job it cancelled.
+pub fn cancelled_line(j: &Value) -> String {
+    let id = j["id"].as_u64().map_or("?".to_string(), |i| i.to_string());
+    let state = j["state"].as_str().unwrap_or("?");
+    let mut line = format!("job {id} {state}");
+    if let Some(n) = j["checkpoint"]["next_index"].as_u64().filter(|&n| n > 0) {
+        line.push_str(&format!(" after {n} moves"));
+    }
+    if let Some(r) = j["reason"].as_str().filter(|_| state == "cancelled") {
+        if let Some(extra) = r.strip_prefix("cancelled by an operator; ") {
+            line.push_str(&format!("; {extra}"));
+        }
+    }
+    line
+}
+
 /// Watch job `id` with a progress bar until it is done, failed or cancelled; returns its
 /// final state.
 pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
@@ -273,6 +318,26 @@ pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn cancelled_line_says_where_the_job_stopped_and_what_was_left_undone() {
+        let parked = json!({"id": 4, "state": "cancelled", "reason": "cancelled by an operator",
+            "checkpoint": {"next_index": 1201}});
+        assert_eq!(cancelled_line(&parked), "job 4 cancelled after 1201 moves");
+        let lost = json!({"id": 4, "state": "cancelled",
+            "reason": "cancelled by an operator; not parked: link to the machine lost",
+            "checkpoint": {"next_index": 1201}});
+        assert_eq!(
+            cancelled_line(&lost),
+            "job 4 cancelled after 1201 moves; not parked: link to the machine lost"
+        );
+        let queued = json!({"id": 5, "state": "cancelled", "reason": "cancelled by an operator",
+            "checkpoint": {"next_index": 0}});
+        assert_eq!(cancelled_line(&queued), "job 5 cancelled");
+        // It finished before the cancel took.
+        let done = json!({"id": 6, "state": "done", "checkpoint": {"next_index": 300}});
+        assert_eq!(cancelled_line(&done), "job 6 done after 300 moves");
+    }
 
     #[test]
     fn progress_reads_as_people_count() {

@@ -402,7 +402,9 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
         "job.cancel" => {
             let JobId { id } = params(p)?;
             ask(shared, |r| Control::Cancel(id, r)).await?;
-            Ok(json!({"id": id}))
+            // `cancelled`, or still `printing` while the machine stops and parks.
+            let j = shared.with_store(|s| s.get(id))?;
+            Ok(json!({"id": id, "state": j.state}))
         }
         "machine.status" => {
             params::<Empty>(p)?;

@@ -269,6 +269,9 @@ impl Streamer {
     }
 
     fn finish_shutdown(&mut self) {
+        if self.active.as_ref().is_some_and(Active::cancelling) {
+            self.interrupt("edod stopped");
+        }
         if let Some(a) = self.active.as_mut() {
             if !a.phase_is_final_wait() {
                 a.phase = Phase::Interrupted;
@@ -631,6 +634,22 @@ impl Streamer {
             return;
         };
         if matches!(a.phase, Phase::Interrupted) {
+            return;
+        }
+        if a.cancelling() {
+            // The operator asked for the job to end: it does, without the park.
+            let id = a.id;
+            warn!(
+                job = id,
+                why, "cancel interrupted before the nozzle was parked"
+            );
+            self.save_checkpoint(true);
+            self.active = None;
+            self.set_job_state(
+                id,
+                JobState::Cancelled,
+                Some(&format!("cancelled by an operator; not parked: {why}")),
+            );
             return;
         }
         a.phase = Phase::Interrupted;
@@ -1177,6 +1196,20 @@ impl Streamer {
 impl Active {
     fn phase_is_final_wait(&self) -> bool {
         matches!(self.phase, Phase::Empty | Phase::Interrupted)
+    }
+
+    /// An operator's cancel is under way: the machine is being stopped before the
+    /// nozzle retracts and parks.
+    fn cancelling(&self) -> bool {
+        matches!(
+            self.phase,
+            Phase::Flushing {
+                then: AfterFlush::Park,
+                ..
+            } | Phase::Releasing {
+                then: AfterFlush::Park
+            }
+        )
     }
 }
 
