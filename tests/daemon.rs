@@ -578,6 +578,36 @@ fn cancel_ends_the_job_when_the_link_is_lost_before_the_park() {
     assert_eq!(idx, (0..idx.len() as u64).collect::<Vec<_>>());
 }
 
+#[test]
+fn moves_a_cancel_could_not_stop_are_stopped_when_the_machine_is_back() {
+    let dir = tempfile::tempdir().unwrap();
+    // At 2x a dry-run move takes 50 ms: the machine's 128 queued moves outlast the
+    // unplug (1 s) and the reconnection.
+    let (sim, _record) = sim_at(dir.path(), 8, 2.0);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 3000);
+    c.wait("streaming", |c| c.executed(a) > 30);
+    sim.command(hil_sim::Command::Unplug);
+    c.call("job.cancel", json!({"id": a})).unwrap();
+    c.wait_state(a, "cancelled");
+    c.wait_connected();
+    let mut last = Value::Null;
+    c.wait("the machine stopped", |c| {
+        last = c.call("machine.status", json!({})).unwrap();
+        last["state"] != json!("Running")
+    });
+    // Stopped by edod's e-stop, not by running out of moves.
+    assert_eq!(last["state"], json!("EStopped"), "{last}");
+    // The next job starts from a clean machine.
+    let b = submit(&mut c, 20);
+    c.wait_state(b, "done");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
 /// A mesh as binary STL bytes.
 fn stl_of(mesh: &edo::mesh::Mesh) -> Vec<u8> {
     mesh.to_binary_stl().unwrap()

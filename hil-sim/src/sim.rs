@@ -150,10 +150,16 @@ struct Pty {
 }
 
 fn open_pty(link: Option<&Path>) -> anyhow::Result<Pty> {
+    use nix::fcntl::FdFlag;
     use nix::fcntl::{fcntl, FcntlArg, OFlag};
     use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
     use std::os::fd::AsRawFd;
     let pty = nix::pty::openpty(None, None).context("openpty")?;
+    // Neither end may leak into a process spawned meanwhile (a test's edod): an
+    // inherited master keeps the pty alive, so an unplug would not hang up the host.
+    for fd in [&pty.master, &pty.slave] {
+        fcntl(fd, FcntlArg::F_SETFD(FdFlag::FD_CLOEXEC)).context("fcntl FD_CLOEXEC")?;
+    }
     let mut t = tcgetattr(&pty.slave).context("tcgetattr on the pty")?;
     cfmakeraw(&mut t);
     tcsetattr(&pty.slave, SetArg::TCSANOW, &t).context("tcsetattr raw on the pty")?;

@@ -709,6 +709,18 @@ impl Streamer {
                         if let Ok(j) = self.shared.with_store(|s| s.get(m.job_id)) {
                             if j.state == JobState::Interrupted {
                                 self.tracked = Some((m.job_id, j.checkpoint));
+                            } else if j.state == JobState::Cancelled
+                                && (st.state == MachineState::Running || st.queued > 0)
+                            {
+                                // Cancelled while the link was down (the port lost, so
+                                // the cancel's e-stop went with it): the machine still
+                                // runs the moves it had queued. Stop them.
+                                warn!(
+                                    job = m.job_id,
+                                    queued = st.queued,
+                                    "the machine still runs moves of a cancelled job: e-stop"
+                                );
+                                self.begin_flush();
                             }
                         }
                     }
