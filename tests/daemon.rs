@@ -612,6 +612,28 @@ fn moves_a_cancel_could_not_stop_are_stopped_when_the_machine_is_back() {
     sim.stop().unwrap();
 }
 
+#[test]
+fn unplugged_cable_mid_job_resumes_without_losing_or_repeating_a_move() {
+    let dir = tempfile::tempdir().unwrap();
+    // At 5x (20 ms a move) the machine is still running its queue when the port is back.
+    let (sim, record) = sim_at(dir.path(), 9, 5.0);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 600);
+    c.wait("streaming", |c| c.executed(a) > 50);
+    sim.command(hil_sim::Command::Unplug);
+    let j = c.wait_state(a, "interrupted");
+    assert_eq!(j["reason"], json!("serial port lost"), "{j}");
+    c.wait_connected();
+    c.call("job.resume", json!({"id": a})).unwrap();
+    c.wait_state(a, "done");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 600);
+}
+
 /// A mesh as binary STL bytes.
 fn stl_of(mesh: &edo::mesh::Mesh) -> Vec<u8> {
     mesh.to_binary_stl().unwrap()
