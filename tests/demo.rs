@@ -50,6 +50,20 @@ fn demo_prints_the_crown_as_planned_and_writes_previews() {
     // The built gradient follows the design (plug-flow chamber of 1 µL, mixing lead on).
     let built = s["composition_error_built"]["mean"].as_f64().unwrap();
     assert!(built < 0.03, "designed-vs-built composition error {built}");
+    // Road by road the whole-nanolitre jitter of single moves averages out: what left
+    // the nozzle over a road is what the planner predicted for it.
+    let per_road = s["composition_error_built_per_road"]["mean"]
+        .as_f64()
+        .unwrap();
+    let predicted = s["composition_error_predicted"]["mean"].as_f64().unwrap();
+    assert!(
+        per_road < built / 2.0,
+        "per road {per_road}, per move {built}"
+    );
+    assert!(
+        (per_road - predicted).abs() < 0.002,
+        "per road {per_road}, predicted {predicted}"
+    );
     assert!(s["void_fraction"].as_f64().unwrap() < 0.01, "{s}");
     let ul: Vec<f64> = s["syringe_volumes_ul"]
         .as_array()
