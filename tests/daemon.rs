@@ -24,13 +24,22 @@ impl Daemon {
     }
 
     fn start_with_limit(dir: &Path, port: &Path, max_request_bytes: usize) -> Daemon {
+        Daemon::start_keeping(dir, port, max_request_bytes, 1000)
+    }
+
+    fn start_keeping(
+        dir: &Path,
+        port: &Path,
+        max_request_bytes: usize,
+        keep_finished_jobs: usize,
+    ) -> Daemon {
         let socket = dir.join("edod.sock");
         let config = dir.join("edod.toml");
         std::fs::write(
             &config,
             format!(
                 "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = {max_request_bytes}\n\
-                 [state]\ndir = {:?}\n[planner]\ndry_run_moves_per_layer = 100\n",
+                 [state]\ndir = {:?}\nkeep_finished_jobs = {keep_finished_jobs}\n[planner]\ndry_run_moves_per_layer = 100\n",
                 port.display().to_string(),
                 socket.display().to_string(),
                 dir.join("state").display().to_string()
@@ -632,6 +641,55 @@ fn unplugged_cable_mid_job_resumes_without_losing_or_repeating_a_move() {
     drop(d);
     sim.stop().unwrap();
     assert_exactly_once(&record, a, 600);
+}
+
+#[test]
+fn finished_jobs_are_deleted_on_request_and_beyond_the_newest_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 10);
+    let d = Daemon::start_keeping(dir.path(), sim.path(), 4096, 2);
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 3000);
+    c.wait("streaming", |c| c.executed(a) > 50);
+    let e = c.call("job.delete", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32002));
+    assert!(
+        e["message"].as_str().unwrap().contains("is printing"),
+        "{e}"
+    );
+    let out = d.edoctl(["delete", &a.to_string()]);
+    assert!(!out.status.success());
+    d.edoctl_ok(["cancel", &a.to_string()]);
+    let out = d.edoctl_ok(["delete", &a.to_string()]);
+    assert_eq!(
+        String::from_utf8_lossy(&out).trim(),
+        format!("job {a} deleted")
+    );
+    let e = c.call("job.get", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32001));
+    // Three more finished jobs: each submission keeps the newest two finished.
+    let mut done = Vec::new();
+    for _ in 0..3 {
+        let b = submit(&mut c, 20);
+        c.wait_state(b, "done");
+        done.push(b);
+    }
+    let q = submit(&mut c, 3000);
+    let ids: Vec<u64> = c
+        .call("job.list", json!({}))
+        .unwrap()
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|j| j["id"].as_u64().unwrap())
+        .collect();
+    assert_eq!(ids, [done[1], done[2], q]);
+    // Unfinished jobs (the queued one) are never pruned.
+    c.call("job.cancel", json!({"id": q})).unwrap();
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
 }
 
 /// A mesh as binary STL bytes.

@@ -80,6 +80,11 @@ enum Commands {
         /// Job id.
         id: u64,
     },
+    /// Delete a finished (done, failed or cancelled) job and its mesh from edod's store.
+    Delete {
+        /// Job id.
+        id: u64,
+    },
     /// Emergency stop: goes out ahead of everything queued.
     Estop,
     /// The syringes were refilled: clear the fault and continue.
@@ -170,6 +175,10 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
                 // It ended some other way (done or failed) before the cancel took.
                 return Ok(ExitCode::FAILURE);
             }
+        }
+        Commands::Delete { id } => {
+            let r = c.call("job.delete", json!({"id": id}))?;
+            print(&r, format!("job {id} deleted"));
         }
         Commands::Estop => {
             let r = c.call("machine.estop", json!({}))?;

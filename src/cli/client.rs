@@ -1,5 +1,5 @@
 //! edoctl's daemon subcommands (`submit`, `jobs`, `status`, `watch`, `pause`, `resume`,
-//! `cancel`, `estop`, `refill`): a blocking JSON-RPC client of edod's socket
+//! `cancel`, `delete`, `estop`, `refill`): a blocking JSON-RPC client of edod's socket
 //! (`docs/api.md`). Output is a short human line, or the daemon's JSON with `--json`.
 
 use std::io::{BufRead, BufReader, Write};

@@ -368,8 +368,15 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
                     ))
                 }
             };
-            let id = shared.with_store(|st| st.insert(&name, &spec))?;
+            let keep = shared.config.state.keep_finished_jobs;
+            let (id, pruned) = shared.with_store(|st| {
+                let id = st.insert(&name, &spec)?;
+                Ok((id, st.prune_finished(keep)?))
+            })?;
             info!(job = id, name = %name, "job accepted");
+            if !pruned.is_empty() {
+                info!(jobs = ?pruned, keep, "deleted the oldest finished jobs");
+            }
             shared.notify(
                 "notify_job_state",
                 json!({"job_id": id, "state": "queued", "reason": null}),
@@ -405,6 +412,23 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
             // `cancelled`, or still `printing` while the machine stops and parks.
             let j = shared.with_store(|s| s.get(id))?;
             Ok(json!({"id": id, "state": j.state}))
+        }
+        "job.delete" => {
+            let JobId { id } = params(p)?;
+            match shared.with_store(|s| s.delete_finished(id))? {
+                Ok(()) => {
+                    info!(job = id, "job deleted");
+                    Ok(json!({"id": id, "deleted": true}))
+                }
+                Err(state) => Err(ApiError::new(
+                    ApiError::BAD_STATE,
+                    format!(
+                        "job {id} is {}: only a done, failed or cancelled job can be deleted \
+                         (cancel it first)",
+                        state.as_str()
+                    ),
+                )),
+            }
         }
         "machine.status" => {
             params::<Empty>(p)?;

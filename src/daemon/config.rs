@@ -275,16 +275,26 @@ pub struct StateConfig {
     /// Directory of the job database (default `/var/lib/edo`).
     #[serde(default = "default_state_dir")]
     pub dir: PathBuf,
+    /// Finished jobs (done, failed, cancelled) kept with their meshes; older ones are
+    /// deleted as new jobs arrive, so the database does not grow without bound
+    /// (default 1000, at least 1).
+    #[serde(default = "default_keep_finished_jobs")]
+    pub keep_finished_jobs: usize,
 }
 
 fn default_state_dir() -> PathBuf {
     PathBuf::from("/var/lib/edo")
 }
 
+fn default_keep_finished_jobs() -> usize {
+    1000
+}
+
 impl Default for StateConfig {
     fn default() -> Self {
         Self {
             dir: default_state_dir(),
+            keep_finished_jobs: default_keep_finished_jobs(),
         }
     }
 }
@@ -485,6 +495,12 @@ impl Config {
                 "max_clients and client_queue must be positive".into(),
             ));
         }
+        if self.state.keep_finished_jobs == 0 {
+            return Err(bad(
+                "state.keep_finished_jobs",
+                "at least 1 (delete single jobs with job.delete)".into(),
+            ));
+        }
         if self.planner.layers_ahead == 0
             || self.planner.moves_ahead == 0
             || self.planner.dry_run_moves_per_layer == 0
@@ -526,6 +542,8 @@ mod tests {
         assert!(e.to_string().contains("api.mode"), "{e}");
         let e = Config::from_toml("[machine]\nsyringes = []\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("machine.syringes"), "{e}");
+        let e = Config::from_toml("[state]\nkeep_finished_jobs = 0\n", "m.toml").unwrap_err();
+        assert!(e.to_string().contains("state.keep_finished_jobs"), "{e}");
         for (text, key) in [
             (
                 "build_volume_mm = [200.0, 0.0, 150.0]",

@@ -345,6 +345,45 @@ impl Store {
         Ok(())
     }
 
+    /// Delete job `id` and its mesh if it is finished (done, failed or cancelled);
+    /// returns its state otherwise, and deletes nothing. Job ids are never reused
+    /// (`AUTOINCREMENT`), so a machine's report of a deleted job's moves names no other.
+    pub fn delete_finished(&self, id: u32) -> Result<Result<(), JobState>, StoreError> {
+        let state = self.get(id)?.state;
+        if !state.is_final() {
+            return Ok(Err(state));
+        }
+        let tx = self.conn.unchecked_transaction()?;
+        tx.execute("DELETE FROM job_meshes WHERE id = ?1", [id])?;
+        tx.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
+        tx.commit()?;
+        Ok(Ok(()))
+    }
+
+    /// Delete the finished jobs (and their meshes) older than the newest `keep` of them;
+    /// returns the ids deleted, oldest first. Unfinished jobs are never touched.
+    pub fn prune_finished(&self, keep: usize) -> Result<Vec<u32>, StoreError> {
+        let ids: Vec<u32> = {
+            let mut st = self.conn.prepare(
+                "SELECT id FROM jobs WHERE state IN ('done', 'failed', 'cancelled')
+                 ORDER BY id DESC LIMIT -1 OFFSET ?1",
+            )?;
+            let rows = st.query_map([keep as i64], |r| r.get::<_, i64>(0))?;
+            rows.collect::<Result<Vec<_>, _>>()?
+                .into_iter()
+                .rev()
+                .map(|v| v as u32)
+                .collect()
+        };
+        let tx = self.conn.unchecked_transaction()?;
+        for &id in &ids {
+            tx.execute("DELETE FROM job_meshes WHERE id = ?1", [id])?;
+            tx.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
+        }
+        tx.commit()?;
+        Ok(ids)
+    }
+
     /// At start-up: jobs that were planning, printing or paused when edod stopped are
     /// interrupted (they resume from their checkpoint). Returns their ids.
     pub fn interrupt_unfinished(&self, reason: &str) -> Result<Vec<u32>, StoreError> {
@@ -389,6 +428,60 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn finished_jobs_are_deleted_on_request_or_beyond_the_newest_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path()).unwrap();
+        let mesh_job = JobSpec::Toml {
+            toml: "name = 'm'".into(),
+            mesh: Some(vec![1, 2, 3]),
+        };
+        let ids: Vec<u32> = (0..6)
+            .map(|k| {
+                let spec = if k % 2 == 0 {
+                    mesh_job.clone()
+                } else {
+                    JobSpec::DryRun { moves: 5 }
+                };
+                s.insert(&format!("j{k}"), &spec).unwrap()
+            })
+            .collect();
+        assert_eq!(ids, [1, 2, 3, 4, 5, 6]);
+        // 1 done, 2 printing, 3 failed, 4 cancelled, 5 done, 6 queued.
+        for (id, st) in [
+            (1, JobState::Done),
+            (2, JobState::Printing),
+            (3, JobState::Failed),
+            (4, JobState::Cancelled),
+            (5, JobState::Done),
+        ] {
+            s.set_state(id, st, None).unwrap();
+        }
+        assert_eq!(s.delete_finished(2).unwrap(), Err(JobState::Printing));
+        assert_eq!(s.delete_finished(6).unwrap(), Err(JobState::Queued));
+        assert!(matches!(s.delete_finished(9), Err(StoreError::NotFound(9))));
+        assert_eq!(s.delete_finished(3).unwrap(), Ok(()));
+        assert!(matches!(s.get(3), Err(StoreError::NotFound(3))));
+        assert!(matches!(s.mesh(3), Err(StoreError::NotFound(3))));
+        // Finished now: 1, 4, 5. Keep the newest two.
+        assert_eq!(s.prune_finished(2).unwrap(), vec![1]);
+        assert_eq!(s.prune_finished(2).unwrap(), Vec::<u32>::new());
+        let left: Vec<u32> = s.list().unwrap().iter().map(|j| j.id).collect();
+        assert_eq!(left, vec![2, 4, 5, 6]);
+        // The meshes went with their jobs, and ids are not reused.
+        let meshes: i64 = s
+            .conn
+            .query_row("SELECT COUNT(*) FROM job_meshes", [], |r| r.get(0))
+            .unwrap();
+        assert_eq!(meshes, 1, "job 5's mesh");
+        assert_eq!(s.insert("new", &JobSpec::DryRun { moves: 1 }).unwrap(), 7);
+        assert_eq!(s.prune_finished(0).unwrap(), vec![4, 5]);
+        // Not even the newest id comes back once deleted.
+        s.set_state(7, JobState::Done, None).unwrap();
+        assert_eq!(s.delete_finished(7).unwrap(), Ok(()));
+        assert_eq!(s.insert("newer", &JobSpec::DryRun { moves: 1 }).unwrap(), 8);
+    }
 
     #[test]
     fn jobs_survive_reopen_and_unfinished_ones_are_interrupted() {
