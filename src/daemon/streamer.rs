@@ -142,6 +142,30 @@ pub struct Streamer {
     estops: Vec<(Instant, Option<u64>, Reply<EStopTiming>)>,
     shutdown: Option<(oneshot::Sender<()>, Instant)>,
     underruns: u64,
+    /// When an underrun was last logged, and how many came since (logged at most
+    /// every [`UNDERRUN_LOG_EVERY`], so a link too slow for the job cannot flood the
+    /// journal).
+    underrun_logged: Option<(Instant, u64)>,
+}
+
+/// Underrun warnings at most this often (the count of the ones between goes with the next).
+const UNDERRUN_LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// For an event logged at most every [`UNDERRUN_LOG_EVERY`]: whether to log the one
+/// at `now`, with how many were not logged since the last (`logged`: when that was and
+/// that count).
+fn log_now(logged: &mut Option<(Instant, u64)>, now: Instant) -> Option<u64> {
+    match logged {
+        Some((at, since)) if now.saturating_duration_since(*at) < UNDERRUN_LOG_EVERY => {
+            *since += 1;
+            None
+        }
+        _ => {
+            let since = logged.map_or(0, |(_, n)| n);
+            *logged = Some((now, 0));
+            Some(since)
+        }
+    }
 }
 
 fn session_seed() -> u64 {
@@ -213,6 +237,7 @@ impl Streamer {
             estops: Vec::new(),
             shutdown: None,
             underruns: 0,
+            underrun_logged: None,
         }
     }
 
@@ -871,15 +896,19 @@ impl Streamer {
             // host fell behind.
             if a.phase == Phase::Streaming && left && empty && a.ran {
                 if !a.machine_was_empty {
-                    warn!(
-                        job = a.id,
-                        executed = a.checkpoint.next_index,
-                        waiting_here = a.queue.len(),
-                        planner_running = a.planner.is_some(),
-                        "queue underrun: the machine ran out of moves"
-                    );
                     self.underruns += 1;
                     a.machine_was_empty = true;
+                    if let Some(since) = log_now(&mut self.underrun_logged, Instant::now()) {
+                        warn!(
+                            job = a.id,
+                            executed = a.checkpoint.next_index,
+                            waiting_here = a.queue.len(),
+                            planner_running = a.planner.is_some(),
+                            underruns = self.underruns,
+                            not_logged_since_last = since,
+                            "queue underrun: the machine ran out of moves"
+                        );
+                    }
                 }
             } else {
                 a.machine_was_empty = false;
@@ -1227,7 +1256,25 @@ impl Active {
 
 #[cfg(test)]
 mod tests {
-    use super::time_left_s;
+    use super::{log_now, time_left_s};
+    use std::time::{Duration, Instant};
+
+    #[test]
+    fn underruns_are_logged_at_most_every_ten_seconds_with_the_count_between() {
+        let t0 = Instant::now();
+        let at = |ms: u64| t0 + Duration::from_millis(ms);
+        let mut logged = None;
+        assert_eq!(log_now(&mut logged, at(0)), Some(0));
+        // A burst of 500 over the next 5 s: none logged.
+        for k in 1..=500 {
+            assert_eq!(log_now(&mut logged, at(10 * k)), None);
+        }
+        // The first after 10 s carries the count.
+        assert_eq!(log_now(&mut logged, at(10_000)), Some(500));
+        assert_eq!(log_now(&mut logged, at(10_001)), None);
+        assert_eq!(log_now(&mut logged, at(30_000)), Some(1));
+        assert_eq!(log_now(&mut logged, at(45_000)), Some(0));
+    }
 
     #[test]
     fn time_left_from_moves_once_known_else_from_layers() {
