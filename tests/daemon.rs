@@ -592,6 +592,42 @@ fn cancel_ends_the_job_when_the_link_is_lost_before_the_park() {
 }
 
 #[test]
+fn edod_stopped_during_a_cancel_leaves_the_job_cancelled_across_the_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, mut d, mut c, a) = streaming(dir.path(), 11, 3000);
+    sim.command(hil_sim::Command::Stall(3000));
+    c.call("job.cancel", json!({"id": a})).unwrap();
+    drop(c);
+    assert!(d.sigterm().success());
+    let d2 = Daemon::spawn(d.socket.clone(), d.config.clone());
+    let mut c = d2.client();
+    let j = c.job(a);
+    assert_eq!(j["state"], json!("cancelled"), "{j}");
+    // The stalled machine's link is declared lost (1.5 s) before edod's 2 s stop
+    // deadline; had it answered without confirming the e-stop, the reason would be
+    // "edod stopped".
+    let reason = j["reason"].as_str().unwrap();
+    assert!(
+        reason.starts_with("cancelled by an operator; not parked: "),
+        "{reason}"
+    );
+    // Nothing resumes it once the machine answers again.
+    c.wait_connected();
+    std::thread::sleep(Duration::from_millis(300));
+    assert_eq!(c.job(a)["state"], json!("cancelled"));
+    assert_eq!(
+        c.call("machine.status", json!({})).unwrap()["active_job"],
+        Value::Null
+    );
+    drop(c);
+    drop(d2);
+    drop(d);
+    sim.stop().unwrap();
+    let idx = recorded_indices(&record, a);
+    assert_eq!(idx, (0..idx.len() as u64).collect::<Vec<_>>());
+}
+
+#[test]
 fn moves_a_cancel_could_not_stop_are_stopped_when_the_machine_is_back() {
     let dir = tempfile::tempdir().unwrap();
     // At 2x a dry-run move takes 50 ms: the machine's 128 queued moves outlast the
