@@ -260,9 +260,7 @@ impl Job {
         };
         let tolerances = Tolerances::default();
 
-        if raw.name.trim().is_empty() {
-            return Err(bad("name", "must not be empty".into()));
-        }
+        check_name(&raw.name).map_err(|m| bad("name", m))?;
         // Materials.
         let materials = raw.materials.names;
         if materials.is_empty() {
@@ -955,6 +953,26 @@ impl Job {
     }
 }
 
+/// Longest job name, characters.
+pub const MAX_NAME_CHARS: usize = 200;
+
+/// A job's name, as listings and the journal show it: not blank, at most
+/// [`MAX_NAME_CHARS`], and no control characters (a newline or an escape sequence in
+/// a name would rewrite the operator's terminal in `edoctl jobs`).
+pub fn check_name(name: &str) -> Result<(), String> {
+    if name.trim().is_empty() {
+        return Err("must not be empty".into());
+    }
+    let n = name.chars().count();
+    if n > MAX_NAME_CHARS {
+        return Err(format!("{n} characters; at most {MAX_NAME_CHARS}"));
+    }
+    if let Some(c) = name.chars().find(|c| c.is_control()) {
+        return Err(format!("contains the control character {c:?}"));
+    }
+    Ok(())
+}
+
 /// The finest nozzle a job may name, mm. Eq (5) puts D_max / D_noz offsets in each
 /// sub-region, so a nozzle typed in metres (0.0004 for 0.4 mm) asked for hundreds of
 /// thousands of offsets a layer and gigabytes of roads.
@@ -1175,6 +1193,17 @@ nozzle = 0.5
         );
         let e = err(&GOOD.replace("r_mach = 2.0", "r_mach = -2.0"));
         assert!(e.contains("process.r_mach"), "{e}");
+        for (name, why) in [
+            ("  ", "must not be empty"),
+            ("crown\\u001b[2J", "control character '\\u{1b}'"),
+            ("two\\nlines", "control character '\\n'"),
+        ] {
+            let e = err(&GOOD.replace("name = \"t\"", &format!("name = \"{name}\"")));
+            assert!(e.contains("name") && e.contains(why), "{name}: {e}");
+        }
+        let long = "x".repeat(MAX_NAME_CHARS + 1);
+        let e = err(&GOOD.replace("name = \"t\"", &format!("name = \"{long}\"")));
+        assert!(e.contains("201 characters; at most 200"), "{e}");
         let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 0.0"));
         assert!(e.contains("process.nozzle"), "{e}");
         let e = err(&GOOD.replace("radius = 30.0", "radius = 30000.0"));

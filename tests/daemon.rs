@@ -331,6 +331,17 @@ fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
     let e = bad.call("job.get", json!({"id": 999})).unwrap_err();
     assert_eq!(e["code"], json!(-32001));
     let e = bad
+        .call(
+            "job.submit",
+            json!({"dry_run_moves": 5, "name": "ok\u{1b}[2J\nfake line"}),
+        )
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32602));
+    assert!(
+        e["message"].as_str().unwrap().starts_with("name: contains the control"),
+        "{e}"
+    );
+    let e = bad
         .call("job.submit", json!({"job": "name = 3"}))
         .unwrap_err();
     assert_eq!(e["code"], json!(-32003));

@@ -331,6 +331,10 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
         }
         "job.submit" => {
             let s: Submit = params(p)?;
+            if let Some(name) = &s.name {
+                crate::job::check_name(name)
+                    .map_err(|m| ApiError::new(ApiError::INVALID_PARAMS, format!("name: {m}")))?;
+            }
             let (spec, name) = match (s.job, s.dry_run_moves) {
                 (Some(toml), None) => {
                     let job = crate::job::Job::from_toml(&toml, "submitted job")
