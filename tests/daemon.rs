@@ -338,7 +338,10 @@ fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
         .unwrap_err();
     assert_eq!(e["code"], json!(-32602));
     assert!(
-        e["message"].as_str().unwrap().starts_with("name: contains the control"),
+        e["message"]
+            .as_str()
+            .unwrap()
+            .starts_with("name: contains the control"),
         "{e}"
     );
     let e = bad
