@@ -310,6 +310,11 @@ fn job_view(shared: &Shared, j: &super::store::JobRecord) -> Value {
     v
 }
 
+/// Finished jobs deleted at most per submission (beyond `state.keep_finished_jobs`): a
+/// store grown large before a lower setting shrinks over a few submissions instead of
+/// holding the store (and the streamer's checkpoints) during one long delete.
+const PRUNE_AT_MOST: usize = 20;
+
 async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiError> {
     match method {
         "server.info" => {
@@ -375,7 +380,7 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
             let keep = shared.config.state.keep_finished_jobs;
             let (id, pruned) = shared.with_store(|st| {
                 let id = st.insert(&name, &spec)?;
-                Ok((id, st.prune_finished(keep)?))
+                Ok((id, st.prune_finished(keep, PRUNE_AT_MOST)?))
             })?;
             info!(job = id, name = %name, "job accepted");
             if !pruned.is_empty() {

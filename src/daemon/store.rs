@@ -360,9 +360,11 @@ impl Store {
         Ok(Ok(()))
     }
 
-    /// Delete the finished jobs (and their meshes) older than the newest `keep` of them;
-    /// returns the ids deleted, oldest first. Unfinished jobs are never touched.
-    pub fn prune_finished(&self, keep: usize) -> Result<Vec<u32>, StoreError> {
+    /// Delete the finished jobs (and their meshes) older than the newest `keep` of them,
+    /// at most `at_most` of them (the oldest) in one call, so that a database grown
+    /// large before a lower `keep` holds the store's lock only briefly; returns the
+    /// ids deleted, oldest first. Unfinished jobs are never touched.
+    pub fn prune_finished(&self, keep: usize, at_most: usize) -> Result<Vec<u32>, StoreError> {
         let ids: Vec<u32> = {
             let mut st = self.conn.prepare(
                 "SELECT id FROM jobs WHERE state IN ('done', 'failed', 'cancelled')
@@ -372,6 +374,7 @@ impl Store {
             rows.collect::<Result<Vec<_>, _>>()?
                 .into_iter()
                 .rev()
+                .take(at_most)
                 .map(|v| v as u32)
                 .collect()
         };
@@ -465,8 +468,8 @@ mod tests {
         assert!(matches!(s.get(3), Err(StoreError::NotFound(3))));
         assert!(matches!(s.mesh(3), Err(StoreError::NotFound(3))));
         // Finished now: 1, 4, 5. Keep the newest two.
-        assert_eq!(s.prune_finished(2).unwrap(), vec![1]);
-        assert_eq!(s.prune_finished(2).unwrap(), Vec::<u32>::new());
+        assert_eq!(s.prune_finished(2, 10).unwrap(), vec![1]);
+        assert_eq!(s.prune_finished(2, 10).unwrap(), Vec::<u32>::new());
         let left: Vec<u32> = s.list().unwrap().iter().map(|j| j.id).collect();
         assert_eq!(left, vec![2, 4, 5, 6]);
         // The meshes went with their jobs, and ids are not reused.
@@ -476,7 +479,9 @@ mod tests {
             .unwrap();
         assert_eq!(meshes, 1, "job 5's mesh");
         assert_eq!(s.insert("new", &JobSpec::DryRun { moves: 1 }).unwrap(), 7);
-        assert_eq!(s.prune_finished(0).unwrap(), vec![4, 5]);
+        // At most one a call: the oldest first.
+        assert_eq!(s.prune_finished(0, 1).unwrap(), vec![4]);
+        assert_eq!(s.prune_finished(0, 1).unwrap(), vec![5]);
         // Not even the newest id comes back once deleted.
         s.set_state(7, JobState::Done, None).unwrap();
         assert_eq!(s.delete_finished(7).unwrap(), Ok(()));
