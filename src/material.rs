@@ -117,12 +117,17 @@ impl Composition {
 
     /// Largest absolute difference between two compositions' fractions.
     pub fn max_abs_diff(&self, other: &Composition) -> f64 {
-        self.0
-            .iter()
-            .zip(&other.0)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max)
+        max_fraction_difference(&self.0, &other.0)
     }
+}
+
+/// Largest absolute difference between two fraction arrays (compositions as plain
+/// slices: a designed one against what left the nozzle).
+pub fn max_fraction_difference(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max)
 }
 
 /// The step width array W of eq (7): the per-material change of composition from one

@@ -712,11 +712,7 @@ fn chamber_mismatch(
         }
         let want = window.over(at, at + v, c);
         at += v;
-        let err = want
-            .iter()
-            .zip(c)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
+        let err = crate::material::max_fraction_difference(&want, c);
         worst = worst.max(err);
     }
     worst
@@ -967,11 +963,7 @@ impl Builder<'_> {
         let delivered = self
             .push_through_chamber(volume_nl, commanded)
             .unwrap_or_else(|| commanded.to_vec());
-        let err = delivered
-            .iter()
-            .zip(designed)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max);
+        let err = crate::material::max_fraction_difference(&delivered, designed);
         self.stats.composition_error_mean += err * volume_nl;
         self.error_volume_nl += volume_nl;
         self.stats.composition_error_max = self.stats.composition_error_max.max(err);

@@ -269,12 +269,23 @@ fn streaming(
     seed: u64,
     moves: u32,
 ) -> (hil_sim::SimHandle, PathBuf, Daemon, Client, u64) {
-    let (sim, record) = sim(dir, seed);
+    streaming_at(dir, seed, 50.0, moves, 300)
+}
+
+/// As [`streaming`], the simulator at `speed`, past move `past`.
+fn streaming_at(
+    dir: &Path,
+    seed: u64,
+    speed: f64,
+    moves: u32,
+    past: u64,
+) -> (hil_sim::SimHandle, PathBuf, Daemon, Client, u64) {
+    let (sim, record) = sim_at(dir, seed, speed);
     let d = Daemon::start(dir, sim.path());
     let mut c = d.client();
     c.wait_connected();
     let a = submit(&mut c, moves);
-    c.wait("streaming", |c| c.executed(a) > 300);
+    c.wait("streaming", |c| c.executed(a) > past);
     (sim, record, d, c, a)
 }
 
@@ -646,12 +657,7 @@ fn moves_a_cancel_could_not_stop_are_stopped_when_the_machine_is_back() {
     let dir = tempfile::tempdir().unwrap();
     // At 2x a dry-run move takes 50 ms: the machine's 128 queued moves outlast the
     // unplug (1 s) and the reconnection.
-    let (sim, _record) = sim_at(dir.path(), 8, 2.0);
-    let d = Daemon::start(dir.path(), sim.path());
-    let mut c = d.client();
-    c.wait_connected();
-    let a = submit(&mut c, 3000);
-    c.wait("streaming", |c| c.executed(a) > 30);
+    let (sim, _record, d, mut c, a) = streaming_at(dir.path(), 8, 2.0, 3000, 30);
     sim.command(hil_sim::Command::Unplug);
     c.call("job.cancel", json!({"id": a})).unwrap();
     c.wait_state(a, "cancelled");
@@ -675,12 +681,7 @@ fn moves_a_cancel_could_not_stop_are_stopped_when_the_machine_is_back() {
 fn unplugged_cable_mid_job_resumes_without_losing_or_repeating_a_move() {
     let dir = tempfile::tempdir().unwrap();
     // At 5x (20 ms a move) the machine is still running its queue when the port is back.
-    let (sim, record) = sim_at(dir.path(), 9, 5.0);
-    let d = Daemon::start(dir.path(), sim.path());
-    let mut c = d.client();
-    c.wait_connected();
-    let a = submit(&mut c, 600);
-    c.wait("streaming", |c| c.executed(a) > 50);
+    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 9, 5.0, 600, 50);
     sim.command(hil_sim::Command::Unplug);
     let j = c.wait_state(a, "interrupted");
     assert_eq!(j["reason"], json!("serial port lost"), "{j}");
@@ -710,6 +711,12 @@ fn finished_jobs_are_deleted_on_request_and_beyond_the_newest_kept() {
     );
     let out = d.edoctl(["delete", &a.to_string()]);
     assert!(!out.status.success());
+    let e = c.call("job.delete", json!({"id": 999})).unwrap_err();
+    assert_eq!(e["code"], json!(-32001));
+    let e = c.call("job.delete", json!({"id": "one"})).unwrap_err();
+    assert_eq!(e["code"], json!(-32602));
+    let e = c.call("job.delete", json!({})).unwrap_err();
+    assert_eq!(e["code"], json!(-32602));
     d.edoctl_ok(["cancel", &a.to_string()]);
     let out = d.edoctl_ok(["delete", &a.to_string()]);
     assert_eq!(

@@ -72,6 +72,22 @@ pub struct CompositionError {
     pub max: f64,
 }
 
+impl CompositionError {
+    /// The volume-weighted mean and the worst of (error, volume) samples (0 for none).
+    fn of(samples: impl IntoIterator<Item = (f64, f64)>) -> Self {
+        let (mut sum, mut volume, mut max) = (0.0, 0.0, 0.0f64);
+        for (err, v) in samples {
+            sum += err * v;
+            volume += v;
+            max = max.max(err);
+        }
+        CompositionError {
+            mean: if volume > 0.0 { sum / volume } else { 0.0 },
+            max,
+        }
+    }
+}
+
 /// What `edoctl demo` prints (and writes to `summary.json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct DemoSummary {
@@ -444,26 +460,18 @@ fn composition_errors(
             }
         }
     }
-    let largest_difference = |d: &[f64], got: &mut dyn Iterator<Item = f64>| {
-        d.iter()
-            .zip(got)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f64::max)
-    };
-    let (mut sum, mut volume, mut max) = (0.0, 0.0, 0.0f64);
+    use crate::material::max_fraction_difference;
     // Per road (layer, path): its designed composition, the volume so far and the
     // volume-weighted exit composition.
     type RoadExit<'a> = (&'a [f64], f64, Vec<f64>);
     let mut roads: std::collections::BTreeMap<(usize, u32), RoadExit> = Default::default();
+    let mut per_move = Vec::new();
     for e in executed {
         let (Some(&(road, d)), Some(exit)) = (designed.get(&e.index), &e.exit_composition) else {
             continue;
         };
         let v: f64 = e.volumes_nl.iter().map(|&x| f64::from(x)).sum();
-        let err = largest_difference(d, &mut exit.iter().copied());
-        sum += err * v;
-        volume += v;
-        max = max.max(err);
+        per_move.push((max_fraction_difference(d, exit), v));
         let r = roads
             .entry(road)
             .or_insert_with(|| (d, 0.0, vec![0.0; exit.len()]));
@@ -472,31 +480,24 @@ fn composition_errors(
             *acc += x * v;
         }
     }
-    let built = CompositionError {
-        mean: if volume > 0.0 { sum / volume } else { 0.0 },
-        max,
-    };
-    let (mut sum, mut volume, mut max) = (0.0, 0.0, 0.0f64);
-    for (d, v, acc) in roads.values().filter(|r| r.1 > 0.0) {
-        let err = largest_difference(d, &mut acc.iter().map(|x| x / v));
-        sum += err * v;
-        volume += v;
-        max = max.max(err);
-    }
-    let built_per_road = CompositionError {
-        mean: if volume > 0.0 { sum / volume } else { 0.0 },
-        max,
-    };
-    let (mut sum, mut n, mut max) = (0.0, 0.0, 0.0f64);
-    for l in planned {
-        let v: f64 = l.stats.planned_nl.iter().sum();
-        sum += l.stats.composition_error_mean * v;
-        n += v;
-        max = max.max(l.stats.composition_error_max);
-    }
+    let built = CompositionError::of(per_move);
+    let built_per_road =
+        CompositionError::of(roads.values().filter(|r| r.1 > 0.0).map(|(d, v, acc)| {
+            let exit: Vec<f64> = acc.iter().map(|x| x / v).collect();
+            (max_fraction_difference(d, &exit), *v)
+        }));
     let predicted = CompositionError {
-        mean: if n > 0.0 { sum / n } else { 0.0 },
-        max,
+        // The planner reports each layer's mean and worst.
+        max: planned
+            .iter()
+            .map(|l| l.stats.composition_error_max)
+            .fold(0.0, f64::max),
+        ..CompositionError::of(planned.iter().map(|l| {
+            (
+                l.stats.composition_error_mean,
+                l.stats.planned_nl.iter().sum(),
+            )
+        }))
     };
     (built, built_per_road, predicted)
 }
