@@ -18,6 +18,9 @@
 //!   layer in order. Its fields are private; read it through its methods.
 //! - [`layer_moves`]: one layer to moves, numbered from `first_index`, plus
 //!   [`LayerStats`].
+//! - [`job_layer_moves`]: every layer of a job to moves, the same as [`layer_moves`] on
+//!   each in order, with most of the work on all cores (for previews, reports and
+//!   G-code; the daemon plans and streams layer by layer).
 //!
 //! # Moves of a layer
 //!
@@ -424,7 +427,17 @@ pub fn layer_paths(
     state: &StreamState,
 ) -> Vec<ToolPath> {
     let start = state.position.map(|p| p.truncate());
-    let mut paths = toolpath::fill_order(layer, &settings.order_settings(), start).paths;
+    let paths = toolpath::fill_order(layer, &settings.order_settings(), start).paths;
+    finish_paths(layer, settings, paths)
+}
+
+/// Steps 4 on of [`layer_paths`] (flow raise, slanted ends, gap fill) on the layer's
+/// paths as [`toolpath::fill_order`] ordered them: a function of those paths alone.
+fn finish_paths(
+    layer: &LayerPlan,
+    settings: &ProcessSettings,
+    mut paths: Vec<ToolPath>,
+) -> Vec<ToolPath> {
     if settings.flow_raise {
         toolpath::flow::raise(
             &mut paths,
@@ -473,6 +486,73 @@ pub fn layer_moves(
     settings.validate()?;
     let paths = layer_paths(layer, settings, state);
     moves_for_paths(layer, paths, settings, job_id, first_index, state)
+}
+
+/// Every layer of a job to moves, the same as [`layer_moves`] on each in order (moves
+/// numbered from `first_index`, `state` carried through), with the layers' flow raise,
+/// slanted ends and gap fill (most of the work) on all cores.
+///
+/// Those steps depend on the nozzle position before the layer only through the order
+/// [`toolpath::fill_order`] gives the paths, and that ordering is cheap. So each layer is
+/// first ordered from a guess of where the last layer ends (the end of its ordered last
+/// path), the layers are finished in parallel, and then, in order, each is ordered again
+/// from where the moves really left the nozzle: where that gives the same paths, the
+/// finished ones are used, otherwise the layer is finished again there. The result is
+/// that of the serial loop whatever the guesses.
+pub fn job_layer_moves(
+    layers: &[LayerPlan],
+    settings: &ProcessSettings,
+    job_id: u32,
+    first_index: u32,
+    state: &mut StreamState,
+) -> Result<Vec<LayerMoves>, PipelineError> {
+    settings.validate()?;
+    let order = settings.order_settings();
+    let mut at = state.position.map(|p| p.truncate());
+    let guessed = layers
+        .iter()
+        .map(|l| {
+            let paths = toolpath::fill_order(l, &order, at).paths;
+            at = paths.last().map(ToolPath::end).or(at);
+            paths
+        })
+        .collect();
+    Ok(moves_from_guesses(layers, settings, job_id, first_index, state, guessed)?.0)
+}
+
+/// [`job_layer_moves`] from the layers' paths as ordered from a guessed start, with how
+/// many layers had to be finished again (their order from the real start differed).
+fn moves_from_guesses(
+    layers: &[LayerPlan],
+    settings: &ProcessSettings,
+    job_id: u32,
+    first_index: u32,
+    state: &mut StreamState,
+    guessed: Vec<Vec<ToolPath>>,
+) -> Result<(Vec<LayerMoves>, usize), PipelineError> {
+    use rayon::prelude::*;
+    let order = settings.order_settings();
+    let finished: Vec<Vec<ToolPath>> = layers
+        .par_iter()
+        .zip(&guessed)
+        .map(|(l, paths)| finish_paths(l, settings, paths.clone()))
+        .collect();
+    let mut out = Vec::with_capacity(layers.len());
+    let (mut next, mut again) = (first_index, 0);
+    for ((l, guess), done) in layers.iter().zip(guessed).zip(finished) {
+        let start = state.position.map(|p| p.truncate());
+        let ordered = toolpath::fill_order(l, &order, start).paths;
+        let paths = if ordered == guess {
+            done
+        } else {
+            again += 1;
+            finish_paths(l, settings, ordered)
+        };
+        let lm = moves_for_paths(l, paths, settings, job_id, next, state)?;
+        next = lm.next_index;
+        out.push(lm);
+    }
+    Ok((out, again))
 }
 
 /// Moves for already ordered paths (what [`layer_moves`] does after ordering).
@@ -1024,6 +1104,61 @@ impl Builder<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The non-star example's layers planned, with its process settings.
+    fn non_star() -> (Vec<LayerPlan>, ProcessSettings) {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/examples/non-star.toml");
+        let job =
+            crate::job::Job::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
+        let slices = job.layer_slices(0, job.extruded_layers().unwrap());
+        let plans = crate::edo::plan_layers(&slices, &job.plan, None).unwrap();
+        (plans, ProcessSettings::for_nozzle(job.plan.nozzle_mm))
+    }
+
+    /// [`layer_moves`] on each layer in order: what the parallel version must give.
+    fn serial(layers: &[LayerPlan], s: &ProcessSettings) -> (Vec<LayerMoves>, StreamState) {
+        let mut state = StreamState::new();
+        let mut next = 5;
+        let out = layers
+            .iter()
+            .map(|l| {
+                let lm = layer_moves(l, s, 3, next, &mut state).unwrap();
+                next = lm.next_index;
+                lm
+            })
+            .collect();
+        (out, state)
+    }
+
+    #[test]
+    fn layers_in_parallel_give_the_serial_moves() {
+        let (layers, mut s) = non_star();
+        assert!(layers.len() >= 2);
+        for seam in [SeamMode::Aligned, SeamMode::Nearest] {
+            s.seam = seam;
+            let mut state = StreamState::new();
+            let all = job_layer_moves(&layers, &s, 3, 5, &mut state).unwrap();
+            assert_eq!((all, state), serial(&layers, &s), "{seam:?}");
+        }
+    }
+
+    #[test]
+    fn a_wrong_guess_of_the_start_is_finished_again() {
+        // Every layer ordered from a start far off: each first seam is chosen
+        // differently (seams nearest the nozzle), and the layer is finished again from
+        // where the nozzle really is.
+        let (layers, mut s) = non_star();
+        s.seam = SeamMode::Nearest;
+        let far = Some(DVec2::new(-500.0, 300.0));
+        let guessed = layers
+            .iter()
+            .map(|l| toolpath::fill_order(l, &s.order_settings(), far).paths)
+            .collect();
+        let mut state = StreamState::new();
+        let (all, again) = moves_from_guesses(&layers, &s, 3, 5, &mut state, guessed).unwrap();
+        assert_eq!(again, layers.len());
+        assert_eq!((all, state), serial(&layers, &s));
+    }
 
     #[test]
     fn settings_parse_and_refuse_unknown_keys() {

@@ -367,16 +367,13 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
     let slices = job.layer_slices(0, stack);
     let plans = crate::edo::plan_layers(&slices, &job.plan, None)?;
     let mut state = StreamState::new();
-    let mut layers = Vec::with_capacity(plans.len());
-    let mut next = 0u32;
-    for plan in &plans {
-        let mut lm = crate::pipeline::layer_moves(plan, &settings, 0, next, &mut state)?;
+    let mut layers = crate::pipeline::job_layer_moves(&plans, &settings, 0, 0, &mut state)?;
+    for lm in &mut layers {
         placement
             .put_on_machine(&mut lm.moves, &volume)
             .map_err(anyhow::Error::msg)?;
-        next = lm.next_index;
-        layers.push(lm);
     }
+    let next = layers.last().map_or(0, |lm| lm.next_index);
     Ok(Planned {
         layers,
         islands: slices.into_iter().map(|s| s.layer.islands).collect(),

@@ -7,7 +7,7 @@ use crate::job::Job;
 use crate::machine::gcode::{write_gcode, Flavor, GcodeSettings, GcodeStats};
 use crate::machine::placement::{BuildVolume, Placement};
 use crate::machine::{Move, MoveKind};
-use crate::pipeline::{layer_moves, LayerStats, ProcessSettings, StreamState};
+use crate::pipeline::{job_layer_moves, LayerStats, ProcessSettings, StreamState};
 use anyhow::{Context, Result};
 use std::path::{Path, PathBuf};
 
@@ -63,9 +63,9 @@ pub fn job_moves(
         kind: MoveKind::Home,
     }];
     let mut stats = Vec::with_capacity(layers.len());
-    for layer in layers {
-        let mut out = layer_moves(layer, process, 0, moves.len() as u32, &mut state)
-            .with_context(|| format!("job {}: turning layers into moves", job.name))?;
+    let all = job_layer_moves(layers, process, 0, moves.len() as u32, &mut state)
+        .with_context(|| format!("job {}: turning layers into moves", job.name))?;
+    for (layer, mut out) in layers.iter().zip(all) {
         placement
             .put_on_machine(&mut out.moves, volume)
             .map_err(|e| anyhow::anyhow!("job {} layer {}: {e}", job.name, layer.index))?;

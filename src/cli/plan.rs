@@ -403,17 +403,14 @@ fn layer_toolpaths(
     layers: &[LayerPlan],
     process: &crate::pipeline::ProcessSettings,
 ) -> Result<Vec<crate::pipeline::LayerMoves>> {
-    let mut state = crate::pipeline::StreamState::new();
-    let mut next = 0u32;
-    layers
-        .iter()
-        .map(|l| {
-            let lm = crate::pipeline::layer_moves(l, process, 0, next, &mut state)
-                .with_context(|| format!("job {}: layer {} to moves", job.name, l.index))?;
-            next = lm.next_index;
-            Ok(lm)
-        })
-        .collect()
+    crate::pipeline::job_layer_moves(
+        layers,
+        process,
+        0,
+        0,
+        &mut crate::pipeline::StreamState::new(),
+    )
+    .with_context(|| format!("job {}: turning layers into moves", job.name))
 }
 
 /// One layer's coverage, with and without the flow raise, and void cells to draw.
