@@ -431,8 +431,8 @@ pub fn layer_paths(
     finish_paths(layer, settings, paths)
 }
 
-/// Steps 4 on of [`layer_paths`] (flow raise, slanted ends, gap fill) on the layer's
-/// paths as [`toolpath::fill_order`] ordered them: a function of those paths alone.
+/// What [`layer_paths`] does after the ordering (flow raise, slanted ends, gap fill) to
+/// the paths as [`toolpath::fill_order`] ordered them: a function of those paths alone.
 fn finish_paths(
     layer: &LayerPlan,
     settings: &ProcessSettings,

@@ -243,6 +243,10 @@ impl Cells {
         }
         lo -= DVec2::splat(r_max + cell_mm) + DVec2::from(SAMPLE_PHASE) * cell_mm;
         hi += DVec2::splat(r_max + cell_mm);
+        // Finite extents, so that doubling the cell brings the count down.
+        if !(hi - lo).is_finite() {
+            return None;
+        }
         let mut cell = cell_mm;
         let size = |c: f64| {
             (
@@ -648,6 +652,17 @@ mod tests {
         ];
         let c = measure(&[rect(10.0, 0.81)], &roads, 0.4, 0.01);
         assert_eq!(c.overlap_cells, 0, "{c:?}");
+    }
+
+    #[test]
+    fn roads_spanning_more_than_a_float_measure_nothing() {
+        // Each end is finite but the extent is not: no cell size can cover it.
+        let roads = vec![road(
+            vec![DVec2::new(-1e308, 0.0), DVec2::new(1e308, 0.0)],
+            false,
+        )];
+        let c = measure(&[rect(10.0, 2.0)], &roads, 0.4, 0.01);
+        assert_eq!(c, Coverage::default());
     }
 
     #[test]
