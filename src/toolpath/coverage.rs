@@ -103,8 +103,8 @@ pub fn measure_with_voids(
         ..Default::default()
     };
     let mut voids = Vec::new();
-    let mut roads = Capsules::of(&cells, paths, road_width_mm);
-    let mut part = BoundaryRows::of(islands);
+    let mut roads = capsules(&cells, paths, road_width_mm);
+    let mut part = boundary_rows(&cells, islands);
     // Per row of the band: (road, first cell, end cell) of each capsule's run.
     let mut band: Vec<Vec<(u32, u32, u32)>> = vec![Vec::new(); BAND_ROWS];
     let mut merged: Vec<(u32, u32)> = Vec::new();
@@ -113,10 +113,15 @@ pub fn measure_with_voids(
     let mut xs: Vec<f64> = Vec::new();
     for first in (0..cells.ny).step_by(BAND_ROWS) {
         let rows = first..(first + BAND_ROWS).min(cells.ny);
-        roads.runs_in(&cells, rows.clone(), |j, road, i0, i1| {
-            band[j - first].push((road, i0 as u32, i1 as u32 + 1));
-        });
-        part.advance_to(&cells, rows.clone());
+        roads.advance(&rows);
+        for &(j0, j1, (a, b, r, road)) in roads.active() {
+            for j in j0.max(rows.start)..=j1.min(rows.end - 1) {
+                if let Some((i0, i1)) = cells.capsule_run(a, b, r, j) {
+                    band[j - first].push((road, i0 as u32, i1 as u32 + 1));
+                }
+            }
+        }
+        part.advance(&rows);
         for j in rows {
             let runs = &mut band[j - first];
             // Each road's runs merged (a cell counts once per road).
@@ -144,7 +149,7 @@ pub fn measure_with_voids(
                 events.push((e, -1));
             }
             events.sort_unstable();
-            part.inside_runs(&cells, j, &mut xs, &mut inside);
+            inside_runs(&cells, &part, j, &mut xs, &mut inside);
             let y = cells.centre_y(j);
             let mut spans = inside.iter().copied().peekable();
             // Cells [s, e) covered by `roads` different roads.
@@ -302,55 +307,56 @@ impl Cells {
     }
 }
 
-/// Every road edge's capsule (the bead it lays down), by its lowest row: what the
-/// coverage measure stamps band by band.
-struct Capsules {
-    /// (a, b, radius, road number from 1, first row, last row), by first row.
-    edges: Vec<(DVec2, DVec2, f64, u32, usize, usize)>,
-    /// Edges before this one have been taken into `active`.
+/// Items each reaching rows [first, last] of a grid, taken band by band in row order:
+/// after [`RowSweep::advance`] to a band, [`RowSweep::active`] gives those that reach it.
+struct RowSweep<T> {
+    /// (first row, last row, item), by first row.
+    items: Vec<(usize, usize, T)>,
+    /// Items before this one have been taken into `active`.
     next: usize,
     active: Vec<usize>,
 }
 
-impl Capsules {
-    fn of(cells: &Cells, paths: &[ToolPath], road_width_mm: f64) -> Capsules {
-        let mut edges = Vec::new();
-        for_each_capsule(paths, road_width_mm, |id, a, b, r| {
-            if let Some((j0, j1)) = cells.capsule_rows(a, b, r) {
-                edges.push((a, b, r, id, j0, j1));
-            }
-        });
-        edges.sort_by_key(|e| e.4);
-        Capsules {
-            edges,
+impl<T> RowSweep<T> {
+    fn new(mut items: Vec<(usize, usize, T)>) -> RowSweep<T> {
+        items.sort_by_key(|e| e.0);
+        RowSweep {
+            items,
             next: 0,
             active: Vec::new(),
         }
     }
 
-    /// `emit(row, road, i0, i1)` for every capsule run in `rows` (taken in order).
-    fn runs_in(
-        &mut self,
-        cells: &Cells,
-        rows: Range<usize>,
-        mut emit: impl FnMut(usize, u32, usize, usize),
-    ) {
-        while self.next < self.edges.len() && self.edges[self.next].4 < rows.end {
+    /// Move on to the band `rows` (bands in order).
+    fn advance(&mut self, rows: &Range<usize>) {
+        while self.next < self.items.len() && self.items[self.next].0 < rows.end {
             self.active.push(self.next);
             self.next += 1;
         }
-        let edges = &self.edges;
-        self.active.retain(|&k| edges[k].5 >= rows.start);
-        for &k in &self.active {
-            let (a, b, r, id, j0, j1) = edges[k];
-            for j in j0.max(rows.start)..=j1.min(rows.end - 1) {
-                if let Some((i0, i1)) = cells.capsule_run(a, b, r, j) {
-                    emit(j, id, i0, i1);
-                }
-            }
-        }
+        let items = &self.items;
+        self.active.retain(|&k| items[k].1 >= rows.start);
+    }
+
+    /// The items reaching the band last advanced to.
+    fn active(&self) -> impl Iterator<Item = &(usize, usize, T)> {
+        self.active.iter().map(|&k| &self.items[k])
     }
 }
+
+/// Every road edge's capsule (the bead it lays down) as (a, b, radius, road number from
+/// 1), swept by the rows it can reach: what the coverage measure stamps band by band.
+fn capsules(cells: &Cells, paths: &[ToolPath], road_width_mm: f64) -> RowSweep<Capsule> {
+    let mut edges = Vec::new();
+    for_each_capsule(paths, road_width_mm, |id, a, b, r| {
+        if let Some((j0, j1)) = cells.capsule_rows(a, b, r) {
+            edges.push((j0, j1, (a, b, r, id)));
+        }
+    });
+    RowSweep::new(edges)
+}
+
+/// A road edge's capsule: ends, radius, road number from 1.
+type Capsule = (DVec2, DVec2, f64, u32);
 
 /// Each road edge's capsule as (road number from 1, a, b, radius): an edge at the mean
 /// of its two vertices' widths; a one-point road as a disc.
@@ -365,96 +371,81 @@ fn for_each_capsule(
         if n == 0 {
             continue;
         }
+        let w = |i: usize| p.width_factors.get(i).copied().unwrap_or(1.0);
         if n == 1 {
-            let r = 0.5 * road_width_mm * p.width_factors.first().copied().unwrap_or(1.0);
-            f(id, p.points[0], p.points[0], r);
+            f(id, p.points[0], p.points[0], 0.5 * road_width_mm * w(0));
         }
         let edges = if p.closed { n } else { n - 1 };
         for k in 0..edges {
             let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-            let w = |i: usize| p.width_factors.get(i).copied().unwrap_or(1.0);
             let f_mean = 0.5 * (w(k) + w((k + 1) % n));
             f(id, a, b, 0.5 * road_width_mm * f_mean);
         }
     }
 }
 
-/// The part's boundary edges by their lowest row, for even-odd scanlines band by band.
-struct BoundaryRows {
-    /// (a, b, lowest y, highest y), by lowest y.
-    edges: Vec<(DVec2, DVec2, f64, f64)>,
-    next: usize,
-    active: Vec<usize>,
+/// The part's boundary edges (loops of `islands`), swept by the rows whose centre lines
+/// they can cross (a row more either side: [`inside_runs`] decides exactly).
+fn boundary_rows(cells: &Cells, islands: &[Region]) -> RowSweep<(DVec2, DVec2)> {
+    let row = |y: f64| (y - cells.lo.y) / cells.cell_mm - 0.5;
+    let mut edges = Vec::new();
+    for l in islands.iter().flat_map(|r| r.loops()) {
+        let m = l.len();
+        for k in 0..m {
+            let (a, b) = (l[k], l[(k + 1) % m]);
+            let (j0, j1) = (row(a.y.min(b.y)).floor(), row(a.y.max(b.y)).ceil());
+            if !(j0.is_finite() && j1.is_finite()) || j1 < 0.0 {
+                continue;
+            }
+            edges.push((j0.max(0.0) as usize, j1 as usize, (a, b)));
+        }
+    }
+    RowSweep::new(edges)
 }
 
-impl BoundaryRows {
-    fn of(islands: &[Region]) -> BoundaryRows {
-        let mut edges = Vec::new();
-        for l in islands.iter().flat_map(|r| r.loops()) {
-            let m = l.len();
-            for k in 0..m {
-                let (a, b) = (l[k], l[(k + 1) % m]);
-                edges.push((a, b, a.y.min(b.y), a.y.max(b.y)));
-            }
-        }
-        edges.sort_by(|p, q| p.2.total_cmp(&q.2));
-        BoundaryRows {
-            edges,
-            next: 0,
-            active: Vec::new(),
+/// The runs [start, end) of row `j`'s cells whose centres lie inside the part (even-odd
+/// over the `boundary` edges reaching the row's band), in order; `xs` is scratch.
+fn inside_runs(
+    cells: &Cells,
+    boundary: &RowSweep<(DVec2, DVec2)>,
+    j: usize,
+    xs: &mut Vec<f64>,
+    out: &mut Vec<(u32, u32)>,
+) {
+    let y = cells.centre_y(j);
+    xs.clear();
+    for &(_, _, (a, b)) in boundary.active() {
+        if (a.y <= y) != (b.y <= y) {
+            xs.push(a.x + (y - a.y) / (b.y - a.y) * (b.x - a.x));
         }
     }
-
-    /// Take the edges that can cross `rows` (taken in order).
-    fn advance_to(&mut self, cells: &Cells, rows: Range<usize>) {
-        let (y0, y1) = (cells.centre_y(rows.start), cells.centre_y(rows.end - 1));
-        while self.next < self.edges.len() && self.edges[self.next].2 <= y1 {
-            self.active.push(self.next);
-            self.next += 1;
+    xs.sort_by(f64::total_cmp);
+    out.clear();
+    let nx = cells.nx;
+    for s in xs.chunks_exact(2) {
+        let (s0, s1) = (s[0], s[1]);
+        // First cell whose centre is at or past s0, first past s1 (the centres' own
+        // sums decide, so a centre on an edge counts as the scan would).
+        let guess = |x: f64| ((x - cells.lo.x) / cells.cell_mm - 0.5).ceil();
+        let clamp = |g: f64| if g <= 0.0 { 0 } else { (g as usize).min(nx) };
+        let mut i = clamp(guess(s0));
+        while i > 0 && cells.centre_x(i - 1) >= s0 {
+            i -= 1;
         }
-        let edges = &self.edges;
-        self.active.retain(|&k| edges[k].3 >= y0);
-    }
-
-    /// The runs [start, end) of row `j`'s cells whose centres lie inside the part
-    /// (even-odd), in order; `xs` is scratch.
-    fn inside_runs(&self, cells: &Cells, j: usize, xs: &mut Vec<f64>, out: &mut Vec<(u32, u32)>) {
-        let y = cells.centre_y(j);
-        xs.clear();
-        for &k in &self.active {
-            let (a, b, _, _) = self.edges[k];
-            if (a.y <= y) != (b.y <= y) {
-                xs.push(a.x + (y - a.y) / (b.y - a.y) * (b.x - a.x));
-            }
+        while i < nx && cells.centre_x(i) < s0 {
+            i += 1;
         }
-        xs.sort_by(f64::total_cmp);
-        out.clear();
-        let nx = cells.nx;
-        for s in xs.chunks_exact(2) {
-            let (s0, s1) = (s[0], s[1]);
-            // First cell whose centre is at or past s0, first past s1 (the centres'
-            // own sums decide, so a centre on an edge counts as the scan would).
-            let guess = |x: f64| ((x - cells.lo.x) / cells.cell_mm - 0.5).ceil();
-            let clamp = |g: f64| if g <= 0.0 { 0 } else { (g as usize).min(nx) };
-            let mut i = clamp(guess(s0));
-            while i > 0 && cells.centre_x(i - 1) >= s0 {
-                i -= 1;
-            }
-            while i < nx && cells.centre_x(i) < s0 {
-                i += 1;
-            }
-            let mut e = clamp(guess(s1)).max(i);
-            while e > i && cells.centre_x(e - 1) > s1 {
-                e -= 1;
-            }
-            while e < nx && cells.centre_x(e) <= s1 {
-                e += 1;
-            }
-            // Runs touching on a shared centre count it once.
-            let i = out.last().map_or(i, |&(_, end)| i.max(end as usize));
-            if i < e {
-                out.push((i as u32, e as u32));
-            }
+        let mut e = clamp(guess(s1)).max(i);
+        while e > i && cells.centre_x(e - 1) > s1 {
+            e -= 1;
+        }
+        while e < nx && cells.centre_x(e) <= s1 {
+            e += 1;
+        }
+        // Runs touching on a shared centre count it once.
+        let i = out.last().map_or(i, |&(_, end)| i.max(end as usize));
+        if i < e {
+            out.push((i as u32, e as u32));
         }
     }
 }
@@ -521,13 +512,13 @@ impl Raster {
     /// (even-odd scanline over all their loops).
     pub fn scan_part(&self, islands: &[Region], mut visit: impl FnMut(usize, DVec2, bool)) {
         let cells = self.cells();
-        let mut part = BoundaryRows::of(islands);
+        let mut part = boundary_rows(&cells, islands);
         let (mut xs, mut inside) = (Vec::new(), Vec::new());
         for first in (0..cells.ny).step_by(BAND_ROWS) {
             let rows = first..(first + BAND_ROWS).min(cells.ny);
-            part.advance_to(&cells, rows.clone());
+            part.advance(&rows);
             for j in rows {
-                part.inside_runs(&cells, j, &mut xs, &mut inside);
+                inside_runs(&cells, &part, j, &mut xs, &mut inside);
                 let y = cells.centre_y(j);
                 let mut runs = inside.iter().peekable();
                 for i in 0..cells.nx {
