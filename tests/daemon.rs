@@ -61,7 +61,11 @@ impl Daemon {
         let child = cmd
             .arg("--config")
             .arg(&config)
-            .env("RUST_LOG", "warn")
+            // EDOD_TEST_LOG=debug (any RUST_LOG filter) to see more of edod's log.
+            .env(
+                "RUST_LOG",
+                std::env::var("EDOD_TEST_LOG").unwrap_or_else(|_| "warn".into()),
+            )
             .stdin(Stdio::null())
             .spawn()
             .unwrap();
@@ -385,6 +389,44 @@ fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
     sim.stop().unwrap();
     assert_exactly_once(&record, a, 1000);
     assert_exactly_once(&record, b, 2000);
+}
+
+#[test]
+fn a_database_locked_by_another_process_does_not_stall_the_moves() {
+    let dir = tempfile::tempdir().unwrap();
+    // 5 ms a move: the machine's queue holds 0.64 s of work.
+    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 5, 20.0, 1500, 200);
+    // Another process (a backup, an operator's sqlite3 shell) holds the job store's
+    // write lock for 1.5 s, while the checkpoints go on falling due every 100 ms.
+    let db = rusqlite::Connection::open(dir.path().join("state").join("edod.db")).unwrap();
+    db.execute_batch("BEGIN IMMEDIATE").unwrap();
+    let progress = |c: &mut Client| {
+        c.call("machine.status", json!({})).unwrap()["progress"]["executed"]
+            .as_u64()
+            .unwrap_or(0)
+    };
+    let before = progress(&mut c);
+    std::thread::sleep(Duration::from_millis(1500));
+    let during = progress(&mut c);
+    // job.get is a read: it goes on too (WAL), with the last checkpoint committed.
+    let held = c.executed(a);
+    db.execute_batch("COMMIT").unwrap();
+    assert!(
+        during > before + 200,
+        "executed {before} -> {during} while locked"
+    );
+    assert!(
+        held <= before + 100,
+        "a checkpoint was written through the lock"
+    );
+    c.wait_state(a, "done");
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["underruns"], json!(0), "{m}");
+    assert_eq!(c.executed(a), 1500, "the checkpoints caught up");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 1500);
 }
 
 #[test]

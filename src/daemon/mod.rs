@@ -17,6 +17,7 @@
 //!   machine child, graceful stop.
 
 pub mod api;
+pub mod checkpoints;
 pub mod config;
 pub mod planner;
 pub mod store;

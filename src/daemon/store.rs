@@ -345,6 +345,31 @@ impl Store {
         Ok(())
     }
 
+    /// Write checkpoints and move counts of several jobs in one transaction (one fsync):
+    /// per job its checkpoint and total where given. The checkpoint writer's batch.
+    pub fn record_progress<'a>(
+        &self,
+        records: impl IntoIterator<Item = (u32, Option<&'a Checkpoint>, Option<u32>)>,
+    ) -> Result<(), StoreError> {
+        let tx = self.conn.unchecked_transaction()?;
+        for (id, checkpoint, total) in records {
+            if let Some(c) = checkpoint {
+                self.checkpoint(id, c)?;
+            }
+            if let Some(t) = total {
+                self.set_total(id, t)?;
+            }
+        }
+        tx.commit()?;
+        Ok(())
+    }
+
+    /// How long a statement waits for another connection's write lock (5 s as opened).
+    pub fn set_busy_timeout(&mut self, t: std::time::Duration) -> Result<(), StoreError> {
+        self.conn.busy_timeout(t)?;
+        Ok(())
+    }
+
     /// Delete job `id` and its mesh if it is finished (done, failed or cancelled);
     /// returns its state otherwise, and deletes nothing. Job ids are never reused
     /// (`AUTOINCREMENT`), so a machine's report of a deleted job's moves names no other.

@@ -25,6 +25,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_serial::{SerialPortBuilderExt, SerialStream};
 use tracing::{debug, info, warn};
 
+use super::checkpoints::{self, Record};
 use super::planner::{self, DryRunSource, JobSource, LayerSource, PlannerMsg};
 use super::store::{now_ms, Checkpoint, JobSpec, JobState, SERVICE_JOB_ID};
 use super::{ApiError, Control, EStopTiming, MachineSnapshot, Progress, Reply, Shared};
@@ -36,6 +37,8 @@ use crate::machine::{composition_of, Move, MoveKind, PositionUm};
 
 /// Checkpoints are written at most this often while printing (and at every state change).
 const CHECKPOINT_EVERY: Duration = Duration::from_millis(100);
+/// How long a forced checkpoint waits for the disk (twice the store's busy timeout).
+const FLUSH_LIMIT: Duration = Duration::from_secs(10);
 /// Progress notifications at most this often.
 const PROGRESS_EVERY: Duration = Duration::from_millis(100);
 /// How long the port stays closed after an error before it is opened again.
@@ -140,6 +143,8 @@ pub struct Streamer {
     /// A job not active whose checkpoint follows the machine (after an edod restart).
     tracked: Option<(u32, Checkpoint)>,
     estops: Vec<(Instant, Option<u64>, Reply<EStopTiming>)>,
+    /// Writes checkpoints and move counts off this task.
+    checkpoints: checkpoints::Writer,
     shutdown: Option<(oneshot::Sender<()>, Instant)>,
     underruns: u64,
     /// When an underrun was last logged, and how many came since (logged at most
@@ -214,8 +219,8 @@ fn um(v: f64) -> i32 {
 }
 
 impl Streamer {
-    /// A streamer for `shared.port`.
-    pub fn new(shared: Arc<Shared>) -> Self {
+    /// A streamer for `shared.port`, recording checkpoints through `checkpoints`.
+    pub fn new(shared: Arc<Shared>, checkpoints: checkpoints::Writer) -> Self {
         let seed = session_seed();
         let epoch = Instant::now();
         let link_cfg = LinkConfig::default()
@@ -235,6 +240,7 @@ impl Streamer {
             active: None,
             tracked: None,
             estops: Vec::new(),
+            checkpoints,
             shutdown: None,
             underruns: 0,
             underrun_logged: None,
@@ -704,7 +710,13 @@ impl Streamer {
             Some(PlannerMsg::Done { total }) => {
                 a.total = Some(total);
                 a.planning_done = true;
-                let _ = self.shared.with_store(|s| s.set_total(id, total));
+                self.checkpoints.record(
+                    id,
+                    Record {
+                        checkpoint: None,
+                        total_moves: Some(total),
+                    },
+                );
                 self.check_done();
             }
             Some(PlannerMsg::Failed(e)) => {
@@ -903,6 +915,8 @@ impl Streamer {
                             job = a.id,
                             executed = a.checkpoint.next_index,
                             waiting_here = a.queue.len(),
+                            in_link = self.host.pending(),
+                            in_flight = self.host.moves_in_flight(),
                             planner_running = a.planner.is_some(),
                             underruns = self.underruns,
                             not_logged_since_last = since,
@@ -949,7 +963,13 @@ impl Streamer {
                 c.next_index = index.saturating_add(1);
                 c.remaining_nl = remaining;
                 let (id, c) = (*id, c.clone());
-                let _ = self.shared.with_store(|s| s.checkpoint(id, &c));
+                self.checkpoints.record(
+                    id,
+                    Record {
+                        checkpoint: Some(c),
+                        total_moves: None,
+                    },
+                );
             }
         }
     }
@@ -1149,18 +1169,31 @@ impl Streamer {
         self.publish();
     }
 
+    /// Hand the active job's checkpoint to the writer, at most every
+    /// [`CHECKPOINT_EVERY`] unless `force`. `force` also waits until everything handed
+    /// over is on disk (at most [`FLUSH_LIMIT`]): the job's state is written next.
     fn save_checkpoint(&mut self, force: bool) {
         let Some(a) = self.active.as_mut() else {
             return;
         };
-        if !a.dirty || (!force && a.saved.elapsed() < CHECKPOINT_EVERY) {
-            return;
+        let id = a.id;
+        if a.dirty && (force || a.saved.elapsed() >= CHECKPOINT_EVERY) {
+            a.dirty = false;
+            a.saved = Instant::now();
+            self.checkpoints.record(
+                id,
+                Record {
+                    checkpoint: Some(a.checkpoint.clone()),
+                    total_moves: None,
+                },
+            );
         }
-        a.dirty = false;
-        a.saved = Instant::now();
-        let (id, c) = (a.id, a.checkpoint.clone());
-        if let Err(e) = self.shared.with_store(|s| s.checkpoint(id, &c)) {
-            warn!(job = id, error = %e, "cannot write checkpoint");
+        if force && !self.checkpoints.flush(FLUSH_LIMIT) {
+            warn!(
+                job = id,
+                "checkpoint not on disk after {} s; still trying",
+                FLUSH_LIMIT.as_secs()
+            );
         }
     }
 

@@ -18,7 +18,7 @@ use tracing::{info, warn};
 use super::config::{Config, SIM_PORT};
 use super::store::Store;
 use super::streamer::Streamer;
-use super::{api, Control, Shared};
+use super::{api, checkpoints, Control, Shared};
 
 fn hil_sim_binary(cfg: &Config) -> PathBuf {
     if let Some(b) = &cfg.sim.binary {
@@ -192,7 +192,9 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         alive: Default::default(),
         config: cfg,
     });
-    let streamer = tokio::spawn(Streamer::new(Arc::clone(&shared)).run(control_rx));
+    let checkpoints = checkpoints::Writer::start(Store::open(&shared.config.state.dir)?)
+        .context("cannot start the checkpoint writer thread")?;
+    let streamer = tokio::spawn(Streamer::new(Arc::clone(&shared), checkpoints).run(control_rx));
     let api = tokio::spawn(api::serve(listener, Arc::clone(&shared)));
     info!(socket = %shared.config.api.socket.display(), port = %shared.port.display(), "edod ready");
     let notifier = Notifier::start();
