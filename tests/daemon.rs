@@ -391,15 +391,32 @@ fn whole_job_then_pause_resume_and_bad_requests_while_streaming() {
     assert_exactly_once(&record, b, 2000);
 }
 
+/// A 1500-move job streaming at 20x (5 ms a move: the machine's queue holds 0.64 s of
+/// work), past move 200, and another process (a backup, an operator's sqlite3 shell)
+/// holding the job store's write lock: the returned connection, in `BEGIN IMMEDIATE`.
+fn streaming_with_the_store_locked(
+    dir: &Path,
+    seed: u64,
+) -> (
+    hil_sim::SimHandle,
+    PathBuf,
+    Daemon,
+    Client,
+    u64,
+    rusqlite::Connection,
+) {
+    let (sim, record, d, c, a) = streaming_at(dir, seed, 20.0, 1500, 200);
+    let db = rusqlite::Connection::open(dir.join("state").join("edod.db")).unwrap();
+    db.execute_batch("BEGIN IMMEDIATE").unwrap();
+    (sim, record, d, c, a, db)
+}
+
 #[test]
 fn a_database_locked_by_another_process_does_not_stall_the_moves() {
     let dir = tempfile::tempdir().unwrap();
-    // 5 ms a move: the machine's queue holds 0.64 s of work.
-    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 5, 20.0, 1500, 200);
-    // Another process (a backup, an operator's sqlite3 shell) holds the job store's
-    // write lock for 1.5 s, while the checkpoints go on falling due every 100 ms.
-    let db = rusqlite::Connection::open(dir.path().join("state").join("edod.db")).unwrap();
-    db.execute_batch("BEGIN IMMEDIATE").unwrap();
+    // The write lock is held for 1.5 s, while the checkpoints go on falling due every
+    // 100 ms.
+    let (sim, record, d, mut c, a, db) = streaming_with_the_store_locked(dir.path(), 5);
     let progress = |c: &mut Client| {
         c.call("machine.status", json!({})).unwrap()["progress"]["executed"]
             .as_u64()
@@ -423,6 +440,60 @@ fn a_database_locked_by_another_process_does_not_stall_the_moves() {
     let m = c.call("machine.status", json!({})).unwrap();
     assert_eq!(m["underruns"], json!(0), "{m}");
     assert_eq!(c.executed(a), 1500, "the checkpoints caught up");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 1500);
+}
+
+#[test]
+fn submissions_waiting_for_a_locked_database_stall_neither_the_moves_nor_the_api() {
+    let dir = tempfile::tempdir().unwrap();
+    // The write lock is held for 2.5 s while three clients submit jobs (more than
+    // edod's two runtime workers): each submission waits for the lock, and nothing else
+    // may wait with it.
+    let (sim, record, d, mut c, a, db) = streaming_with_the_store_locked(dir.path(), 6);
+    let locked = Instant::now();
+    let submitters: Vec<_> = (0..3)
+        .map(|_| {
+            let mut sc = d.client();
+            std::thread::spawn(move || sc.call("job.submit", json!({"dry_run_moves": 10})))
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let asked = Instant::now();
+    let status = c.call("machine.status", json!({})).unwrap();
+    let answered_after = asked.elapsed();
+    let before = status["progress"]["executed"].as_u64().unwrap_or(0);
+    // A read answers too (WAL), with the last checkpoint committed.
+    let listed = c.call("job.list", json!({})).unwrap();
+    assert!(listed.as_array().is_some_and(|l| !l.is_empty()), "{listed}");
+    std::thread::sleep(Duration::from_millis(2500).saturating_sub(locked.elapsed()));
+    let during = c.call("machine.status", json!({})).unwrap()["progress"]["executed"]
+        .as_u64()
+        .unwrap_or(0);
+    db.execute_batch("COMMIT").unwrap();
+    assert!(
+        answered_after < Duration::from_secs(1),
+        "machine.status answered after {answered_after:?} while submissions waited"
+    );
+    assert!(
+        during > before + 200,
+        "executed {before} -> {during} while the submissions waited"
+    );
+    let mut ids: Vec<u64> = submitters
+        .into_iter()
+        .map(|t| t.join().unwrap().unwrap()["id"].as_u64().unwrap())
+        .collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), 3, "{ids:?}");
+    c.wait_state(a, "done");
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["underruns"], json!(0), "{m}");
+    for id in ids {
+        c.wait_state(id, "done");
+    }
     drop(c);
     drop(d);
     sim.stop().unwrap();

@@ -240,7 +240,7 @@ async fn check_part(
 
 /// Handle one request line: the reply line (none for a notification) and whether the
 /// client subscribed.
-pub async fn handle(line: &[u8], shared: &Shared) -> (Option<String>, bool) {
+pub async fn handle(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, bool) {
     let v: Value = match serde_json::from_slice(line) {
         Ok(v) => v,
         Err(e) => {
@@ -315,7 +315,7 @@ fn job_view(shared: &Shared, j: &super::store::JobRecord) -> Value {
 /// holding the store (and the streamer's checkpoints) during one long delete.
 const PRUNE_AT_MOST: usize = 20;
 
-async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiError> {
+async fn dispatch(method: &str, p: Value, shared: &Arc<Shared>) -> Result<Value, ApiError> {
     match method {
         "server.info" => {
             params::<Empty>(p)?;
@@ -378,10 +378,13 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
                 }
             };
             let keep = shared.config.state.keep_finished_jobs;
-            let (id, pruned) = shared.with_store(|st| {
-                let id = st.insert(&name, &spec)?;
-                Ok((id, st.prune_finished(keep, PRUNE_AT_MOST)?))
-            })?;
+            let stored_name = name.clone();
+            let (id, pruned) = shared
+                .api_store(true, move |st| {
+                    let id = st.insert(&stored_name, &spec)?;
+                    Ok((id, st.prune_finished(keep, PRUNE_AT_MOST)?))
+                })
+                .await?;
             info!(job = id, name = %name, "job accepted");
             if !pruned.is_empty() {
                 info!(jobs = ?pruned, keep, "deleted the oldest finished jobs");
@@ -395,14 +398,14 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
         }
         "job.list" => {
             params::<Empty>(p)?;
-            let jobs = shared.with_store(|s| s.list())?;
+            let jobs = shared.api_store(false, |s| s.list()).await?;
             Ok(Value::Array(
                 jobs.iter().map(|j| job_view(shared, j)).collect(),
             ))
         }
         "job.get" => {
             let JobId { id } = params(p)?;
-            let j = shared.with_store(|s| s.get(id))?;
+            let j = shared.api_store(false, move |s| s.get(id)).await?;
             Ok(job_view(shared, &j))
         }
         "job.pause" => {
@@ -419,12 +422,15 @@ async fn dispatch(method: &str, p: Value, shared: &Shared) -> Result<Value, ApiE
             let JobId { id } = params(p)?;
             ask(shared, |r| Control::Cancel(id, r)).await?;
             // `cancelled`, or still `printing` while the machine stops and parks.
-            let j = shared.with_store(|s| s.get(id))?;
+            let j = shared.api_store(false, move |s| s.get(id)).await?;
             Ok(json!({"id": id, "state": j.state}))
         }
         "job.delete" => {
             let JobId { id } = params(p)?;
-            match shared.with_store(|s| s.delete_finished(id))? {
+            match shared
+                .api_store(true, move |s| s.delete_finished(id))
+                .await?
+            {
                 Ok(()) => {
                     info!(job = id, "job deleted");
                     Ok(json!({"id": id, "deleted": true}))

@@ -163,6 +163,11 @@ pub struct Shared {
     pub config: Config,
     /// The job store (short statements only).
     pub store: std::sync::Mutex<store::Store>,
+    /// A connection of its own for the API's writes (`job.submit`, `job.delete`): one
+    /// that waits for the database's write lock (another process holding it, up to the
+    /// busy timeout) holds neither `store`, which the streamer reads, nor a runtime
+    /// worker (they run on tokio's blocking threads, see [`Shared::api_store`]).
+    pub api_writes: std::sync::Mutex<store::Store>,
     /// Notification lines for subscribers (serialised once).
     pub notify: broadcast::Sender<Arc<str>>,
     /// Machine snapshot.
@@ -177,22 +182,53 @@ pub struct Shared {
     pub alive: std::sync::atomic::AtomicU64,
 }
 
+/// Run `f` on the store behind `store`, its errors as the API's.
+fn run_on<T>(
+    store: &std::sync::Mutex<store::Store>,
+    f: impl FnOnce(&store::Store) -> Result<T, store::StoreError>,
+) -> Result<T, ApiError> {
+    let guard = store
+        .lock()
+        .map_err(|_| ApiError::new(ApiError::INTERNAL, "job store lock poisoned"))?;
+    f(&guard).map_err(|e| match e {
+        store::StoreError::NotFound(id) => {
+            ApiError::new(ApiError::NO_SUCH_JOB, format!("no job {id}"))
+        }
+        e => ApiError::new(ApiError::INTERNAL, e.to_string()),
+    })
+}
+
 impl Shared {
     /// Run `f` on the store.
     pub fn with_store<T>(
         &self,
         f: impl FnOnce(&store::Store) -> Result<T, store::StoreError>,
     ) -> Result<T, ApiError> {
-        let guard = self
-            .store
-            .lock()
-            .map_err(|_| ApiError::new(ApiError::INTERNAL, "job store lock poisoned"))?;
-        f(&guard).map_err(|e| match e {
-            store::StoreError::NotFound(id) => {
-                ApiError::new(ApiError::NO_SUCH_JOB, format!("no job {id}"))
-            }
-            e => ApiError::new(ApiError::INTERNAL, e.to_string()),
+        run_on(&self.store, f)
+    }
+
+    /// Run `f` for an API request on a blocking thread, never on a runtime worker:
+    /// on the API's own connection for a write (`write`), on `store` for a read (in WAL
+    /// mode a read does not wait for another connection's write lock, but `store` can
+    /// be held by the streamer while its state change waits for one).
+    pub async fn api_store<T: Send + 'static>(
+        self: &Arc<Self>,
+        write: bool,
+        f: impl FnOnce(&store::Store) -> Result<T, store::StoreError> + Send + 'static,
+    ) -> Result<T, ApiError> {
+        let shared = Arc::clone(self);
+        tokio::task::spawn_blocking(move || {
+            run_on(
+                if write {
+                    &shared.api_writes
+                } else {
+                    &shared.store
+                },
+                f,
+            )
         })
+        .await
+        .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("job store call failed: {e}")))?
     }
 
     /// Send a notification to every subscriber (never blocks).

@@ -458,6 +458,23 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_write_through_another_process_lock_fails_naming_the_locked_database() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = Store::open(dir.path()).unwrap();
+        s.set_busy_timeout(std::time::Duration::from_millis(50))
+            .unwrap();
+        let other = Connection::open(dir.path().join("edod.db")).unwrap();
+        other.execute_batch("BEGIN IMMEDIATE").unwrap();
+        let e = s.insert("j", &JobSpec::DryRun { moves: 3 }).unwrap_err();
+        assert_eq!(e.to_string(), "job store: database is locked");
+        // Reads go on through the lock (WAL), and the write goes through once it is gone.
+        assert!(s.list().unwrap().is_empty());
+        other.execute_batch("COMMIT").unwrap();
+        let id = s.insert("j", &JobSpec::DryRun { moves: 3 }).unwrap();
+        assert_eq!(s.get(id).unwrap().name, "j");
+    }
+
+    #[test]
     fn finished_jobs_are_deleted_on_request_or_beyond_the_newest_kept() {
         let dir = tempfile::tempdir().unwrap();
         let s = Store::open(dir.path()).unwrap();

@@ -184,6 +184,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     let (control_tx, control_rx) = mpsc::channel(64);
     let shared = Arc::new(Shared {
         store: std::sync::Mutex::new(store),
+        api_writes: std::sync::Mutex::new(Store::open(&cfg.state.dir)?),
         notify: broadcast::channel(4096).0,
         machine: watch::channel(Default::default()).0,
         progress: watch::channel(None).0,
