@@ -396,7 +396,7 @@
 //! bring it under there too.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use edo::edo::{plan_region, PlanOptions};
+use edo::plan::{plan_region, PlanOptions};
 use std::hint::black_box;
 
 #[path = "common/region.rs"]

@@ -21,9 +21,9 @@
 //! raster it replaced, same session, machine idle.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use edo::edo::{plan_layer, GradientDesign, Pattern, PlanOptions};
 use edo::material::{Composition, GradientFunction};
 use edo::pipeline::{job_layer_moves, layer_paths, ProcessSettings, StreamState};
+use edo::plan::{plan_layer, GradientDesign, Pattern, PlanOptions};
 use edo::toolpath::coverage::measure;
 use rayon::prelude::*;
 use std::time::Duration;
@@ -42,7 +42,7 @@ fn benchy_to_moves(mesh: &edo::mesh::Mesh) -> u32 {
     // A real part's tips are thinner than r_mach: plan them with m = 1 (`thin_regions =
     // "fill"`, as docs/job-format.md advises for meshes) rather than drop the layer.
     let mut opts = PlanOptions::new(1.6, 0.4);
-    opts.thin_regions = edo::edo::ThinRegions::Fill;
+    opts.thin_regions = edo::plan::ThinRegions::Fill;
     let s = ProcessSettings::for_nozzle(0.4);
     let (layers, _) =
         edo::slice::slice_mesh(mesh, &edo::slice::SliceOptions::uniform(0.3), None).unwrap();
@@ -58,7 +58,7 @@ fn benchy_to_moves(mesh: &edo::mesh::Mesh) -> u32 {
 /// The largest layer of the hip (by island area) as built: its islands and roads.
 fn hip_layer(mesh: &edo::mesh::Mesh) -> (Vec<edo::geom::Region>, Vec<edo::toolpath::ToolPath>) {
     let mut opts = PlanOptions::new(1.6, 0.4);
-    opts.thin_regions = edo::edo::ThinRegions::Fill;
+    opts.thin_regions = edo::plan::ThinRegions::Fill;
     let s = ProcessSettings::for_nozzle(0.4);
     let (layers, _) =
         edo::slice::slice_mesh(mesh, &edo::slice::SliceOptions::uniform(0.3), None).unwrap();

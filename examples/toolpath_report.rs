@@ -3,10 +3,10 @@
 //! (time, moves). Run: `cargo run --release --example toolpath_report [CELL_MM]`;
 //! peak memory with `/usr/bin/time -v`.
 
-use edo::edo::{plan_layer, plan_layers, GradientDesign, Pattern, PlanOptions};
 use edo::geom::Region;
 use edo::material::{Composition, GradientFunction};
 use edo::pipeline::{layer_paths, moves_for_paths, ProcessSettings, StreamState};
+use edo::plan::{plan_layer, plan_layers, GradientDesign, Pattern, PlanOptions};
 use edo::toolpath::coverage::{measure, Coverage};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -23,7 +23,7 @@ fn line(name: &str, c: &Coverage, raised: &Coverage) {
 
 fn coverage_pair(
     islands: &[Region],
-    layer: &edo::edo::LayerPlan,
+    layer: &edo::plan::LayerPlan,
     s: &ProcessSettings,
     cell: f64,
 ) -> (Coverage, Coverage) {
@@ -88,7 +88,7 @@ fn main() -> anyhow::Result<()> {
     // A real part's tips are thinner than r_mach: plan them with m = 1 (`thin_regions =
     // "fill"`, as docs/job-format.md advises for meshes) rather than drop the layer.
     let mut opts = PlanOptions::new(1.6, 0.4);
-    opts.thin_regions = edo::edo::ThinRegions::Fill;
+    opts.thin_regions = edo::plan::ThinRegions::Fill;
     let s = ProcessSettings::for_nozzle(0.4);
     let meshes: &[&str] = if std::env::args().nth(2).as_deref() == Some("quick") {
         &["3DBenchy.stl"]
@@ -114,7 +114,7 @@ fn main() -> anyhow::Result<()> {
         let failed = plans.iter().filter(|p| p.is_err()).count();
         // Paths in parallel, then moves in order (the stream state is sequential).
         let t1 = Instant::now();
-        let ok: Vec<&edo::edo::LayerPlan> = plans.iter().filter_map(|p| p.as_ref().ok()).collect();
+        let ok: Vec<&edo::plan::LayerPlan> = plans.iter().filter_map(|p| p.as_ref().ok()).collect();
         let mut state = StreamState::new();
         let mut index = 0u32;
         let mut travel = 0.0;

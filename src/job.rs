@@ -5,10 +5,10 @@
 //! Pure: [`Job::from_toml`] takes the text (and a name for messages); reading the file
 //! is the caller's business.
 
-use crate::edo::{shapes, GradientDesign, Pattern, PlanOptions, Subdivision};
 use crate::geom::{Region, Tolerances};
 use crate::machine::placement::PlacementMode;
 use crate::material::{Composition, GradientFunction, OffsetDirection};
+use crate::plan::{shapes, GradientDesign, LayerSlice, Pattern, PlanOptions, Subdivision};
 use glam::{DVec2, DVec3};
 use serde::Deserialize;
 
@@ -169,7 +169,7 @@ struct RawProcess {
     contour_deviation: Option<f64>,
     cusp: Option<f64>,
     max_gap: Option<f64>,
-    thin_regions: Option<crate::edo::ThinRegions>,
+    thin_regions: Option<crate::plan::ThinRegions>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -234,15 +234,6 @@ pub struct Job {
     /// Where the part goes on the machine's bed (`geometry.placement`, see
     /// [`crate::machine::placement`]).
     pub placement: PlacementMode,
-}
-
-/// One layer to plan: its index in the job's stack, its geometry and the gradient design
-/// at its mid-height.
-#[derive(Clone, Debug, PartialEq)]
-pub struct LayerSlice {
-    pub index: usize,
-    pub layer: crate::slice::Layer,
-    pub design: GradientDesign,
 }
 
 impl Job {
@@ -1167,7 +1158,7 @@ nozzle = 0.5
         assert_eq!(job.plan.r_mach_mm, 2.0);
         assert_eq!(
             job.plan.contour_deviation_mm,
-            crate::edo::DEFAULT_CONTOUR_DEVIATION_MM
+            crate::plan::DEFAULT_CONTOUR_DEVIATION_MM
         );
         let finer = GOOD.replace("[process]", "[process]\ncontour_deviation = 0.01");
         let job2 = Job::from_toml(&finer, "job.toml").unwrap();

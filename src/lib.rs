@@ -13,8 +13,8 @@
 //! - [`slice`]: layer heights (uniform, or adaptive from slope and a Z limit) and the
 //!   sections of each layer as islands.
 //! - [`material`]: compositions, gradient functions f(d), equations (1)–(7).
-//! - [`edo`]: the EDO method on a layer: pre-subdivision into contours C1..Cm+1 and the
-//!   equal distance offset fill of every sub-region, as a compact [`edo::LayerPlan`].
+//! - [`plan`]: the EDO method on a layer: pre-subdivision into contours C1..Cm+1 and the
+//!   equal distance offset fill of every sub-region, as a compact [`plan::LayerPlan`].
 //! - [`job`]: the job file (`docs/job-format.md`).
 //! - [`report`], [`svg`]: the plan report (`docs/plan-report.md`) and layer previews.
 //! - [`toolpath`]: process planning (§4, Fig. 4(a)): filling order, seams, flow raise in
@@ -30,7 +30,6 @@
 
 pub mod cli;
 pub mod daemon;
-pub mod edo;
 pub mod geom;
 pub mod job;
 pub mod link;
@@ -39,6 +38,7 @@ pub mod machine;
 pub mod material;
 pub mod mesh;
 pub mod pipeline;
+pub mod plan;
 pub mod report;
 pub mod slice;
 pub mod svg;

@@ -54,8 +54,8 @@
 //! nanolitre, so totals never drift (at most 0.5 nl per syringe over a whole job) and a
 //! move's volumes sum to its total exactly by construction.
 
-use crate::edo::LayerPlan;
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT, MAX_SYRINGES};
+use crate::plan::LayerPlan;
 use crate::toolpath::{self, OrderSettings, SeamMode, SubRegionOrder, ToolPath};
 use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
@@ -1111,7 +1111,7 @@ mod tests {
         let job =
             crate::job::Job::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
         let slices = job.layer_slices(0, job.extruded_layers().unwrap());
-        let plans = crate::edo::plan_layers(&slices, &job.plan, None).unwrap();
+        let plans = crate::plan::plan_layers(&slices, &job.plan, None).unwrap();
         (plans, ProcessSettings::for_nozzle(job.plan.nozzle_mm))
     }
 

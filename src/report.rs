@@ -5,8 +5,8 @@
 //! the composition of each equal distance offset in order by eq (6), W); totals,
 //! the compact-representation size against a voxel composition grid, and planning time.
 
-use crate::edo::{offset_composition_eq6, LayerPlan, RegionPlan, SubdivisionMethod};
 use crate::job::Job;
+use crate::plan::{offset_composition_eq6, LayerPlan, RegionPlan, SubdivisionMethod};
 use serde::Serialize;
 
 /// Version tag of the report schema.
@@ -37,11 +37,11 @@ pub struct PlanReport {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Settings {
-    pub pattern: crate::edo::Pattern,
+    pub pattern: crate::plan::Pattern,
     pub function: crate::material::GradientFunction,
     pub inner: Vec<f64>,
     pub outer: Vec<f64>,
-    pub subdivision: crate::edo::Subdivision,
+    pub subdivision: crate::plan::Subdivision,
     pub direction: crate::material::OffsetDirection,
     pub r_mach_mm: f64,
     pub nozzle_mm: f64,
@@ -340,7 +340,7 @@ impl PlacementReport {
 /// Build the report for a planned job.
 pub fn build(
     job: &Job,
-    slices: &[crate::job::LayerSlice],
+    slices: &[crate::plan::LayerSlice],
     layers: &[LayerPlan],
     notes: MeshNotes,
     planning_time_ms: f64,

@@ -5,9 +5,9 @@
 //!
 //! Pure: returns the SVG text; writing files is the caller's business.
 
-use crate::edo::shapes::Path;
-use crate::edo::{offset_composition_eq6, LayerPlan};
 use crate::geom::Region;
+use crate::plan::shapes::Path;
+use crate::plan::{offset_composition_eq6, LayerPlan};
 use glam::DVec2;
 use std::fmt::Write;
 

@@ -9,8 +9,8 @@
 //! 1.5 × 0.025 mm of the coarse contour. Options built in code keep to the job's
 //! limits.
 
-use edo::edo::{plan_region, PlanOptions, RegionPlan, SubdivisionMethod};
 use edo::geom::SegmentIndex;
+use edo::plan::{plan_region, PlanOptions, RegionPlan, SubdivisionMethod};
 use glam::DVec2;
 
 #[path = "../benches/common/region.rs"]

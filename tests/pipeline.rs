@@ -1,10 +1,11 @@
 //! The pipeline on the example jobs: planned layers become a valid, contiguous move stream
 //! whose per-syringe volumes equal the plan's.
 
-use edo::edo::{plan_layers, LayerPlan};
-use edo::job::{Job, LayerSlice};
+use edo::job::Job;
 use edo::machine::MoveKind;
 use edo::pipeline::{layer_moves, ProcessSettings, StreamState};
+use edo::plan::LayerSlice;
+use edo::plan::{plan_layers, LayerPlan};
 
 fn job(name: &str) -> Job {
     let path = format!("{}/config/examples/{name}.toml", env!("CARGO_MANIFEST_DIR"));

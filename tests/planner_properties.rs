@@ -8,13 +8,13 @@
 //! - every composition sums to 1, and compositions change monotonically from Ci to Ce
 //!   for a monotone f(d).
 
-use edo::edo::shapes::Path;
-use edo::edo::{
+use edo::geom::{point_segment_distance, signed_area, Region};
+use edo::material::{Composition, GradientFunction};
+use edo::plan::shapes::Path;
+use edo::plan::{
     offset_composition_eq6, plan_region, GradientDesign, Pattern, PlanOptions, RegionPlan,
     Subdivision,
 };
-use edo::geom::{point_segment_distance, signed_area, Region};
-use edo::material::{Composition, GradientFunction};
 use glam::DVec2;
 use proptest::prelude::*;
 

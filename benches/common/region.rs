@@ -1,9 +1,9 @@
 //! The bench region of `benches/plan_layer.rs` and its gradient design, shared with
 //! `examples/plan_compare.rs` and `tests/contour_deviation.rs`.
 
-use edo::edo::{GradientDesign, Pattern};
 use edo::geom::Region;
 use edo::material::{Composition, GradientFunction};
+use edo::plan::{GradientDesign, Pattern};
 use glam::DVec2;
 
 /// Growth rings from pure material A at the holes to pure B at the outer loop, linear.

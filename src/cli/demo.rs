@@ -365,7 +365,7 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
         .extruded_layers()
         .context("the demo job is an extruded polygon")?;
     let slices = job.layer_slices(0, stack);
-    let plans = crate::edo::plan_layers(&slices, &job.plan, None)?;
+    let plans = crate::plan::plan_layers(&slices, &job.plan, None)?;
     let mut state = StreamState::new();
     let mut layers = crate::pipeline::job_layer_moves(&plans, &settings, 0, 0, &mut state)?;
     for lm in &mut layers {

@@ -2,12 +2,12 @@
 //! [`GcodeArgs`] into `PlanArgs` (`#[command(flatten)]`) and calls [`write`] with the
 //! planned layers.
 
-use crate::edo::LayerPlan;
 use crate::job::Job;
 use crate::machine::gcode::{write_gcode, Flavor, GcodeSettings, GcodeStats};
 use crate::machine::placement::{BuildVolume, Placement};
 use crate::machine::{Move, MoveKind};
 use crate::pipeline::{job_layer_moves, LayerStats, ProcessSettings, StreamState};
+use crate::plan::LayerPlan;
 use anyhow::{Context, Result};
 use std::path::{Path, PathBuf};
 

@@ -2,9 +2,10 @@
 //! offline. Reads the job and its mesh (relative paths are relative to the job file),
 //! slices, runs the EDO method on every layer, writes the report and previews.
 
-use crate::edo::{plan_layers, LayerPlan};
-use crate::job::{Geometry, Job, LayerSlice};
+use crate::job::{Geometry, Job};
 use crate::mesh::MeshLimits;
+use crate::plan::LayerSlice;
+use crate::plan::{plan_layers, LayerPlan};
 use crate::report::MeshNotes;
 use anyhow::{Context, Result};
 use std::io::{IsTerminal, Write};

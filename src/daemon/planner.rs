@@ -321,13 +321,13 @@ pub fn process_settings(
 pub const MESH_LAYERS_PER_CUT: usize = 8;
 
 enum Layers {
-    Extruded(Vec<crate::job::LayerSlice>),
+    Extruded(Vec<crate::plan::LayerSlice>),
     /// Mesh bytes not loaded yet.
     MeshBytes(Vec<u8>),
     Mesh {
         part: Box<crate::job::MeshLayers>,
         /// Cut layers not planned yet, in order.
-        ready: std::collections::VecDeque<crate::job::LayerSlice>,
+        ready: std::collections::VecDeque<crate::plan::LayerSlice>,
     },
 }
 
@@ -387,7 +387,7 @@ impl JobSource {
     }
 
     /// The next layer to plan, loading and cutting the mesh as needed.
-    fn next_slice(&mut self) -> Option<Result<crate::job::LayerSlice, String>> {
+    fn next_slice(&mut self) -> Option<Result<crate::plan::LayerSlice, String>> {
         if let Layers::MeshBytes(bytes) = &self.layers {
             let part = match self
                 .job
@@ -440,7 +440,7 @@ impl LayerSource for JobSource {
             Err(e) => return Some(Err(e)),
         };
         let l = &s.layer;
-        let plan = crate::edo::plan_layer(
+        let plan = crate::plan::plan_layer(
             s.index,
             l.z_mm,
             l.thickness_mm,

@@ -721,7 +721,7 @@ mod tests {
             crate::job::Job::from_toml(&std::fs::read_to_string(path).unwrap(), path).unwrap();
         let slices = job.layer_slices(0, job.extruded_layers().unwrap());
         let s = &slices[0];
-        let plan = crate::edo::plan_layer(
+        let plan = crate::plan::plan_layer(
             0,
             s.layer.z_mm,
             s.layer.thickness_mm,

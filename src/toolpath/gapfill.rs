@@ -26,8 +26,8 @@
 
 use super::coverage::Raster;
 use super::{PathRole, ToolPath};
-use crate::edo::shapes::{self, Shapes};
 use crate::geom::{Region, SegmentIndex};
+use crate::plan::shapes::{self, Shapes};
 use glam::DVec2;
 use i_triangle::float::triangulatable::Triangulatable;
 use std::collections::HashMap;

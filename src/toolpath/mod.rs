@@ -28,9 +28,9 @@ pub mod ends;
 pub mod flow;
 pub mod gapfill;
 
-use crate::edo::shapes::Path;
-use crate::edo::{offset_composition_eq6, LayerPlan};
 use crate::material::OffsetDirection;
+use crate::plan::shapes::Path;
+use crate::plan::{offset_composition_eq6, LayerPlan};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
@@ -178,7 +178,7 @@ fn groups(layer: &LayerPlan, order: SubRegionOrder) -> Vec<Group> {
     for region in &layer.regions {
         let island = region.island as u32;
         let mut built = vec![false; region.contours.len()];
-        let mut subs: Vec<&crate::edo::SubRegion> = region.sub_regions.iter().collect();
+        let mut subs: Vec<&crate::plan::SubRegion> = region.sub_regions.iter().collect();
         // Sub-regions by n; the crown core (n = 0) lies inside C1, so inner to outer puts
         // it first.
         subs.sort_by_key(|s| s.n);

@@ -1401,7 +1401,7 @@ const BEND_TURN: f64 = 0.15;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::edo::shapes::circle;
+    use crate::plan::shapes::circle;
 
     #[test]
     fn annulus_levels_are_circles() {

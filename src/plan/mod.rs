@@ -901,6 +901,16 @@ pub fn plan_layer(
     })
 }
 
+/// One layer to plan, the planner's input: its index in the job's stack, its geometry
+/// and the gradient design at its mid-height. The job file builds these
+/// ([`crate::job::Job`]); the planner does not know the job file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerSlice {
+    pub index: usize,
+    pub layer: crate::slice::Layer,
+    pub design: GradientDesign,
+}
+
 /// A layer planning failure, naming the layer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("layer {index} (z = {z_mm:.3} mm): {problem}")]
@@ -914,7 +924,7 @@ pub struct LayerError {
 /// islands and design equal the previous layer's is planned once and reused with its
 /// own index and z. `progress` hears `(layers done, layers total)`.
 pub fn plan_layers(
-    slices: &[crate::job::LayerSlice],
+    slices: &[LayerSlice],
     opts: &PlanOptions,
     progress: Option<&(dyn Fn(usize, usize) + Sync)>,
 ) -> Result<Vec<LayerPlan>, LayerError> {

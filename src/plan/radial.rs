@@ -248,7 +248,7 @@ fn centripetal(p0: DVec2, p1: DVec2, p2: DVec2, p3: DVec2, u: f64) -> DVec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::edo::shapes::circle;
+    use crate::plan::shapes::circle;
 
     #[test]
     fn paper_annulus_gives_m_10() {
