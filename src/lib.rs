@@ -6,7 +6,7 @@
 //! multi-syringe slurry extruder over a serial link to build it.
 //!
 //! The crate is a pure synchronous core, one module per stage, data flowing one way
-//! (see `../shared/ARCHITECTURE.md`):
+//! (see `docs/architecture.md`):
 //!
 //! - [`geom`]: loops and regions (outer boundary Ce, holes Ci), their validation.
 //! - [`mesh`]: load a part (STL, 3MF) from bytes within size limits, validate and repair it.
@@ -24,15 +24,21 @@
 //!   type host, link and simulator share.
 //! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
 //!
-//! Around the core: [`cli`] and [`linktest`] do the command-line tools' I/O, and
-//! [`daemon`] is edod's tokio shell (socket API, job store, planner workers, streamer,
-//! supervision); only they and the binaries touch files, sockets and clocks.
+//! Around the core, behind the cargo feature `daemon` (on by default): `cli` and
+//! `linktest` do the command-line tools' I/O, and `daemon` is edod's tokio shell (socket
+//! API, job store, planner workers, streamer, supervision); only they and the binaries
+//! touch files, sockets and clocks. `cargo build --no-default-features` builds the core
+//! alone, so the compiler holds the layering: no core module can reach into the shell,
+//! and none of the shell's crates (tokio, SQLite, serial ports, clap) is linked into it.
 
+#[cfg(feature = "daemon")]
 pub mod cli;
+#[cfg(feature = "daemon")]
 pub mod daemon;
 pub mod geom;
 pub mod job;
 pub mod link;
+#[cfg(feature = "daemon")]
 pub mod linktest;
 pub mod machine;
 pub mod material;

@@ -138,157 +138,232 @@ fn open(port: &Path, baud: u32) -> Result<Box<dyn serialport::SerialPort>, LinkT
 
 /// Run a link test.
 pub fn run(cfg: &LinkTestConfig) -> Result<LinkTestReport, LinkTestError> {
-    let port_name = cfg.port.display().to_string();
     let mut port = open(&cfg.port, cfg.baud)?;
-    let start = Instant::now();
-    let clock = || Micros(start.elapsed().as_micros() as u64);
-    let seed = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-        ^ u64::from(std::process::id()) << 32;
-    let job_id = (seed % 1_000_000_000) as u32 + 1;
-    let link_cfg =
-        LinkConfig::default().with_priority_latency(cfg.baud, crate::link::PRIORITY_LATENCY_US);
-    let mut host = Host::new(link_cfg, seed, clock());
-    let mut report = LinkTestReport {
-        port: port_name.clone(),
-        baud: cfg.baud,
-        ..LinkTestReport::default()
-    };
-    let mut next_index: u32 = 0;
-    let mut syringes = 0usize;
-    let mut baseline = None::<(u64, u32, u32)>;
-    let mut last = None::<(u64, u32, u32)>;
-    let mut connected_at = None::<Instant>;
-    let mut finished_at = None::<Instant>;
-    let mut last_progress = Instant::now();
+    let mut test = LinkTest::new(cfg);
     let mut buf = [0u8; 4096];
     loop {
-        let now = clock();
-        // Events.
-        while let Some(e) = host.poll_event() {
-            match e {
-                HostEvent::Connected(info) => {
-                    syringes = info.barrel_area_um2.len();
-                    report.machine = info.identity.clone();
-                    baseline = Some((
-                        info.status.executed_total,
-                        info.status.duplicates,
-                        info.status.gaps,
-                    ));
-                    last = baseline;
-                    connected_at = Some(Instant::now());
-                    last_progress = Instant::now();
-                }
-                HostEvent::Status(s) => {
-                    if last.map(|l| l.0) != Some(s.executed_total) {
-                        last_progress = Instant::now();
-                    }
-                    last = Some((s.executed_total, s.duplicates, s.gaps));
-                    let done = s
-                        .last_executed
-                        .is_some_and(|m| m.job_id == job_id && m.index + 1 == cfg.moves);
-                    if done && finished_at.is_none() {
-                        finished_at = Some(Instant::now());
-                    }
-                    if matches!(s.state, MachineState::Faulted | MachineState::EStopped) {
-                        report.aborted = Some(format!("machine state {:?}", s.state));
-                    }
-                }
-                HostEvent::MachineReset { .. } => {
-                    report.resets += 1;
-                    report.aborted = Some("machine reset during the test".into());
-                }
-                HostEvent::LinkLost { .. } => report.link_losses += 1,
-                HostEvent::Incompatible { machine_version } => {
-                    report.aborted = Some(format!(
-                        "machine speaks protocol {machine_version}, we speak {}",
-                        crate::link::PROTOCOL_VERSION
-                    ));
-                }
-                HostEvent::Fault(f) => {
-                    report.aborted = Some(format!("machine fault {:?}", f.kind));
-                }
-                HostEvent::LinkRestored | HostEvent::PriorityAcked(_) => {}
-            }
+        let now = test.clock();
+        while let Some(e) = test.host.poll_event() {
+            test.on_event(e);
         }
-        if cfg.moves == 0 && connected_at.is_some() && finished_at.is_none() {
-            finished_at = Some(Instant::now());
-        }
-        if finished_at.is_some() || report.aborted.is_some() {
+        if test.is_over()? {
             break;
         }
-        if connected_at.is_none() && start.elapsed() > Duration::from_secs(5) {
-            return Err(LinkTestError::NoHandshake {
-                port: port_name,
-                secs: 5,
-            });
-        }
-        if connected_at.is_some() && last_progress.elapsed() > cfg.stall_timeout {
-            report.aborted = Some(format!(
-                "no move executed for {} s",
-                cfg.stall_timeout.as_secs()
-            ));
-            break;
-        }
-        // Feed moves.
-        if host.state() == HostState::Connected {
-            while next_index < cfg.moves && host.pending() < 64 {
-                if host
-                    .send_move(dry_run_move(job_id, next_index, syringes))
-                    .is_err()
-                {
-                    break;
-                }
-                next_index += 1;
-                report.sent += 1;
-            }
-        }
+        test.feed_moves();
         // Write.
-        while let Some(t) = host.poll_transmit(now) {
+        while let Some(t) = test.host.poll_transmit(now) {
             if let Err(e) = port.write_all(&t.bytes) {
-                if reopen(&mut port, cfg, &mut report, e).is_err() {
+                if reopen(&mut port, cfg, &mut test.report, e).is_err() {
                     break;
                 }
             }
         }
         // Read until the next timer.
-        let wait_us = host
+        let wait_us = test
+            .host
             .next_timeout()
-            .map_or(2_000, |t| t.since(clock()))
+            .map_or(2_000, |t| t.since(test.clock()))
             .clamp(100, 2_000);
         let _ = port.set_timeout(Duration::from_micros(wait_us));
         match port.read(&mut buf) {
-            Ok(n) => host.handle_bytes(&buf[..n], clock()),
+            Ok(n) => test.host.handle_bytes(&buf[..n], test.clock()),
             Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::WouldBlock => {}
             Err(e) => {
-                if reopen(&mut port, cfg, &mut report, e).is_err() {
-                    report.aborted = Some("port gone and did not come back".into());
+                if reopen(&mut port, cfg, &mut test.report, e).is_err() {
+                    test.report.aborted = Some("port gone and did not come back".into());
                     break;
                 }
             }
         }
     }
-    let stats = host.stats();
-    let (base, fin) = (baseline.unwrap_or_default(), last.unwrap_or_default());
-    report.executed = fin.0.saturating_sub(base.0);
-    report.duplicated = u64::from(fin.1.saturating_sub(base.1));
-    report.reordered = u64::from(fin.2.saturating_sub(base.2));
-    report.lost = report.sent.saturating_sub(report.executed);
-    report.bytes_sent = stats.bytes_sent;
-    report.bytes_received = stats.bytes_received;
-    report.retransmitted_bytes = stats.bytes_retransmitted;
-    report.invalid_bytes = stats.bytes_invalid;
-    report.payload_bytes = stats.payload_bytes_acked;
-    report.srtt_ms = stats.srtt_us as f64 / 1000.0;
-    report.rto_ms = stats.rto_us as f64 / 1000.0;
-    if let (Some(a), Some(b)) = (connected_at, finished_at.or_else(|| Some(Instant::now()))) {
-        let secs = b.duration_since(a).as_secs_f64().max(1e-6);
-        report.elapsed_s = secs;
-        report.moves_per_s = report.executed as f64 / secs;
-        report.utilisation = report.payload_bytes as f64 / (f64::from(cfg.baud) / 10.0 * secs);
+    Ok(test.finish())
+}
+
+/// The machine's counters: moves executed in all, duplicates and gaps it saw.
+type MachineCounts = (u64, u32, u32);
+
+/// A link test under way: the host end of the link, the dry-run job it streams, and
+/// what the machine has reported.
+struct LinkTest<'a> {
+    cfg: &'a LinkTestConfig,
+    /// The link's clock starts here.
+    start: Instant,
+    host: Host,
+    job_id: u32,
+    report: LinkTestReport,
+    next_index: u32,
+    syringes: usize,
+    /// The counters at the handshake (the test counts from there) and the latest.
+    baseline: Option<MachineCounts>,
+    last: Option<MachineCounts>,
+    connected_at: Option<Instant>,
+    finished_at: Option<Instant>,
+    last_progress: Instant,
+}
+
+impl<'a> LinkTest<'a> {
+    /// A test about to start; its job id is random, so a machine that ran an earlier
+    /// test does not take these moves for ones it executed.
+    fn new(cfg: &'a LinkTestConfig) -> Self {
+        let start = Instant::now();
+        let seed = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64)
+            ^ u64::from(std::process::id()) << 32;
+        let job_id = (seed % 1_000_000_000) as u32 + 1;
+        let link_cfg =
+            LinkConfig::default().with_priority_latency(cfg.baud, crate::link::PRIORITY_LATENCY_US);
+        let host = Host::new(link_cfg, seed, Micros(start.elapsed().as_micros() as u64));
+        LinkTest {
+            cfg,
+            start,
+            host,
+            job_id,
+            report: LinkTestReport {
+                port: cfg.port.display().to_string(),
+                baud: cfg.baud,
+                ..LinkTestReport::default()
+            },
+            next_index: 0,
+            syringes: 0,
+            baseline: None,
+            last: None,
+            connected_at: None,
+            finished_at: None,
+            last_progress: Instant::now(),
+        }
     }
-    Ok(report)
+
+    /// The link's time.
+    fn clock(&self) -> Micros {
+        Micros(self.start.elapsed().as_micros() as u64)
+    }
+
+    /// Take in what the link reports: the handshake, the machine's counters, resets,
+    /// faults.
+    fn on_event(&mut self, e: HostEvent) {
+        let report = &mut self.report;
+        match e {
+            HostEvent::Connected(info) => {
+                self.syringes = info.barrel_area_um2.len();
+                report.machine = info.identity.clone();
+                self.baseline = Some((
+                    info.status.executed_total,
+                    info.status.duplicates,
+                    info.status.gaps,
+                ));
+                self.last = self.baseline;
+                self.connected_at = Some(Instant::now());
+                self.last_progress = Instant::now();
+            }
+            HostEvent::Status(s) => {
+                if self.last.map(|l| l.0) != Some(s.executed_total) {
+                    self.last_progress = Instant::now();
+                }
+                self.last = Some((s.executed_total, s.duplicates, s.gaps));
+                let done = s
+                    .last_executed
+                    .is_some_and(|m| m.job_id == self.job_id && m.index + 1 == self.cfg.moves);
+                if done && self.finished_at.is_none() {
+                    self.finished_at = Some(Instant::now());
+                }
+                if matches!(s.state, MachineState::Faulted | MachineState::EStopped) {
+                    report.aborted = Some(format!("machine state {:?}", s.state));
+                }
+            }
+            HostEvent::MachineReset { .. } => {
+                report.resets += 1;
+                report.aborted = Some("machine reset during the test".into());
+            }
+            HostEvent::LinkLost { .. } => report.link_losses += 1,
+            HostEvent::Incompatible { machine_version } => {
+                report.aborted = Some(format!(
+                    "machine speaks protocol {machine_version}, we speak {}",
+                    crate::link::PROTOCOL_VERSION
+                ));
+            }
+            HostEvent::Fault(f) => {
+                report.aborted = Some(format!("machine fault {:?}", f.kind));
+            }
+            HostEvent::LinkRestored | HostEvent::PriorityAcked(_) => {}
+        }
+    }
+
+    /// Whether the test has ended: every move executed, aborted, or stalled (no move
+    /// executed for the stall timeout). No handshake within 5 s is an error.
+    fn is_over(&mut self) -> Result<bool, LinkTestError> {
+        if self.cfg.moves == 0 && self.connected_at.is_some() && self.finished_at.is_none() {
+            self.finished_at = Some(Instant::now());
+        }
+        if self.finished_at.is_some() || self.report.aborted.is_some() {
+            return Ok(true);
+        }
+        if self.connected_at.is_none() && self.start.elapsed() > Duration::from_secs(5) {
+            return Err(LinkTestError::NoHandshake {
+                port: self.report.port.clone(),
+                secs: 5,
+            });
+        }
+        if self.connected_at.is_some() && self.last_progress.elapsed() > self.cfg.stall_timeout {
+            self.report.aborted = Some(format!(
+                "no move executed for {} s",
+                self.cfg.stall_timeout.as_secs()
+            ));
+            return Ok(true);
+        }
+        Ok(false)
+    }
+
+    /// Hand the link dry-run moves, up to 64 waiting.
+    fn feed_moves(&mut self) {
+        if self.host.state() != HostState::Connected {
+            return;
+        }
+        while self.next_index < self.cfg.moves && self.host.pending() < 64 {
+            if self
+                .host
+                .send_move(dry_run_move(self.job_id, self.next_index, self.syringes))
+                .is_err()
+            {
+                break;
+            }
+            self.next_index += 1;
+            self.report.sent += 1;
+        }
+    }
+
+    /// The report: the machine's counters since the handshake, the link's statistics,
+    /// rates over the time from handshake to the last move.
+    fn finish(self) -> LinkTestReport {
+        let mut report = self.report;
+        let stats = self.host.stats();
+        let (base, fin) = (
+            self.baseline.unwrap_or_default(),
+            self.last.unwrap_or_default(),
+        );
+        report.executed = fin.0.saturating_sub(base.0);
+        report.duplicated = u64::from(fin.1.saturating_sub(base.1));
+        report.reordered = u64::from(fin.2.saturating_sub(base.2));
+        report.lost = report.sent.saturating_sub(report.executed);
+        report.bytes_sent = stats.bytes_sent;
+        report.bytes_received = stats.bytes_received;
+        report.retransmitted_bytes = stats.bytes_retransmitted;
+        report.invalid_bytes = stats.bytes_invalid;
+        report.payload_bytes = stats.payload_bytes_acked;
+        report.srtt_ms = stats.srtt_us as f64 / 1000.0;
+        report.rto_ms = stats.rto_us as f64 / 1000.0;
+        if let (Some(a), Some(b)) = (
+            self.connected_at,
+            self.finished_at.or_else(|| Some(Instant::now())),
+        ) {
+            let secs = b.duration_since(a).as_secs_f64().max(1e-6);
+            report.elapsed_s = secs;
+            report.moves_per_s = report.executed as f64 / secs;
+            report.utilisation =
+                report.payload_bytes as f64 / (f64::from(self.cfg.baud) / 10.0 * secs);
+        }
+        report
+    }
 }
 
 /// The port failed (unplugged): reopen it for up to 5 s.

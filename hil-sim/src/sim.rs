@@ -305,6 +305,19 @@ fn um_to_mm(p: edo::machine::PositionUm) -> [f64; 3] {
     ]
 }
 
+/// The link's settings for a machine that booted with `boot_id`.
+fn link_config(cfg: &SimConfig, boot_id: u64) -> MachineLinkConfig {
+    MachineLinkConfig {
+        identity: format!("hil-sim {}", env!("CARGO_PKG_VERSION")),
+        boot_id,
+        barrel_area_um2: vec![cfg.barrel_area_um2; cfg.syringes],
+        capacity_nl: vec![cfg.capacity_nl; cfg.syringes],
+        queue_depth: cfg.queue.max(1),
+        rx_buffer_bytes: cfg.rx_buffer_bytes,
+        ..MachineLinkConfig::default()
+    }
+}
+
 /// Run the simulator until `stop` is set. `on_ready` gets the path the host should open
 /// (the symlink if one was asked for, else the pty itself).
 pub fn run(
@@ -323,177 +336,249 @@ pub fn run(
     if cfg.baud == 0 || cfg.speed.is_nan() || cfg.speed <= 0.0 {
         bail!("--baud and --speed must be positive");
     }
-    let mut faults = cfg.faults.clone();
-    let mut rng = SimRng::new(cfg.seed);
-    let link_cfg = |boot_id: u64| MachineLinkConfig {
-        identity: format!("hil-sim {}", env!("CARGO_PKG_VERSION")),
-        boot_id,
-        barrel_area_um2: vec![cfg.barrel_area_um2; cfg.syringes],
-        capacity_nl: vec![cfg.capacity_nl; cfg.syringes],
-        queue_depth: cfg.queue.max(1),
-        rx_buffer_bytes: cfg.rx_buffer_bytes,
-        ..MachineLinkConfig::default()
-    };
-    let mut pty = Some(open_pty(cfg.link.as_deref())?);
-    let ready_path = cfg
-        .link
-        .clone()
-        .or_else(|| pty.as_ref().map(|p| p.slave_path.clone()))
-        .unwrap_or_default();
-    let mut recorder = match &cfg.record {
-        Some(p) => Some(BufWriter::new(
-            File::create(p).with_context(|| format!("create record {}", p.display()))?,
-        )),
-        None => None,
-    };
-    let start = Instant::now();
-    let mut link = MachineLink::new(link_cfg(rng.next_u64()), Micros(0));
-    let mut model = MachineModel::new(
-        cfg.syringes,
-        cfg.capacity_nl,
-        cfg.barrel_area_um2,
-        cfg.dead_volume_nl,
-    );
-    let mut to_machine = Injector::new(rng.next_u64());
-    let mut to_host = Injector::new(rng.next_u64());
-    let mut tx: VecDeque<u8> = VecDeque::new();
-    let mut sum = Summary::default();
-    let byte_us = 10_000_000.0 / f64::from(cfg.baud);
-    let (mut rx_credit, mut tx_credit) = (0.0f64, 0.0f64);
-    let mut last_tick = 0u64;
-    let mut executing: Option<(Move, crate::model::Executed, u64)> = None;
-    let mut sim_time_us: f64 = 0.0;
-    let mut stall_until = 0u64;
-    let mut replug_at: Option<u64> = None;
-    let (mut stall_done, mut reset_done, mut unplug_done) = (false, false, false);
-    let mut fired = [false; 4];
-    let mut buf = vec![0u8; 4096];
+    let (mut sim, ready_path) = Sim::new(cfg)?;
     on_ready(&ready_path);
-
-    let reset = |link: &mut MachineLink,
-                 rng: &mut SimRng,
-                 tx: &mut VecDeque<u8>,
-                 a: &mut Injector,
-                 b: &mut Injector,
-                 now: u64,
-                 sum: &mut Summary| {
-        *link = MachineLink::new(link_cfg(rng.next_u64()), Micros(now));
-        tx.clear();
-        a.clear();
-        b.clear();
-        tx.extend(b"\r\nhil-sim boot\r\n\xff\xfe");
-        sum.resets += 1;
-    };
-
     while !stop.load(Ordering::Relaxed) {
         std::thread::sleep(Duration::from_micros(300));
-        let now_us = start.elapsed().as_micros() as u64;
-        let now = Micros(now_us);
-        let dt = now_us.saturating_sub(last_tick);
-        last_tick = now_us;
-        let secs = now_us as f64 / 1e6;
+        sim.tick(commands.as_ref())?;
+    }
+    sim.finish()
+}
 
-        // Run-time commands.
-        let mut do_reset = false;
-        let mut do_unplug = false;
-        if let Some(rx) = &commands {
-            while let Ok(c) = rx.try_recv() {
-                match c {
-                    Command::Fault(item) => {
-                        let _ = faults.apply(&item);
+/// A running simulator: the pty, the machine end of the link and the machine model,
+/// the fault injectors of both directions, and the clocks. [`Sim::tick`] is one turn
+/// of the loop: commands and timed faults, host to machine, moves, machine to host.
+struct Sim<'a> {
+    cfg: &'a SimConfig,
+    /// The faults now (run-time commands change them).
+    faults: Faults,
+    rng: SimRng,
+    /// `None` while unplugged.
+    pty: Option<Pty>,
+    recorder: Option<BufWriter<File>>,
+    /// Wall time starts here.
+    start: Instant,
+    link: MachineLink,
+    model: MachineModel,
+    to_machine: Injector,
+    to_host: Injector,
+    /// Bytes waiting for the line to the host.
+    tx: VecDeque<u8>,
+    sum: Summary,
+    /// Wall time one byte takes on the line, µs.
+    byte_us: f64,
+    /// Bytes the line may carry now, each way.
+    rx_credit: f64,
+    tx_credit: f64,
+    last_tick: u64,
+    /// The move under way and when (simulated µs) it is done.
+    executing: Option<(Move, crate::model::Executed, u64)>,
+    sim_time_us: f64,
+    stall_until: u64,
+    replug_at: Option<u64>,
+    /// Timed faults already fired: stall, reset, unplug.
+    stall_done: bool,
+    reset_done: bool,
+    unplug_done: bool,
+    /// Move-count faults already fired: reset, empty, limit, e-stop.
+    fired: [bool; 4],
+    buf: Vec<u8>,
+}
+
+impl<'a> Sim<'a> {
+    /// A simulator on a fresh pty, and the path the host should open.
+    fn new(cfg: &'a SimConfig) -> anyhow::Result<(Self, PathBuf)> {
+        let faults = cfg.faults.clone();
+        let mut rng = SimRng::new(cfg.seed);
+        let pty = Some(open_pty(cfg.link.as_deref())?);
+        let ready_path = cfg
+            .link
+            .clone()
+            .or_else(|| pty.as_ref().map(|p| p.slave_path.clone()))
+            .unwrap_or_default();
+        let recorder = match &cfg.record {
+            Some(p) => Some(BufWriter::new(
+                File::create(p).with_context(|| format!("create record {}", p.display()))?,
+            )),
+            None => None,
+        };
+        let start = Instant::now();
+        let link = MachineLink::new(link_config(cfg, rng.next_u64()), Micros(0));
+        let model = MachineModel::new(
+            cfg.syringes,
+            cfg.capacity_nl,
+            cfg.barrel_area_um2,
+            cfg.dead_volume_nl,
+        );
+        let to_machine = Injector::new(rng.next_u64());
+        let to_host = Injector::new(rng.next_u64());
+        let sim = Sim {
+            cfg,
+            faults,
+            rng,
+            pty,
+            recorder,
+            start,
+            link,
+            model,
+            to_machine,
+            to_host,
+            tx: VecDeque::new(),
+            sum: Summary::default(),
+            byte_us: 10_000_000.0 / f64::from(cfg.baud),
+            rx_credit: 0.0,
+            tx_credit: 0.0,
+            last_tick: 0,
+            executing: None,
+            sim_time_us: 0.0,
+            stall_until: 0,
+            replug_at: None,
+            stall_done: false,
+            reset_done: false,
+            unplug_done: false,
+            fired: [false; 4],
+            buf: vec![0u8; 4096],
+        };
+        Ok((sim, ready_path))
+    }
+
+    /// One turn of the loop.
+    fn tick(&mut self, commands: Option<&Receiver<Command>>) -> anyhow::Result<()> {
+        let now_us = self.start.elapsed().as_micros() as u64;
+        let dt = now_us.saturating_sub(self.last_tick);
+        self.last_tick = now_us;
+        let (mut do_reset, mut do_unplug) = match commands {
+            Some(rx) => self.take_commands(rx, now_us),
+            None => (false, false),
+        };
+        let (timed_reset, timed_unplug) = self.timed_faults(now_us);
+        do_reset |= timed_reset;
+        do_unplug |= timed_unplug;
+        if do_reset {
+            self.reset(now_us);
+            self.executing = None;
+        }
+        if do_unplug && self.pty.is_some() {
+            self.unplug(now_us);
+        }
+        if let Some(at) = self.replug_at {
+            if now_us >= at {
+                self.pty = Some(open_pty(self.cfg.link.as_deref())?);
+                self.replug_at = None;
+            }
+        }
+        let stalled = now_us < self.stall_until;
+        self.receive(now_us, dt, stalled)?;
+        self.execute(now_us, dt)?;
+        self.transmit(now_us, dt, stalled)
+    }
+
+    /// Apply the run-time commands waiting; whether one asked for a reset, an unplug.
+    fn take_commands(&mut self, rx: &Receiver<Command>, now_us: u64) -> (bool, bool) {
+        let (mut do_reset, mut do_unplug) = (false, false);
+        while let Ok(c) = rx.try_recv() {
+            match c {
+                Command::Fault(item) => {
+                    let _ = self.faults.apply(&item);
+                }
+                Command::Reset => do_reset = true,
+                Command::Unplug => do_unplug = true,
+                Command::Stall(ms) => self.stall_until = now_us + ms * 1000,
+                Command::EStop => {
+                    self.link.fault(FaultKind::EStopPressed);
+                    self.executing = None;
+                }
+                Command::Empty(n) => {
+                    if let Some(s) = self.model.syringes.get_mut(usize::from(n)) {
+                        s.remaining_nl = 0;
                     }
-                    Command::Reset => do_reset = true,
-                    Command::Unplug => do_unplug = true,
-                    Command::Stall(ms) => stall_until = now_us + ms * 1000,
-                    Command::EStop => {
-                        link.fault(FaultKind::EStopPressed);
-                        executing = None;
-                    }
-                    Command::Empty(n) => {
-                        if let Some(s) = model.syringes.get_mut(usize::from(n)) {
-                            s.remaining_nl = 0;
-                        }
-                        link.fault(FaultKind::SyringeEmpty(n));
-                    }
-                    Command::Limit(a) => link.fault(FaultKind::LimitHit(a)),
-                    Command::Clear => {
-                        faults.corrupt = 0.0;
-                        faults.drop = 0.0;
-                        faults.dup = 0.0;
-                        faults.delay_ms = 0;
-                        faults.jitter_ms = 0;
-                    }
-                    Command::Status => {
-                        eprintln!(
-                            "{}",
-                            serde_json::json!({
-                                "status": format!("{:?}", link.status()),
-                                "summary": sum,
-                            })
-                        );
-                    }
+                    self.link.fault(FaultKind::SyringeEmpty(n));
+                }
+                Command::Limit(a) => self.link.fault(FaultKind::LimitHit(a)),
+                Command::Clear => {
+                    let f = &mut self.faults;
+                    f.corrupt = 0.0;
+                    f.drop = 0.0;
+                    f.dup = 0.0;
+                    f.delay_ms = 0;
+                    f.jitter_ms = 0;
+                }
+                Command::Status => {
+                    eprintln!(
+                        "{}",
+                        serde_json::json!({
+                            "status": format!("{:?}", self.link.status()),
+                            "summary": self.sum,
+                        })
+                    );
                 }
             }
         }
-        // Timed faults.
-        if let Some(at) = faults.stall_at_s {
-            if !stall_done && secs >= at {
-                stall_done = true;
-                stall_until = now_us + faults.stall_for_ms * 1000;
+        (do_reset, do_unplug)
+    }
+
+    /// Fire the faults timed in seconds from the start (each once): a stall starts
+    /// here; whether a reset, an unplug is due.
+    fn timed_faults(&mut self, now_us: u64) -> (bool, bool) {
+        let secs = now_us as f64 / 1e6;
+        let (mut do_reset, mut do_unplug) = (false, false);
+        if let Some(at) = self.faults.stall_at_s {
+            if !self.stall_done && secs >= at {
+                self.stall_done = true;
+                self.stall_until = now_us + self.faults.stall_for_ms * 1000;
             }
         }
-        if let Some(at) = faults.reset_after_s {
-            if !reset_done && secs >= at {
-                reset_done = true;
+        if let Some(at) = self.faults.reset_after_s {
+            if !self.reset_done && secs >= at {
+                self.reset_done = true;
                 do_reset = true;
             }
         }
-        if let Some(at) = faults.unplug_at_s {
-            if !unplug_done && secs >= at {
-                unplug_done = true;
+        if let Some(at) = self.faults.unplug_at_s {
+            if !self.unplug_done && secs >= at {
+                self.unplug_done = true;
                 do_unplug = true;
             }
         }
-        if do_reset {
-            reset(
-                &mut link,
-                &mut rng,
-                &mut tx,
-                &mut to_machine,
-                &mut to_host,
-                now_us,
-                &mut sum,
-            );
-            executing = None;
-        }
-        if do_unplug && pty.is_some() {
-            pty = None; // closes master and slave: the host sees a hang-up
-            if let Some(l) = &cfg.link {
-                let _ = std::fs::remove_file(l);
-            }
-            tx.clear();
-            to_machine.clear();
-            sum.unplugs += 1;
-            replug_at = Some(now_us + faults.unplug_for_ms * 1000);
-        }
-        if let Some(at) = replug_at {
-            if now_us >= at {
-                pty = Some(open_pty(cfg.link.as_deref())?);
-                replug_at = None;
-            }
-        }
-        let stalled = now_us < stall_until;
+        (do_reset, do_unplug)
+    }
 
-        // Host -> machine, throttled to the baud rate.
-        rx_credit = (rx_credit + dt as f64 / byte_us).min(512.0);
-        if let Some(p) = pty.as_mut() {
-            let want = (rx_credit as usize).min(buf.len());
+    /// The machine resets: a new boot of the link, bytes in flight lost, the boot
+    /// banner on the line.
+    fn reset(&mut self, now_us: u64) {
+        self.link = MachineLink::new(link_config(self.cfg, self.rng.next_u64()), Micros(now_us));
+        self.tx.clear();
+        self.to_machine.clear();
+        self.to_host.clear();
+        self.tx.extend(b"\r\nhil-sim boot\r\n\xff\xfe");
+        self.sum.resets += 1;
+    }
+
+    /// The cable is pulled: the pty closes (the host sees a hang-up) until the replug
+    /// time.
+    fn unplug(&mut self, now_us: u64) {
+        self.pty = None; // closes master and slave: the host sees a hang-up
+        if let Some(l) = &self.cfg.link {
+            let _ = std::fs::remove_file(l);
+        }
+        self.tx.clear();
+        self.to_machine.clear();
+        self.sum.unplugs += 1;
+        self.replug_at = Some(now_us + self.faults.unplug_for_ms * 1000);
+    }
+
+    /// Host -> machine, throttled to the baud rate, through the injector into the link.
+    fn receive(&mut self, now_us: u64, dt: u64, stalled: bool) -> anyhow::Result<()> {
+        self.rx_credit = (self.rx_credit + dt as f64 / self.byte_us).min(512.0);
+        if let Some(p) = self.pty.as_mut() {
+            let want = (self.rx_credit as usize).min(self.buf.len());
             if want > 0 && !stalled {
-                match p.master.read(&mut buf[..want]) {
+                match p.master.read(&mut self.buf[..want]) {
                     Ok(n) => {
-                        rx_credit -= n as f64;
-                        sum.bytes_from_host += n as u64;
-                        to_machine.push(&buf[..n], now_us, &faults, &mut sum);
+                        self.rx_credit -= n as f64;
+                        self.sum.bytes_from_host += n as u64;
+                        self.to_machine
+                            .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
                     }
                     Err(e) if e.kind() == ErrorKind::WouldBlock => {}
                     Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {}
@@ -501,111 +586,130 @@ pub fn run(
                 }
             }
         }
-        while let Some(b) = to_machine.pop_due(now_us) {
-            link.handle_bytes(&b, now);
+        let now = Micros(now_us);
+        while let Some(b) = self.to_machine.pop_due(now_us) {
+            self.link.handle_bytes(&b, now);
         }
-        while let Some(e) = link.poll_event() {
+        while let Some(e) = self.link.poll_event() {
             // An emergency stop aborts the move being executed: it is not reported
             // executed, so a host resuming after the stop sends it again.
             if e == MachineEvent::Priority(PriorityCmd::EmergencyStop) {
-                executing = None;
+                self.executing = None;
             }
         }
+        Ok(())
+    }
 
-        // Execute moves on simulated machine time.
-        sim_time_us += dt as f64 * cfg.speed;
+    /// Execute moves on simulated machine time: finish the move under way when its
+    /// time has come, start the next.
+    fn execute(&mut self, now_us: u64, dt: u64) -> anyhow::Result<()> {
+        self.sim_time_us += dt as f64 * self.cfg.speed;
         loop {
-            if let Some((mv, ex, done_at)) = &executing {
-                if (sim_time_us as u64) < *done_at {
+            if let Some((_, _, done_at)) = &self.executing {
+                if (self.sim_time_us as u64) < *done_at {
                     break;
                 }
-                let remaining = model.remaining_nl();
-                link.move_done(mv, ex.to, &remaining);
-                sum.executed += 1;
-                if let Some(w) = recorder.as_mut() {
-                    let line = RecordLine {
-                        job_id: mv.job_id,
-                        index: mv.index,
-                        kind: move_kind_name(&mv.kind).to_string(),
-                        layer: ex.layer,
-                        t_s: *done_at as f64 / 1e6,
-                        from_mm: um_to_mm(ex.from),
-                        to_mm: um_to_mm(ex.to),
-                        volumes_nl: mv.kind.volumes_nl().to_vec(),
-                        exit_composition: ex.exit_composition.clone(),
-                        remaining_nl: remaining,
-                    };
-                    write_line(w, &line)?;
-                }
-                executing = None;
-                let n = sum.executed;
-                let triggers = [
-                    faults.reset_at_moves,
-                    faults.empty_at_moves,
-                    faults.limit_at_moves,
-                    faults.estop_at_moves,
-                ];
-                for (k, t) in triggers.iter().enumerate() {
-                    if *t == Some(n) && !fired[k] {
-                        fired[k] = true;
-                        match k {
-                            0 => reset(
-                                &mut link,
-                                &mut rng,
-                                &mut tx,
-                                &mut to_machine,
-                                &mut to_host,
-                                now_us,
-                                &mut sum,
-                            ),
-                            1 => {
-                                if let Some(s) = model.syringes.first_mut() {
-                                    s.remaining_nl = 0;
-                                }
-                                link.fault(FaultKind::SyringeEmpty(0));
-                            }
-                            2 => link.fault(FaultKind::LimitHit(0)),
-                            _ => link.fault(FaultKind::EStopPressed),
-                        }
-                    }
+                if let Some((mv, ex, done_at)) = self.executing.take() {
+                    self.complete(&mv, &ex, done_at)?;
+                    self.fire_move_faults(now_us);
                 }
             }
-            let Some(mv) = link.pop_move() else {
+            let Some(mv) = self.link.pop_move() else {
                 // Idle: make the recording complete on disk for whoever reads it now
                 // (a no-op when nothing was written since the last flush).
-                if let Some(w) = recorder.as_mut() {
+                if let Some(w) = self.recorder.as_mut() {
                     w.flush()?;
                 }
                 break;
             };
-            match model.execute(&mv) {
+            match self.model.execute(&mv) {
                 Ok(ex) => {
-                    let done_at = sim_time_us as u64 + ex.duration_us;
-                    executing = Some((mv, ex, done_at));
+                    let done_at = self.sim_time_us as u64 + ex.duration_us;
+                    self.executing = Some((mv, ex, done_at));
                 }
-                Err(fault) => link.fault(fault),
+                Err(fault) => self.link.fault(fault),
             }
         }
+        Ok(())
+    }
 
-        // Machine -> host.
-        while let Some(t) = link.poll_transmit(now) {
-            if !stalled {
-                to_host.push(&t.bytes, now_us, &faults, &mut sum);
+    /// Report a move done (finished at simulated time `done_at_us`) and record it.
+    fn complete(
+        &mut self,
+        mv: &Move,
+        ex: &crate::model::Executed,
+        done_at_us: u64,
+    ) -> anyhow::Result<()> {
+        let remaining = self.model.remaining_nl();
+        self.link.move_done(mv, ex.to, &remaining);
+        self.sum.executed += 1;
+        if let Some(w) = self.recorder.as_mut() {
+            let line = RecordLine {
+                job_id: mv.job_id,
+                index: mv.index,
+                kind: move_kind_name(&mv.kind).to_string(),
+                layer: ex.layer,
+                t_s: done_at_us as f64 / 1e6,
+                from_mm: um_to_mm(ex.from),
+                to_mm: um_to_mm(ex.to),
+                volumes_nl: mv.kind.volumes_nl().to_vec(),
+                exit_composition: ex.exit_composition.clone(),
+                remaining_nl: remaining,
+            };
+            write_line(w, &line)?;
+        }
+        Ok(())
+    }
+
+    /// Fire the faults set at a count of executed moves (each once).
+    fn fire_move_faults(&mut self, now_us: u64) {
+        let n = self.sum.executed;
+        let triggers = [
+            self.faults.reset_at_moves,
+            self.faults.empty_at_moves,
+            self.faults.limit_at_moves,
+            self.faults.estop_at_moves,
+        ];
+        for (k, t) in triggers.iter().enumerate() {
+            if *t == Some(n) && !self.fired[k] {
+                self.fired[k] = true;
+                match k {
+                    0 => self.reset(now_us),
+                    1 => {
+                        if let Some(s) = self.model.syringes.first_mut() {
+                            s.remaining_nl = 0;
+                        }
+                        self.link.fault(FaultKind::SyringeEmpty(0));
+                    }
+                    2 => self.link.fault(FaultKind::LimitHit(0)),
+                    _ => self.link.fault(FaultKind::EStopPressed),
+                }
             }
         }
-        while let Some(b) = to_host.pop_due(now_us) {
-            tx.extend(b);
+    }
+
+    /// Machine -> host: the link's frames through the injector, throttled to the baud
+    /// rate onto the pty (dropped while unplugged).
+    fn transmit(&mut self, now_us: u64, dt: u64, stalled: bool) -> anyhow::Result<()> {
+        while let Some(t) = self.link.poll_transmit(Micros(now_us)) {
+            if !stalled {
+                self.to_host
+                    .push(&t.bytes, now_us, &self.faults, &mut self.sum);
+            }
         }
-        tx_credit = (tx_credit + dt as f64 / byte_us).min(512.0);
-        if let Some(p) = pty.as_mut() {
-            let n = (tx_credit as usize).min(tx.len());
+        while let Some(b) = self.to_host.pop_due(now_us) {
+            self.tx.extend(b);
+        }
+        self.tx_credit = (self.tx_credit + dt as f64 / self.byte_us).min(512.0);
+        if let Some(p) = self.pty.as_mut() {
+            let n = (self.tx_credit as usize).min(self.tx.len());
             if n > 0 {
-                let chunk: Vec<u8> = tx.iter().take(n).copied().collect();
+                let chunk: Vec<u8> = self.tx.iter().take(n).copied().collect();
                 match p.master.write(&chunk) {
                     Ok(w) => {
-                        tx.drain(..w);
-                        tx_credit -= w as f64;
-                        sum.bytes_to_host += w as u64;
+                        self.tx.drain(..w);
+                        self.tx_credit -= w as f64;
+                        self.sum.bytes_to_host += w as u64;
                     }
                     Err(e) if e.kind() == ErrorKind::WouldBlock => {}
                     Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {}
@@ -613,16 +717,21 @@ pub fn run(
                 }
             }
         } else {
-            tx.clear();
+            self.tx.clear();
         }
+        Ok(())
     }
-    if let Some(w) = recorder.as_mut() {
-        w.flush()?;
+
+    /// Stop: the recording flushed, the link's symlink removed.
+    fn finish(mut self) -> anyhow::Result<Summary> {
+        if let Some(w) = self.recorder.as_mut() {
+            w.flush()?;
+        }
+        if let Some(l) = &self.cfg.link {
+            let _ = std::fs::remove_file(l);
+        }
+        Ok(self.sum)
     }
-    if let Some(l) = &cfg.link {
-        let _ = std::fs::remove_file(l);
-    }
-    Ok(sum)
 }
 
 /// A simulator running in a thread of this process (for tests).

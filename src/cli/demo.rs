@@ -30,6 +30,7 @@ use serde_json::json;
 use super::client::{watch, Client};
 use crate::daemon::Config;
 use crate::job::Job;
+use crate::machine::placement::{place_part, placed_settings};
 use crate::machine::record::{self, RecordLine};
 use crate::machine::MoveKind;
 use crate::pipeline::{LayerMoves, StreamState};
@@ -149,82 +150,13 @@ pub fn run(args: &DemoArgs, json_out: bool) -> Result<ExitCode> {
     })
 }
 
+/// The demo in the work directory `work`: print the job on edod and the machine, then
+/// compare the recording with the plan, draw the previews and write the summary.
 fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Result<DemoSummary> {
     let job = Job::from_toml(DEMO_JOB, "tooth-crown.toml (bundled)")?;
-    let mut cfg = Config::from_toml("", "demo")?;
-    let record_path = match (&args.port, &args.record) {
-        (Some(port), Some(rec)) => {
-            cfg.serial.port = port.display().to_string();
-            rec.clone()
-        }
-        _ => {
-            let rec = work.join("record.jsonl");
-            cfg.sim.binary = Some(sim_binary(args.sim_binary.as_deref())?);
-            cfg.sim.speed = args.speed;
-            cfg.sim.record = Some(rec.clone());
-            rec
-        }
-    };
-    if !(args.speed.is_finite() && args.speed > 0.0) {
-        bail!("--speed must be a positive number, got {}", args.speed);
-    }
-    // A 1 µL mixing chamber: the crown is small (about 80 µL in all), and the default
-    // 20 µL chamber of config/edod.toml would hold a quarter of the part.
-    cfg.machine.dead_volume_nl = DEMO_DEAD_VOLUME_NL;
-    cfg.api.socket = work.join("edod.sock");
-    cfg.state.dir = work.join("state");
+    let (cfg, record_path) = demo_config(args, work)?;
     let machine = cfg.machine.clone();
-    let socket = cfg.api.socket.clone();
-
-    // edod in this process, on its own runtime thread.
-    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let daemon = std::thread::spawn(move || -> Result<()> {
-        let rt = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(2)
-            .enable_all()
-            .build()?;
-        rt.block_on(crate::daemon::run_until(cfg, async {
-            let _ = stop_rx.await;
-        }))
-    });
-    let stop_daemon = move || -> Result<()> {
-        let _ = stop_tx.send(());
-        match daemon.join() {
-            Ok(r) => r.context("edod"),
-            Err(_) => bail!("edod stopped abnormally"),
-        }
-    };
-    let printed = (|| -> Result<(serde_json::Value, f64)> {
-        let mut c = connect(&socket)?;
-        let t = Instant::now();
-        loop {
-            let m = c.call("machine.status", json!({}))?;
-            if m["connected"] == json!(true) {
-                break;
-            }
-            if t.elapsed() > Duration::from_secs(15) {
-                bail!("the simulated machine did not connect within 15 s");
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let submitted = Instant::now();
-        let r = c.call(
-            "job.submit",
-            json!({"job": DEMO_JOB, "name": format!("{} (demo)", job.name)}),
-        )?;
-        let id = r["id"].as_u64().context("edod returned no job id")?;
-        if !json_out {
-            eprintln!(
-                "edoctl demo: printing {:?} on the simulated machine ({}x speed)",
-                job.name, args.speed
-            );
-        }
-        let j = watch(&mut c, id, json_out)?;
-        Ok((j, submitted.elapsed().as_secs_f64()))
-    })();
-    let stopped = stop_daemon();
-    let (final_job, print_time_s) = printed?;
-    stopped?;
+    let (final_job, print_time_s) = print_on_edod(cfg, &job, args, json_out)?;
 
     let record_text = std::fs::read_to_string(&record_path)
         .with_context(|| format!("cannot read the recording {}", record_path.display()))?;
@@ -277,6 +209,103 @@ fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Res
     std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
         .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(summary)
+}
+
+/// edod's configuration for the demo, and the recording the machine writes: hil-sim
+/// started by edod (recording into `work`), or the machine of `--port`.
+fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
+    let mut cfg = Config::from_toml("", "demo")?;
+    let record_path = match (&args.port, &args.record) {
+        (Some(port), Some(rec)) => {
+            cfg.serial.port = port.display().to_string();
+            rec.clone()
+        }
+        _ => {
+            let rec = work.join("record.jsonl");
+            cfg.sim.binary = Some(sim_binary(args.sim_binary.as_deref())?);
+            cfg.sim.speed = args.speed;
+            cfg.sim.record = Some(rec.clone());
+            rec
+        }
+    };
+    if !(args.speed.is_finite() && args.speed > 0.0) {
+        bail!("--speed must be a positive number, got {}", args.speed);
+    }
+    // A 1 µL mixing chamber: the crown is small (about 80 µL in all), and the default
+    // 20 µL chamber of config/edod.toml would hold a quarter of the part.
+    cfg.machine.dead_volume_nl = DEMO_DEAD_VOLUME_NL;
+    cfg.api.socket = work.join("edod.sock");
+    cfg.state.dir = work.join("state");
+    Ok((cfg, record_path))
+}
+
+/// Run edod with `cfg` in this process (on its own runtime thread), print `job` through
+/// it and stop it: the job as edod last reported it, and the print's wall time (s).
+fn print_on_edod(
+    cfg: Config,
+    job: &Job,
+    args: &DemoArgs,
+    json_out: bool,
+) -> Result<(serde_json::Value, f64)> {
+    let socket = cfg.api.socket.clone();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let daemon = std::thread::spawn(move || -> Result<()> {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()?;
+        rt.block_on(crate::daemon::run_until(cfg, async {
+            let _ = stop_rx.await;
+        }))
+    });
+    let stop_daemon = move || -> Result<()> {
+        let _ = stop_tx.send(());
+        match daemon.join() {
+            Ok(r) => r.context("edod"),
+            Err(_) => bail!("edod stopped abnormally"),
+        }
+    };
+    let printed = submit_and_watch(&socket, job, args, json_out);
+    let stopped = stop_daemon();
+    let printed = printed?;
+    stopped?;
+    Ok(printed)
+}
+
+/// Wait for the machine to connect, submit the job as `edoctl submit` does and follow
+/// it to its end.
+fn submit_and_watch(
+    socket: &Path,
+    job: &Job,
+    args: &DemoArgs,
+    json_out: bool,
+) -> Result<(serde_json::Value, f64)> {
+    let mut c = connect(socket)?;
+    let t = Instant::now();
+    loop {
+        let m = c.call("machine.status", json!({}))?;
+        if m["connected"] == json!(true) {
+            break;
+        }
+        if t.elapsed() > Duration::from_secs(15) {
+            bail!("the simulated machine did not connect within 15 s");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let submitted = Instant::now();
+    let r = c.call(
+        "job.submit",
+        json!({"job": DEMO_JOB, "name": format!("{} (demo)", job.name)}),
+    )?;
+    let id = r["id"].as_u64().context("edod returned no job id")?;
+    if !json_out {
+        eprintln!(
+            "edoctl demo: printing {:?} on the simulated machine ({}x speed)",
+            job.name, args.speed
+        );
+    }
+    let j = watch(&mut c, id, json_out)?;
+    Ok((j, submitted.elapsed().as_secs_f64()))
 }
 
 /// Connect to the demo's edod, waiting for its socket.
@@ -358,9 +387,8 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
         .extruded_bounds()
         .context("the demo job is an extruded polygon")?;
     let volume = machine.build_volume().map_err(anyhow::Error::msg)?;
-    let placement =
-        crate::daemon::planner::place_part(job, bounds, &volume).map_err(anyhow::Error::msg)?;
-    let settings = crate::daemon::planner::placed_settings(&settings, &placement);
+    let placement = place_part(job, bounds, &volume).map_err(anyhow::Error::msg)?;
+    let settings = placed_settings(&settings, &placement);
     let stack = job
         .extruded_layers()
         .context("the demo job is an extruded polygon")?;

@@ -3,6 +3,7 @@
 //! slices, runs the EDO method on every layer, writes the report and previews.
 
 use crate::job::{Geometry, Job};
+use crate::machine::placement::{place_part, placed_settings, BuildVolume};
 use crate::mesh::MeshLimits;
 use crate::plan::LayerSlice;
 use crate::plan::{plan_layers, LayerPlan};
@@ -56,7 +57,7 @@ pub fn parse_build_volume(s: &str) -> Result<[f64; 3], String> {
     let v: [f64; 3] = v
         .try_into()
         .map_err(|_| format!("\"{s}\" is not three sides X,Y,Z in mm (e.g. 200,200,150)"))?;
-    crate::machine::placement::BuildVolume::new(v)?;
+    BuildVolume::new(v)?;
     Ok(v)
 }
 
@@ -190,6 +191,9 @@ pub fn plan_with_progress(job: &Job, slices: &[LayerSlice], quiet: bool) -> Resu
     Ok(layers)
 }
 
+/// `edoctl plan`: load and plan the job, then write what the options ask for (toolpaths
+/// and coverage into the report, previews, the report, G-code) and a summary for people
+/// (on standard error when the report goes to standard output).
 pub fn run(args: &PlanArgs) -> Result<()> {
     let job = load_job(&args.job)?;
     let started = Instant::now();
@@ -201,9 +205,9 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
     // Where edod would put the part on a machine of this build volume (checked when
     // the option was parsed).
-    let volume = crate::machine::placement::BuildVolume::new(args.build_volume)
-        .map_err(|e| anyhow::anyhow!("--build-volume: {e}"))?;
-    let placed = bounds.map(|b| (b, crate::daemon::planner::place_part(&job, b, &volume)));
+    let volume =
+        BuildVolume::new(args.build_volume).map_err(|e| anyhow::anyhow!("--build-volume: {e}"))?;
+    let placed = bounds.map(|b| (b, place_part(&job, b, &volume)));
     report.placement = placed
         .as_ref()
         .map(|(b, p)| crate::report::PlacementReport::new(job.placement, args.build_volume, *b, p));
@@ -216,70 +220,19 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     };
     // The purge position is a point of the bed: in the part's coordinates for planning.
     let process = match &placed {
-        Some((_, Ok(p))) => crate::daemon::planner::placed_settings(&process_settings(&job), p),
+        Some((_, Ok(p))) => placed_settings(&process_settings(&job), p),
         _ => process_settings(&job),
     };
     let mut toolpath_line = None;
     if args.report.is_some() || args.svg.is_some() || args.coverage {
-        let toolpaths = layer_toolpaths(&job, &layers, &process)?;
-        let coverage = (args.coverage || args.svg.is_some()).then(|| {
-            measure_coverage(
-                &toolpaths,
-                &layers,
-                &slices,
-                &process,
-                args.svg.is_some(),
-                args.quiet,
-            )
-        });
-        let stats: Vec<_> = toolpaths.iter().map(|t| t.stats.clone()).collect();
-        let pairs: Option<Vec<_>> = coverage
-            .as_ref()
-            .map(|c| c.iter().map(|l| (l.with_raise, l.without_raise)).collect());
-        crate::report::attach_toolpaths(&mut report, &stats, pairs.as_deref());
+        let planned = Planned {
+            job: &job,
+            slices: &slices,
+            layers: &layers,
+            process: &process,
+        };
+        attach_toolpaths(args, &planned, &mut report)?;
         toolpath_line = report.toolpath.as_ref().map(toolpath_summary);
-        if let Some(dir) = &args.svg {
-            std::fs::create_dir_all(dir)
-                .with_context(|| format!("cannot create {}", dir.display()))?;
-            for (k, (layer, slice)) in layers.iter().zip(&slices).enumerate() {
-                let svg = crate::svg::layer_svg(
-                    layer,
-                    &crate::svg::PreviewInput {
-                        job_name: &job.name,
-                        materials: &job.materials,
-                        nozzle_mm: job.plan.nozzle_mm,
-                        islands: &slice.layer.islands,
-                    },
-                );
-                let file = dir.join(format!("layer-{:04}.svg", layer.index));
-                std::fs::write(&file, svg)
-                    .with_context(|| format!("cannot write {}", file.display()))?;
-                let (Some(t), Some(c)) =
-                    (toolpaths.get(k), coverage.as_ref().and_then(|c| c.get(k)))
-                else {
-                    continue;
-                };
-                let roads = crate::svg::roads_svg(
-                    &t.paths,
-                    &crate::svg::RoadsInput {
-                        title: &format!(
-                            "{} layer {}: roads, void {:.2} %, overlap {:.2} %",
-                            job.name,
-                            layer.index,
-                            100.0 * c.with_raise.void_fraction(),
-                            100.0 * c.with_raise.overlap_fraction()
-                        ),
-                        islands: &slice.layer.islands,
-                        road_width_mm: process.road_width(),
-                        voids: &c.voids,
-                        void_cell_mm: c.with_raise.cell_mm,
-                    },
-                );
-                let file = dir.join(format!("layer-{:04}-roads.svg", layer.index));
-                std::fs::write(&file, roads)
-                    .with_context(|| format!("cannot write {}", file.display()))?;
-            }
-        }
     }
     if let Some(target) = &args.report {
         write_report(&report, target)?;
@@ -287,22 +240,142 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let gcode = match &args.gcode.gcode {
         Some(path) => {
             let placement = match &placed {
-                Some((_, Ok(p))) => *p,
+                Some((_, Ok(p))) => (p, &volume),
                 Some((_, Err(e))) => anyhow::bail!("--gcode {}: {e}", path.display()),
                 None => anyhow::bail!("--gcode {}: the part has no extent", path.display()),
             };
-            let summary = crate::cli::gcode::write(
-                &job,
-                &layers,
-                &process,
-                &args.gcode.settings(),
-                (&placement, &volume),
-                path,
-            )?;
-            Some((path, summary))
+            let settings = args.gcode.settings();
+            let g = crate::cli::gcode::write(&job, &layers, &process, &settings, placement, path)?;
+            Some((path, g))
         }
         None => None,
     };
+    write_plan_summary(&mut human, &job, &report, &layers, planning_time_ms)?;
+    if let Some(line) = toolpath_line {
+        writeln!(human, "  {line}")?;
+    }
+    if let Some(p) = &report.placement {
+        writeln!(human, "  {}", placement_summary(p))?;
+    }
+    if let Some(dir) = &args.svg {
+        writeln!(
+            human,
+            "  previews: {} (EDO contours and offsets), {} (roads: widths, travel, seams, voids)",
+            dir.join("layer-*.svg").display(),
+            dir.join("layer-*-roads.svg").display()
+        )?;
+    }
+    if let Some((path, g)) = gcode {
+        writeln!(human, "  {}", gcode_summary(args.gcode.flavor, &g, path))?;
+    }
+    Ok(())
+}
+
+/// A planned job: what the toolpaths, coverage and previews are made from.
+struct Planned<'a> {
+    job: &'a Job,
+    slices: &'a [LayerSlice],
+    layers: &'a [LayerPlan],
+    process: &'a crate::pipeline::ProcessSettings,
+}
+
+/// Make every layer's toolpaths, measure their coverage when asked (or when previews
+/// are drawn), put both into the report and draw the previews into `--svg`.
+fn attach_toolpaths(
+    args: &PlanArgs,
+    planned: &Planned,
+    report: &mut crate::report::PlanReport,
+) -> Result<()> {
+    let Planned {
+        job,
+        slices,
+        layers,
+        process,
+    } = *planned;
+    let toolpaths = layer_toolpaths(job, layers, process)?;
+    let coverage = (args.coverage || args.svg.is_some()).then(|| {
+        measure_coverage(
+            &toolpaths,
+            layers,
+            slices,
+            process,
+            args.svg.is_some(),
+            args.quiet,
+        )
+    });
+    let stats: Vec<_> = toolpaths.iter().map(|t| t.stats.clone()).collect();
+    let pairs: Option<Vec<_>> = coverage
+        .as_ref()
+        .map(|c| c.iter().map(|l| (l.with_raise, l.without_raise)).collect());
+    crate::report::attach_toolpaths(report, &stats, pairs.as_deref());
+    if let Some(dir) = &args.svg {
+        write_previews(dir, planned, &toolpaths, coverage.as_deref())?;
+    }
+    Ok(())
+}
+
+/// Into `dir`, per layer: `layer-NNNN.svg` (the EDO contours and offsets) and, for a
+/// layer with toolpaths and coverage, `layer-NNNN-roads.svg` (roads at their widths,
+/// travel, seams, voids).
+fn write_previews(
+    dir: &Path,
+    planned: &Planned,
+    toolpaths: &[crate::pipeline::LayerMoves],
+    coverage: Option<&[LayerCoverage]>,
+) -> Result<()> {
+    let Planned {
+        job,
+        slices,
+        layers,
+        process,
+    } = *planned;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    for (k, (layer, slice)) in layers.iter().zip(slices).enumerate() {
+        let svg = crate::svg::layer_svg(
+            layer,
+            &crate::svg::PreviewInput {
+                job_name: &job.name,
+                materials: &job.materials,
+                nozzle_mm: job.plan.nozzle_mm,
+                islands: &slice.layer.islands,
+            },
+        );
+        let file = dir.join(format!("layer-{:04}.svg", layer.index));
+        std::fs::write(&file, svg).with_context(|| format!("cannot write {}", file.display()))?;
+        let (Some(t), Some(c)) = (toolpaths.get(k), coverage.and_then(|c| c.get(k))) else {
+            continue;
+        };
+        let roads = crate::svg::roads_svg(
+            &t.paths,
+            &crate::svg::RoadsInput {
+                title: &format!(
+                    "{} layer {}: roads, void {:.2} %, overlap {:.2} %",
+                    job.name,
+                    layer.index,
+                    100.0 * c.with_raise.void_fraction(),
+                    100.0 * c.with_raise.overlap_fraction()
+                ),
+                islands: &slice.layer.islands,
+                road_width_mm: process.road_width(),
+                voids: &c.voids,
+                void_cell_mm: c.with_raise.cell_mm,
+            },
+        );
+        let file = dir.join(format!("layer-{:04}-roads.svg", layer.index));
+        std::fs::write(&file, roads).with_context(|| format!("cannot write {}", file.display()))?;
+    }
+    Ok(())
+}
+
+/// The summary's first lines: layers and planning time, the mesh, the first layer's
+/// islands, road lengths and the plan's size.
+fn write_plan_summary(
+    human: &mut dyn Write,
+    job: &Job,
+    report: &crate::report::PlanReport,
+    layers: &[LayerPlan],
+    planning_time_ms: f64,
+) -> Result<()> {
     let t = &report.totals;
     writeln!(
         human,
@@ -341,36 +414,27 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         "  compact material data {} B, whole plan {} B, voxel grid at R_mach/4 {} B",
         t.compact_material_bytes, t.plan_bytes, t.voxel_grid_bytes
     )?;
-    if let Some(line) = toolpath_line {
-        writeln!(human, "  {line}")?;
-    }
-    if let Some(p) = &report.placement {
-        writeln!(human, "  {}", placement_summary(p))?;
-    }
-    if let Some(dir) = &args.svg {
-        writeln!(
-            human,
-            "  previews: {} (EDO contours and offsets), {} (roads: widths, travel, seams, voids)",
-            dir.join("layer-*.svg").display(),
-            dir.join("layer-*-roads.svg").display()
-        )?;
-    }
-    if let Some((path, g)) = gcode {
-        let ul: Vec<String> = g
-            .commanded_nl
-            .iter()
-            .map(|nl| format!("{:.1}", *nl as f64 / 1000.0))
-            .collect();
-        writeln!(
-            human,
-            "  G-code ({:?}): {} moves, syringes [{}] µL -> {}",
-            args.gcode.flavor,
-            g.moves,
-            ul.join(", "),
-            path.display()
-        )?;
-    }
     Ok(())
+}
+
+/// One line: the G-code file written, its moves and syringe volumes.
+fn gcode_summary(
+    flavor: crate::machine::gcode::Flavor,
+    g: &crate::cli::gcode::GcodeSummary,
+    path: &Path,
+) -> String {
+    let ul: Vec<String> = g
+        .commanded_nl
+        .iter()
+        .map(|nl| format!("{:.1}", *nl as f64 / 1000.0))
+        .collect();
+    format!(
+        "G-code ({:?}): {} moves, syringes [{}] µL -> {}",
+        flavor,
+        g.moves,
+        ul.join(", "),
+        path.display()
+    )
 }
 
 /// One line: where the part goes on the machine, or why it does not fit.

@@ -403,12 +403,21 @@ impl Config {
         Config::from_toml(&text, &name)
     }
 
+    /// Every value in range; the first that is not is named by its dotted key.
     fn check(&self, path: &str) -> Result<(), ConfigError> {
         let bad = |key: &str, message: String| ConfigError::Invalid {
             path: path.to_string(),
             key: key.to_string(),
             message,
         };
+        self.check_serial(&bad)?;
+        self.check_machine(&bad)?;
+        self.check_api(&bad)?;
+        self.check_bounds(&bad)
+    }
+
+    /// `[serial]` and `[sim]`.
+    fn check_serial(&self, bad: &impl Fn(&str, String) -> ConfigError) -> Result<(), ConfigError> {
         if self.serial.port.is_empty() {
             return Err(bad("serial.port", "empty; use \"sim\" or a device".into()));
         }
@@ -421,6 +430,11 @@ impl Config {
                 format!("{} is not in (0, 10000]", self.sim.speed),
             ));
         }
+        Ok(())
+    }
+
+    /// `[machine]`: syringes, sizes and speeds, the build volume and what must lie in it.
+    fn check_machine(&self, bad: &impl Fn(&str, String) -> ConfigError) -> Result<(), ConfigError> {
         let n = self.machine.syringes.len();
         if n == 0 || n > crate::machine::MAX_SYRINGES {
             return Err(bad(
@@ -476,6 +490,11 @@ impl Config {
                 ),
             ));
         }
+        Ok(())
+    }
+
+    /// `[api]`.
+    fn check_api(&self, bad: &impl Fn(&str, String) -> ConfigError) -> Result<(), ConfigError> {
         if u32::from_str_radix(self.api.mode.trim_start_matches("0o"), 8)
             .ok()
             .filter(|m| *m <= 0o777)
@@ -495,6 +514,11 @@ impl Config {
                 "max_clients and client_queue must be positive".into(),
             ));
         }
+        Ok(())
+    }
+
+    /// `[state]` and `[planner]`: the bounds on what is kept and planned ahead.
+    fn check_bounds(&self, bad: &impl Fn(&str, String) -> ConfigError) -> Result<(), ConfigError> {
         if self.state.keep_finished_jobs == 0 {
             return Err(bad(
                 "state.keep_finished_jobs",

@@ -9,9 +9,11 @@
 
 use tokio::sync::mpsc;
 
-use crate::machine::placement::{place, BuildVolume, Placement};
+use crate::machine::placement::{BuildVolume, Placement};
+// Placing a part is planning, shared with `edoctl plan` and `edoctl demo`; the daemon
+// uses the core's (and keeps the old path for its API).
+pub use crate::machine::placement::{place_part, placed_settings};
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT};
-use glam::DVec3;
 
 /// Produces a job's moves one layer at a time, indices counting from 0 without gaps.
 pub trait LayerSource: Send {
@@ -241,41 +243,6 @@ pub struct JobSource {
     volume: BuildVolume,
     /// Where the part goes on the bed (a mesh job's once its mesh is loaded).
     placement: Option<Placement>,
-}
-
-/// Where a job's part (bounding box `bounds`, in its own coordinates) goes on this
-/// machine: `geometry.placement` in its build volume (see
-/// [`crate::machine::placement`]). The job's purge pad (`toolpath.purge_xy_mm`, a point
-/// of the bed, and `purge_pad_mm` from there along +x and +y) must lie on the bed too.
-/// An error names what does not fit and by how much.
-pub fn place_part(
-    job: &crate::job::Job,
-    bounds: (DVec3, DVec3),
-    volume: &BuildVolume,
-) -> Result<Placement, String> {
-    let placement = place(job.placement, bounds.0, bounds.1, volume)?;
-    if let Some([x, y]) = job.toolpath.purge_xy_mm {
-        let side = job.toolpath.purge_pad_mm;
-        if !(volume.contains_mm([x, y, 0.0]) && volume.contains_mm([x + side, y + side, 0.0])) {
-            let [sx, sy, _] = volume.size_mm();
-            return Err(format!(
-                "toolpath.purge_xy_mm = [{x}, {y}]: the {side} mm purge pad from there is not on the bed (0 to {sx} × 0 to {sy} mm)"
-            ));
-        }
-    }
-    Ok(placement)
-}
-
-/// The process settings of a job placed by `placement`: the purge position, a point
-/// of the bed, in the part's coordinates the planner works in (the moves are placed
-/// afterwards, which puts the purge pad back where the job asked).
-pub fn placed_settings(
-    settings: &crate::pipeline::ProcessSettings,
-    placement: &Placement,
-) -> crate::pipeline::ProcessSettings {
-    let mut s = settings.clone();
-    s.purge_xy_mm = settings.purge_xy_mm.map(|xy| placement.bed_to_part_xy(xy));
-    s
 }
 
 /// The process settings a job streams with on a machine: the job's nozzle, the

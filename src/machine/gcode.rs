@@ -11,7 +11,8 @@ use serde::{Deserialize, Serialize};
 use std::fmt::Write;
 
 /// Which firmware reads the file.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "daemon", derive(clap::ValueEnum))]
 #[serde(rename_all = "kebab-case")]
 pub enum Flavor {
     /// RepRapFirmware 3: a tool over all drives (`M563 P0 D0:1:..`), per-move `E a:b:c`.

@@ -24,6 +24,8 @@
 //! (already rounded to µm) plus the offset: placing changes no planned geometry.
 
 use super::{Move, MoveKind, PositionUm};
+use crate::job::Job;
+use crate::pipeline::ProcessSettings;
 use glam::DVec3;
 use serde::Serialize;
 
@@ -227,6 +229,38 @@ pub fn place(
         }
     }
     Ok(placement)
+}
+
+/// Where a job's part (bounding box `bounds`, in its own coordinates) goes on this
+/// machine: `geometry.placement` in its build volume ([`place`]). The job's purge pad
+/// (`toolpath.purge_xy_mm`, a point of the bed, and `purge_pad_mm` from there along +x
+/// and +y) must lie on the bed too.
+/// An error names what does not fit and by how much.
+pub fn place_part(
+    job: &Job,
+    bounds: (DVec3, DVec3),
+    volume: &BuildVolume,
+) -> Result<Placement, String> {
+    let placement = place(job.placement, bounds.0, bounds.1, volume)?;
+    if let Some([x, y]) = job.toolpath.purge_xy_mm {
+        let side = job.toolpath.purge_pad_mm;
+        if !(volume.contains_mm([x, y, 0.0]) && volume.contains_mm([x + side, y + side, 0.0])) {
+            let [sx, sy, _] = volume.size_mm();
+            return Err(format!(
+                "toolpath.purge_xy_mm = [{x}, {y}]: the {side} mm purge pad from there is not on the bed (0 to {sx} × 0 to {sy} mm)"
+            ));
+        }
+    }
+    Ok(placement)
+}
+
+/// The process settings of a job placed by `placement`: the purge position, a point
+/// of the bed, in the part's coordinates the planner works in (the moves are placed
+/// afterwards, which puts the purge pad back where the job asked).
+pub fn placed_settings(settings: &ProcessSettings, placement: &Placement) -> ProcessSettings {
+    let mut s = settings.clone();
+    s.purge_xy_mm = settings.purge_xy_mm.map(|xy| placement.bed_to_part_xy(xy));
+    s
 }
 
 #[cfg(test)]
