@@ -11,7 +11,7 @@ if ! command -v systemd-analyze >/dev/null 2>&1; then
 fi
 tmp="$(mktemp -d)"
 trap 'rm -rf "$tmp"' EXIT
-sed "s#/usr/local/bin/edod#$edod#g" systemd/edod.service > "$tmp/edod.service"
+sed "s#/usr/bin/edod#$edod#g" systemd/edod.service > "$tmp/edod.service"
 out="$(SYSTEMD_LOG_LEVEL=notice systemd-analyze verify "$tmp/edod.service" 2>&1 || true)"
 # Messages about other units of the host are not ours.
 mine="$(printf '%s\n' "$out" | grep -F 'edod.service' || true)"

@@ -593,9 +593,36 @@ mod tests {
 
     #[test]
     fn shipped_configs_parse() {
-        for f in ["config/edod.toml", "config/edod-hardware.toml"] {
+        for f in [
+            "config/edod.toml",
+            "config/edod-hardware.toml",
+            "systemd/edod.toml",
+        ] {
             let p = Path::new(env!("CARGO_MANIFEST_DIR")).join(f);
             Config::load(&p).unwrap_or_else(|e| panic!("{e}"));
+        }
+    }
+
+    /// The Debian package's /etc/edo/edod.toml uses the paths the unit gives edod
+    /// (systemd/edod.service: RuntimeDirectory=edo, StateDirectory=edo, Group=edo).
+    #[test]
+    fn installed_config_matches_the_unit() {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("systemd/edod.toml");
+        let c = Config::load(&p).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(c.api.socket, Path::new("/run/edo/edod.sock"));
+        assert_eq!(c.api.group.as_deref(), Some("edo"));
+        assert_eq!(c.state.dir, Path::new("/var/lib/edo"));
+        let unit = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("systemd/edod.service"),
+        )
+        .unwrap();
+        for line in [
+            "RuntimeDirectory=edo",
+            "StateDirectory=edo",
+            "Group=edo",
+            "ExecStart=/usr/bin/edod --config /etc/edo/edod.toml",
+        ] {
+            assert!(unit.lines().any(|l| l == line), "{line}");
         }
     }
 }

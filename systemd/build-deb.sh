@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Build the edo Debian package (edod, edoctl, hil-sim, the unit, /etc/edo/edod.toml, the
+# docs; metadata in Cargo.toml [package.metadata.deb]) and print the .deb's path.
+# Usage: systemd/build-deb.sh [PROFILE]   (default release)
+# hil-sim is a package of its own: it is built together with edo's binaries (one build,
+# edo's library compiled once), then `cargo deb --no-build` packs them.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+profile="${1:-release}"
+if ! cargo deb --version >/dev/null 2>&1; then
+  echo "installing cargo-deb" >&2
+  cargo install cargo-deb --locked >&2
+fi
+cargo build --locked --profile "$profile" -p edo -p hil-sim --bins >&2
+# --strip: the release profile keeps line tables for backtraces (debug = 1); a host
+# needs the binaries only (about 60 MB each with them, a few MB without).
+out="$(cargo deb -p edo --no-build --locked --profile "$profile" --strip)"
+deb="$(printf '%s\n' "$out" | grep '\.deb$' | tail -n 1)"
+if [ ! -f "$deb" ]; then
+  printf 'cargo deb made no package:\n%s\n' "$out" >&2
+  exit 1
+fi
+echo "$deb"
