@@ -248,7 +248,7 @@ fn centripetal(p0: DVec2, p1: DVec2, p2: DVec2, p3: DVec2, u: f64) -> DVec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::plan::shapes::circle;
+    use crate::geom::circle;
 
     #[test]
     fn paper_annulus_gives_m_10() {

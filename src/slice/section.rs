@@ -389,20 +389,7 @@ fn first_invalid(islands: &[Region], tol: &geom::Tolerances) -> Option<(usize, g
 
 /// Islands of `loops` under the even-odd rule, computed by i_overlay.
 fn union_even_odd(loops: &[Vec<DVec2>], tol: &SliceTolerances) -> Vec<Region> {
-    use i_overlay::core::fill_rule::FillRule;
-    use i_overlay::float::simplify::SimplifyShape;
-    let contours: Vec<Vec<[f64; 2]>> = loops
-        .iter()
-        .map(|l| l.iter().map(|p| [p.x, p.y]).collect())
-        .collect();
-    let mut options = i_overlay::float::overlay::OverlayOptions::<f64>::default();
-    options.ogc = true;
-    options.min_output_area = tol.min_loop_area_mm2;
-    let shapes = contours.simplify_shape_custom(
-        FillRule::EvenOdd,
-        options,
-        i_overlay::core::solver::Solver::default(),
-    );
+    let shapes = geom::i_overlay_integration::even_odd_shapes_ogc(loops, tol.min_loop_area_mm2);
     let gt = geom::Tolerances {
         point_eq_mm: tol.point_eq_mm,
         ..Default::default()
@@ -410,11 +397,7 @@ fn union_even_odd(loops: &[Vec<DVec2>], tol: &SliceTolerances) -> Vec<Region> {
     shapes
         .into_iter()
         .filter_map(|shape| {
-            let mut it = shape.into_iter().map(|c| {
-                c.into_iter()
-                    .map(|[x, y]| DVec2::new(x, y))
-                    .collect::<Vec<_>>()
-            });
+            let mut it = shape.into_iter();
             let outer = it.next()?;
             let holes: Vec<Vec<DVec2>> = it
                 .filter(|h| geom::signed_area(h).abs() >= tol.min_loop_area_mm2)

@@ -26,8 +26,7 @@
 
 use super::coverage::Raster;
 use super::{PathRole, ToolPath};
-use crate::geom::{Region, SegmentIndex};
-use crate::plan::shapes::{self, Shapes};
+use crate::geom::{self as shapes, Region, SegmentIndex, Shapes};
 use glam::DVec2;
 use i_triangle::float::triangulatable::Triangulatable;
 use std::collections::HashMap;

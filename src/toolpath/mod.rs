@@ -28,8 +28,8 @@ pub mod ends;
 pub mod flow;
 pub mod gapfill;
 
+use crate::geom::Path;
 use crate::material::OffsetDirection;
-use crate::plan::shapes::Path;
 use crate::plan::{offset_composition_eq6, LayerPlan};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
