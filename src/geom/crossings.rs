@@ -4,6 +4,7 @@
 //! order it meets them in ([`sweep_rank`]). Not the repair of crossings (the offset
 //! engine cuts swallowtails; region validation refuses them).
 
+use super::{edge_ends, prev_in_loop};
 use glam::DVec2;
 
 fn orient(a: DVec2, b: DVec2, c: DVec2) -> f64 {
@@ -86,8 +87,8 @@ fn sweep_crossings(loops: &[&[DVec2]], mut found: impl FnMut(Crossing) -> bool) 
     let mut segs: Vec<TaggedSegment> = Vec::with_capacity(loops.iter().map(|l| l.len()).sum());
     for (li, l) in loops.iter().enumerate() {
         let (n, first) = (l.len(), segs.len());
-        for i in 0..n {
-            let (a, b) = (l[i], l[if i + 1 == n { 0 } else { i + 1 }]);
+        for (i, j) in edge_ends(n, true) {
+            let (a, b) = (l[i], l[j]);
             segs.push(TaggedSegment {
                 a,
                 b,
@@ -95,8 +96,8 @@ fn sweep_crossings(loops: &[&[DVec2]], mut found: impl FnMut(Crossing) -> bool) 
                 hi: a.max(b),
                 loop_index: li,
                 edge_index: i,
-                prev: (first + if i == 0 { n - 1 } else { i - 1 }) as u32,
-                next: (first + if i + 1 == n { 0 } else { i + 1 }) as u32,
+                prev: (first + prev_in_loop(i, n)) as u32,
+                next: (first + j) as u32,
             });
         }
     }

@@ -55,7 +55,9 @@ pub use distance::{
     point_loop_distance, point_segment_distance, point_segment_distance2, segment_segment_distance,
     sqrt_within,
 };
-pub use edges::{loop_edge, loop_edges, next_in_loop, prev_in_loop};
+pub use edges::{
+    edge_count, edge_ends, edges, loop_edge, loop_edges, neighbours, next_in_loop, prev_in_loop,
+};
 pub use loops::{
     centroid, loop_bounds, loop_length, point_in_loop, polyline_length, signed_area, signed_area2,
 };

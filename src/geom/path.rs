@@ -3,7 +3,7 @@
 //! side of it. Not a toolpath (no widths or composition: see
 //! [`crate::toolpath::ToolPath`]).
 
-use super::{polyline_length, signed_area};
+use super::{edges, signed_area};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
@@ -16,12 +16,12 @@ pub struct Path {
 
 impl Path {
     pub fn length_mm(&self) -> f64 {
-        let open = polyline_length(&self.points);
-        if self.closed && self.points.len() > 1 {
-            open + self.points[0].distance(self.points[self.points.len() - 1])
-        } else {
-            open
-        }
+        self.edges().map(|(a, b)| a.distance(b)).sum()
+    }
+
+    /// The road's edges in order (see [`edges`]).
+    pub fn edges(&self) -> impl Iterator<Item = (DVec2, DVec2)> + '_ {
+        edges(&self.points, self.closed)
     }
 
     /// A loop round less than a line's area is both sides of that line to the printer

@@ -5,8 +5,8 @@
 //! `loops.rs`, to the bit. Not a general spatial index (segments only, built once).
 
 use super::{
-    loop_edges, point_segment_distance, point_segment_distance2, segments_intersect, sqrt_within,
-    Region,
+    edge_count, edges, loop_edges, point_segment_distance, point_segment_distance2,
+    segments_intersect, sqrt_within, Region,
 };
 use glam::DVec2;
 
@@ -164,22 +164,17 @@ const RAY_HIT_MM: f64 = 1e-4;
 impl SegmentIndex {
     /// Index the edges of closed `loops` and open `polylines`.
     pub fn new(loops: &[&[DVec2]], polylines: &[&[DVec2]]) -> Self {
-        let count = loops.iter().map(|l| l.len()).sum::<usize>()
-            + polylines
-                .iter()
-                .map(|l| l.len().saturating_sub(1))
-                .sum::<usize>();
+        let count = loops
+            .iter()
+            .map(|l| edge_count(l.len(), true))
+            .chain(polylines.iter().map(|l| edge_count(l.len(), false)))
+            .sum::<usize>();
         let mut segments = Vec::with_capacity(count);
         for l in loops {
-            let n = l.len();
-            for i in 0..n {
-                segments.push((l[i], l[if i + 1 == n { 0 } else { i + 1 }]));
-            }
+            segments.extend(edges(l, true));
         }
         for l in polylines {
-            for w in l.windows(2) {
-                segments.push((w[0], w[1]));
-            }
+            segments.extend(edges(l, false));
         }
         let mut lo = DVec2::splat(f64::INFINITY);
         let mut hi = DVec2::splat(f64::NEG_INFINITY);

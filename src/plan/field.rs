@@ -61,7 +61,7 @@
 //! percentile 0.021 mm, 99.9th 0.041 mm (before: 0.0058, 0.042, 0.127); the non-star
 //! example mean 0.0035 mm, largest 0.017 mm (before: 0.0045, 0.037).
 
-use crate::geom::{next_in_loop, prev_in_loop, Region};
+use crate::geom::{loop_edges, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;
 use pool::{give, take};
 use std::ops::Range;
@@ -232,9 +232,7 @@ impl Grid {
 fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
     let mut rows: Vec<Vec<f64>> = vec![Vec::new(); grid.ny];
     for l in loops {
-        let n = l.len();
-        for i in 0..n {
-            let (a, b) = (l[i], l[(i + 1) % n]);
+        for (a, b) in loop_edges(l) {
             let (ylo, yhi) = (a.y.min(b.y), a.y.max(b.y));
             let r0 = ((ylo - grid.origin.y) / grid.h).ceil().max(0.0) as usize;
             let r1 = (((yhi - grid.origin.y) / grid.h).floor().max(-1.0) + 1.0) as usize;
@@ -369,8 +367,7 @@ impl Boundary {
         let mut loop_of = Vec::new();
         for l in loops {
             let (start, n) = (segs.len() as u32, l.len() as u32);
-            for i in 0..l.len() {
-                let (a, b) = (l[i], l[(i + 1) % l.len()]);
+            for (a, b) in loop_edges(l) {
                 let len2 = (b - a).length_squared();
                 segs.push(Edge {
                     a,
@@ -424,21 +421,15 @@ impl Boundary {
         let Some(&(start, n)) = self.loop_of.get(s as usize) else {
             return (f64::INFINITY, p);
         };
-        // The next edge round the loop (without an integer division).
+        // The next edge round the loop.
         let step = |k: u32, forward: bool| {
-            let i = k - start;
+            let (i, n) = ((k - start) as usize, n as usize);
             start
                 + if forward {
-                    if i + 1 == n {
-                        0
-                    } else {
-                        i + 1
-                    }
-                } else if i == 0 {
-                    n - 1
+                    next_in_loop(i, n)
                 } else {
-                    i - 1
-                }
+                    prev_in_loop(i, n)
+                } as u32
         };
         let mut best = self.to_edge(s, p);
         for forward in [true, false] {

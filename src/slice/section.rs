@@ -118,7 +118,7 @@ pub(super) fn cut(
         let above = tri.map(|i| mesh.vertices[i as usize].z >= z);
         let (mut down, mut up) = (None, None);
         for k in 0..3 {
-            let k1 = (k + 1) % 3;
+            let k1 = geom::next_in_loop(k, 3);
             if above[k] && !above[k1] {
                 down = Some(k);
             } else if !above[k] && above[k1] {
@@ -132,8 +132,8 @@ pub(super) fn cut(
         segs.push(Segment {
             start_edge: edges[d],
             end_edge: edges[u],
-            start: edge_point(mesh, tri[d], tri[(d + 1) % 3], z),
-            end: edge_point(mesh, tri[u], tri[(u + 1) % 3], z),
+            start: edge_point(mesh, tri[d], tri[geom::next_in_loop(d, 3)], z),
+            end: edge_point(mesh, tri[u], tri[geom::next_in_loop(u, 3)], z),
             next_same: NONE,
             used: false,
         });

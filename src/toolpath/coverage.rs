@@ -16,7 +16,7 @@
 //! along every such pair, 2.5 % of the area at 10 µm cells and 0.4 mm roads).
 
 use super::ToolPath;
-use crate::geom::Region;
+use crate::geom::{edge_ends, loop_edges, Region};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -375,10 +375,9 @@ fn for_each_capsule(
         if n == 1 {
             f(id, p.points[0], p.points[0], 0.5 * road_width_mm * w(0));
         }
-        let edges = if p.closed { n } else { n - 1 };
-        for k in 0..edges {
-            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-            let f_mean = 0.5 * (w(k) + w((k + 1) % n));
+        for (k, j) in edge_ends(n, p.closed) {
+            let (a, b) = (p.points[k], p.points[j]);
+            let f_mean = 0.5 * (w(k) + w(j));
             f(id, a, b, 0.5 * road_width_mm * f_mean);
         }
     }
@@ -390,9 +389,7 @@ fn boundary_rows(cells: &Cells, islands: &[Region]) -> RowSweep<(DVec2, DVec2)> 
     let row = |y: f64| (y - cells.lo.y) / cells.cell_mm - 0.5;
     let mut edges = Vec::new();
     for l in islands.iter().flat_map(|r| r.loops()) {
-        let m = l.len();
-        for k in 0..m {
-            let (a, b) = (l[k], l[(k + 1) % m]);
+        for (a, b) in loop_edges(l) {
             let (j0, j1) = (row(a.y.min(b.y)).floor(), row(a.y.max(b.y)).ceil());
             if !(j0.is_finite() && j1.is_finite()) || j1 < 0.0 {
                 continue;

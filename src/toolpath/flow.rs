@@ -48,7 +48,9 @@
 //!    the boundary does not count as a wall: [`super::ends`] fills that corner.
 
 use super::ToolPath;
-use crate::geom::{Region, SegmentIndex};
+use crate::geom::{
+    edge_count, edge_ends, loop_edge, loop_edges, neighbours, next_in_loop, Region, SegmentIndex,
+};
 use glam::DVec2;
 
 /// Settings of the flow raise (part of [`crate::pipeline::ProcessSettings`]).
@@ -138,12 +140,9 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
     // How far the facing bead reaches towards us from its own centreline.
     let reach_towards = |bead: &[Vec<(f64, f64)>], f: &Facing| {
         let b = &bead[f.path as usize];
-        let n = b.len();
-        let e = f.edge as usize;
-        let (h, s) = (
-            0.5 * (b[e % n].0 + b[(e + 1) % n].0),
-            0.5 * (b[e % n].1 + b[(e + 1) % n].1),
-        );
+        // The facing edge's two vertices (its number is below the vertex count).
+        let (i, j) = (f.edge as usize, next_in_loop(f.edge as usize, b.len()));
+        let (h, s) = (0.5 * (b[i].0 + b[j].0), 0.5 * (b[i].1 + b[j].1));
         if f.left_faces_us {
             h + s
         } else {
@@ -289,20 +288,8 @@ fn vertex_normals(points: &[DVec2], closed: bool) -> Vec<DVec2> {
     let n = points.len();
     (0..n)
         .map(|k| {
-            let prev = if k > 0 {
-                Some(points[k - 1])
-            } else if closed {
-                Some(points[n - 1])
-            } else {
-                None
-            };
-            let next = if k + 1 < n {
-                Some(points[k + 1])
-            } else if closed {
-                Some(points[0])
-            } else {
-                None
-            };
+            let (prev, next) = neighbours(k, n, closed);
+            let (prev, next) = (prev.map(|i| points[i]), next.map(|i| points[i]));
             let q = points[k];
             let left = |a: DVec2, b: DVec2| (b - a).normalize_or_zero().perp();
             let (a, b) = match (prev, next) {
@@ -341,19 +328,17 @@ fn probe_path(
     let reach = w; // probe up to a gap of 2w centre to centre
                    // Own edges nearer (along the path) than this are never a neighbour.
     let own_window = 1.5 * w + 2.0 * reach;
+    // Distance along the path to each vertex, and round the closing edge back to the
+    // first (open paths too: it is read only past their last vertex).
     let mut cum = Vec::with_capacity(n + 1);
     cum.push(0.0);
-    for j in 0..n {
-        let b = if j + 1 < n {
-            p.points[j + 1]
-        } else {
-            p.points[0]
-        };
-        let last = cum[j];
-        cum.push(last + p.points[j].distance(b));
+    for (a, b) in loop_edges(&p.points) {
+        let last = cum[cum.len() - 1];
+        cum.push(last + a.distance(b));
     }
-    let total = if p.closed { cum[n] } else { cum[n - 1] };
-    let segments = if p.closed { n } else { n - 1 } as u32;
+    let segments = edge_count(n, p.closed);
+    let total = cum[segments];
+    let segments = segments as u32;
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
         let s0 = cum[k];
@@ -377,20 +362,8 @@ fn probe_path(
             }
             d < own_window
         };
-        let prev = if k > 0 {
-            Some(p.points[k - 1])
-        } else if p.closed {
-            Some(p.points[n - 1])
-        } else {
-            None
-        };
-        let next = if k + 1 < n {
-            Some(p.points[k + 1])
-        } else if p.closed {
-            Some(p.points[0])
-        } else {
-            None
-        };
+        let (prev, next) = neighbours(k, n, p.closed);
+        let (prev, next) = (prev.map(|i| p.points[i]), next.map(|i| p.points[i]));
         let q0 = p.points[k];
         // Probe beside each edge meeting at the vertex, along that edge's normal and
         // from a point a road width along it, not along the bisector from the vertex:
@@ -467,10 +440,7 @@ fn probe_path(
                             }
                             let path = owner[id as usize];
                             let edge = id - first_segment[path as usize];
-                            let theirs = &paths[path as usize].points;
-                            let m = theirs.len();
-                            let (a, b) =
-                                (theirs[edge as usize % m], theirs[(edge as usize + 1) % m]);
+                            let (a, b) = loop_edge(&paths[path as usize].points, edge as usize);
                             found = Side::Road(Facing {
                                 gap_mm: g,
                                 path,
@@ -498,12 +468,9 @@ fn walk(points: &[DVec2], closed: bool, k: usize, backwards: bool, dist: f64) ->
     let n = points.len();
     let (mut at, mut left) = (k, dist);
     for _ in 0..n / 2 {
-        let next = match (backwards, closed) {
-            (true, _) if at > 0 => at - 1,
-            (true, true) => n - 1,
-            (false, _) if at + 1 < n => at + 1,
-            (false, true) => 0,
-            _ => break,
+        let (prev, next) = neighbours(at, n, closed);
+        let Some(next) = (if backwards { prev } else { next }) else {
+            break;
         };
         let len = points[at].distance(points[next]);
         if len >= left {
@@ -523,12 +490,11 @@ fn subdivide(p: &mut ToolPath, max_len: f64) {
     if n < 2 {
         return;
     }
-    let edges = if p.closed { n } else { n - 1 };
     let mut pts = Vec::with_capacity(n);
     let mut fs = Vec::with_capacity(n);
-    for k in 0..edges {
-        let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-        let (fa, fb) = (p.width_factors[k], p.width_factors[(k + 1) % n]);
+    for (k, j) in edge_ends(n, p.closed) {
+        let (a, b) = (p.points[k], p.points[j]);
+        let (fa, fb) = (p.width_factors[k], p.width_factors[j]);
         let pieces = ((a.distance(b) / max_len).ceil() as usize).max(1);
         for q in 0..pieces {
             let t = q as f64 / pieces as f64;

@@ -26,7 +26,10 @@
 
 use super::coverage::Raster;
 use super::{PathRole, ToolPath};
-use crate::geom::{self as shapes, Region, SegmentIndex, Shapes};
+use crate::geom::{
+    self as shapes, edge_ends, loop_edge, loop_edges, next_in_loop, prev_in_loop, Region,
+    SegmentIndex, Shapes,
+};
 use glam::DVec2;
 use i_triangle::float::triangulatable::Triangulatable;
 use std::collections::HashMap;
@@ -213,11 +216,10 @@ fn gaps(islands: &[Region], paths: &[ToolPath], s: &GapFillSettings) -> Shapes {
     // Each road edge's box, to pick the beads that reach a window.
     let mut edges: Vec<(usize, usize, DVec2, DVec2)> = Vec::new();
     for (pi, p) in paths.iter().enumerate() {
-        let n = p.points.len();
-        let count = if p.closed { n } else { n.saturating_sub(1) };
-        for k in 0..count.max(usize::from(n == 1)) {
-            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-            let f = p.width_factors[k].max(p.width_factors[(k + 1) % n]);
+        // A one-point road's bead is a disc: the one edge from the point to itself.
+        for (k, j) in edge_ends(p.points.len(), p.closed || p.points.len() == 1) {
+            let (a, b) = (p.points[k], p.points[j]);
+            let f = p.width_factors[k].max(p.width_factors[j]);
             let r = 0.5 * w * f / DISC_COS;
             edges.push((
                 pi,
@@ -297,7 +299,7 @@ fn edge_bead(p: &ToolPath, k: usize, w: f64, out: &mut Shapes) {
         out.push(vec![disc(p.points[0], half(0))]);
         return;
     }
-    let (a, b) = (p.points[k], p.points[(k + 1) % n]);
+    let (a, b) = loop_edge(&p.points, k);
     let nrm = (b - a).normalize_or_zero().perp();
     if nrm != DVec2::ZERO {
         let (ha, hb) = (half(k), half(k + 1));
@@ -312,8 +314,8 @@ fn edge_bead(p: &ToolPath, k: usize, w: f64, out: &mut Shapes) {
         if !p.closed && (v == 0 || v == n - 1) {
             return true;
         }
-        let prev = p.points[(v + n - 1) % n];
-        let next = p.points[(v + 1) % n];
+        let prev = p.points[prev_in_loop(v, n)];
+        let next = p.points[next_in_loop(v, n)];
         let (u, t) = (
             (p.points[v] - prev).normalize_or_zero(),
             (next - p.points[v]).normalize_or_zero(),
@@ -581,10 +583,8 @@ impl Ord for Ordered {
 
 /// `l` (a closed loop) with every edge divided to at most `step`.
 fn divide(l: &[DVec2], step: f64) -> Vec<DVec2> {
-    let n = l.len();
-    let mut out = Vec::with_capacity(n);
-    for k in 0..n {
-        let (a, b) = (l[k], l[(k + 1) % n]);
+    let mut out = Vec::with_capacity(l.len());
+    for (a, b) in loop_edges(l) {
         let pieces = ((a.distance(b) / step).ceil() as usize).clamp(1, 1 << 12);
         out.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
     }
