@@ -11,7 +11,8 @@
 //! One concern per file; every public item is re-exported here, as `crate::geom::X`:
 //!
 //! - `tolerances.rs`: [`Tolerances`], the shared geometric tolerances.
-//! - `edges.rs`: which edges a loop has and which vertex follows which.
+//! - `edges.rs`: the edges of open and closed paths ([`edges`]), which vertex follows
+//!   which.
 //! - `loops.rs`: measures of one loop or polyline: bounds, signed area (orientation),
 //!   length, centroid, point in loop.
 //! - `distance.rs`: exact point, segment and loop distances.
@@ -26,7 +27,8 @@
 //! - `offset/`: the equal distance offset engine (direct offset with a certificate, the
 //!   outline as fallback): `raw.rs`, `swallowtail.rs`, `spike.rs`.
 //! - `clearance.rs`: [`keep_clear_of`], roads trimmed to a clearance from a contour.
-//! - `i_overlay_integration.rs`: the adapter to i_overlay, the only file that calls it.
+//! - `i_overlay_integration.rs`: the adapter to i_overlay, the only file in the crate that
+//!   calls it (the slicer's even-odd union goes through it too).
 
 mod booleans;
 mod clearance;

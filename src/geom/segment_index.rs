@@ -158,7 +158,6 @@ pub struct SegmentIndex {
 
 /// Sphere-tracing steps of [`SegmentIndex::ray_hit`] and the distance that counts as a hit.
 const RAY_STEPS: usize = 32;
-
 const RAY_HIT_MM: f64 = 1e-4;
 
 impl SegmentIndex {
@@ -176,15 +175,7 @@ impl SegmentIndex {
         for l in polylines {
             segments.extend(edges(l, false));
         }
-        let mut lo = DVec2::splat(f64::INFINITY);
-        let mut hi = DVec2::splat(f64::NEG_INFINITY);
-        let mut total = 0.0;
-        for (a, b) in &segments {
-            lo = lo.min(a.min(*b));
-            hi = hi.max(a.max(*b));
-            total += a.distance(*b);
-        }
-        if segments.is_empty() {
+        let Some(grid) = Grid::over(&segments) else {
             return SegmentIndex {
                 segments,
                 origin: DVec2::ZERO,
@@ -194,56 +185,14 @@ impl SegmentIndex {
                 starts: vec![0],
                 items: Vec::new(),
             };
-        }
-        let extent = (hi - lo).max(DVec2::splat(1e-9));
-        // About two segments per cell on average, at most ~1M cells.
-        let mean = (total / segments.len() as f64).max(1e-9);
-        let mut cell_mm = (mean * 2.0).max((extent.x * extent.y / 1.0e6).sqrt());
-        if !cell_mm.is_finite() || cell_mm <= 0.0 {
-            cell_mm = 1.0;
-        }
-        let nx = ((extent.x / cell_mm).ceil() as usize).clamp(1, 4096);
-        let ny = ((extent.y / cell_mm).ceil() as usize).clamp(1, 4096);
-        let cell_mm = (extent.x / nx as f64).max(extent.y / ny as f64);
-        // Counting sort into cells: count, prefix sums, fill (in segment order). Cell
-        // ranges here and in the queries are half-open (`r0..r1 + 1`): they step with
-        // fewer instructions than inclusive ones.
-        let spans: Vec<[usize; 4]> = segments
-            .iter()
-            .map(|(a, b)| {
-                let (c0, r0) = Self::cell_of(lo, cell_mm, nx, ny, a.min(*b));
-                let (c1, r1) = Self::cell_of(lo, cell_mm, nx, ny, a.max(*b));
-                [c0, r0, c1, r1]
-            })
-            .collect();
-        let mut starts = vec![0usize; nx * ny + 1];
-        for &[c0, r0, c1, r1] in &spans {
-            for r in r0..r1 + 1 {
-                for c in c0..c1 + 1 {
-                    starts[r * nx + c + 1] += 1;
-                }
-            }
-        }
-        for k in 1..starts.len() {
-            starts[k] += starts[k - 1];
-        }
-        let mut fill: Vec<usize> = starts[..nx * ny].to_vec();
-        let mut items = vec![0u32; starts[nx * ny]];
-        for (k, &[c0, r0, c1, r1]) in spans.iter().enumerate() {
-            for r in r0..r1 + 1 {
-                for c in c0..c1 + 1 {
-                    let slot = &mut fill[r * nx + c];
-                    items[*slot] = k as u32;
-                    *slot += 1;
-                }
-            }
-        }
+        };
+        let (starts, items) = grid.bucket(&segments);
         SegmentIndex {
             segments,
-            origin: lo,
-            cell_mm,
-            nx,
-            ny,
+            origin: grid.origin,
+            cell_mm: grid.cell_mm,
+            nx: grid.nx,
+            ny: grid.ny,
             starts,
             items,
         }
@@ -565,6 +514,86 @@ impl SegmentIndex {
             }
         }
         best_k.map(|k| (best, k))
+    }
+}
+
+/// The cells of a [`SegmentIndex`]: `nx` by `ny` square cells of `cell_mm` from `origin`.
+struct Grid {
+    origin: DVec2,
+    cell_mm: f64,
+    nx: usize,
+    ny: usize,
+}
+
+impl Grid {
+    /// Over the box of `segments`, about two segments a cell on average and at most
+    /// ~1M cells; none for no segments.
+    fn over(segments: &[(DVec2, DVec2)]) -> Option<Grid> {
+        let mut lo = DVec2::splat(f64::INFINITY);
+        let mut hi = DVec2::splat(f64::NEG_INFINITY);
+        let mut total = 0.0;
+        for (a, b) in segments {
+            lo = lo.min(a.min(*b));
+            hi = hi.max(a.max(*b));
+            total += a.distance(*b);
+        }
+        if segments.is_empty() {
+            return None;
+        }
+        let extent = (hi - lo).max(DVec2::splat(1e-9));
+        let mean = (total / segments.len() as f64).max(1e-9);
+        let mut cell_mm = (mean * 2.0).max((extent.x * extent.y / 1.0e6).sqrt());
+        if !cell_mm.is_finite() || cell_mm <= 0.0 {
+            cell_mm = 1.0;
+        }
+        let nx = ((extent.x / cell_mm).ceil() as usize).clamp(1, 4096);
+        let ny = ((extent.y / cell_mm).ceil() as usize).clamp(1, 4096);
+        let cell_mm = (extent.x / nx as f64).max(extent.y / ny as f64);
+        Some(Grid {
+            origin: lo,
+            cell_mm,
+            nx,
+            ny,
+        })
+    }
+
+    /// The segments of each cell, by a counting sort: count, prefix sums, fill (in
+    /// segment order). Returns (`starts`, `items`) as [`SegmentIndex`] keeps them. Cell
+    /// ranges here and in the queries are half-open (`r0..r1 + 1`): they step with fewer
+    /// instructions than inclusive ones.
+    fn bucket(&self, segments: &[(DVec2, DVec2)]) -> (Vec<usize>, Vec<u32>) {
+        let (lo, cell_mm, nx, ny) = (self.origin, self.cell_mm, self.nx, self.ny);
+        let spans: Vec<[usize; 4]> = segments
+            .iter()
+            .map(|(a, b)| {
+                let (c0, r0) = SegmentIndex::cell_of(lo, cell_mm, nx, ny, a.min(*b));
+                let (c1, r1) = SegmentIndex::cell_of(lo, cell_mm, nx, ny, a.max(*b));
+                [c0, r0, c1, r1]
+            })
+            .collect();
+        let mut starts = vec![0usize; nx * ny + 1];
+        for &[c0, r0, c1, r1] in &spans {
+            for r in r0..r1 + 1 {
+                for c in c0..c1 + 1 {
+                    starts[r * nx + c + 1] += 1;
+                }
+            }
+        }
+        for k in 1..starts.len() {
+            starts[k] += starts[k - 1];
+        }
+        let mut fill: Vec<usize> = starts[..nx * ny].to_vec();
+        let mut items = vec![0u32; starts[nx * ny]];
+        for (k, &[c0, r0, c1, r1]) in spans.iter().enumerate() {
+            for r in r0..r1 + 1 {
+                for c in c0..c1 + 1 {
+                    let slot = &mut fill[r * nx + c];
+                    items[*slot] = k as u32;
+                    *slot += 1;
+                }
+            }
+        }
+        (starts, items)
     }
 }
 

@@ -92,11 +92,45 @@ fn offset_direct(
     delta_mm: f64,
     chord_mm: f64,
 ) -> Option<Shapes> {
-    let reach = delta_mm.abs();
     let step = arc_angle(delta_mm, chord_mm);
     let merge_mm = chord_mm / 20.0;
+    let (mut out, counter_clockwise) = raw_offset(shapes, delta_mm, step, merge_mm)?;
+    // Little reversed loops (swallowtails) where the offset swallows a short edge
+    // between two corners it turns into are cut off at their crossing; any other
+    // crossing leaves the work to the outline.
+    let mut cut_points = Vec::new();
+    cut_swallowtails(&mut out, &mut cut_points)?;
+    let built;
+    let index = match index {
+        Some(index) => index,
+        None => {
+            built = boundary_index(shapes);
+            &built
+        }
+    };
+    let certificate = Certificate::new(index, delta_mm.abs(), merge_mm);
+    let failed = certificate.uncertified_vertices(&out);
+    if failed.is_empty() {
+        return Some(out);
+    }
+    let spiked = cut_uncertified_spikes(&mut out, failed, cut_points, &certificate, delta_mm)?;
+    // The cuts keep every loop simple and its orientation (a cut drops a sliver by the
+    // apex only), but check both again rather than rely on it.
+    (!spiked || simple_and_oriented(&out, &counter_clockwise)).then_some(out)
+}
+
+/// Step 1 of [`offset_direct`]: the raw offset of every loop of `shapes`
+/// ([`raw_offset_loop`]), shapes and holes the offset swallows whole dropped, with
+/// whether each raw loop (in the order of `loops`) runs counter-clockwise. None where a
+/// loop has no raw offset or its raw offset turns the other way round.
+fn raw_offset(
+    shapes: &Shapes,
+    delta_mm: f64,
+    step: f64,
+    merge_mm: f64,
+) -> Option<(Shapes, Vec<bool>)> {
+    let reach = delta_mm.abs();
     let mut out: Shapes = Vec::with_capacity(shapes.len());
-    // Whether each raw loop (in the order of `loops(&out)`) runs counter-clockwise.
     let mut counter_clockwise = Vec::new();
     'shapes: for shape in shapes {
         let mut loops = Vec::with_capacity(shape.len());
@@ -123,68 +157,98 @@ fn offset_direct(
         }
         out.push(loops);
     }
-    // Little reversed loops (swallowtails) where the offset swallows a short edge
-    // between two corners it turns into are cut off at their crossing; any other
-    // crossing leaves the work to the outline.
-    let mut cut_points = Vec::new();
-    cut_swallowtails(&mut out, &mut cut_points)?;
-    let built;
-    let index = match index {
-        Some(index) => index,
-        None => {
-            built = boundary_index(shapes);
-            &built
+    Some((out, counter_clockwise))
+}
+
+/// Step 2 of [`offset_direct`]: the distances a raw vertex must lie at from the source
+/// boundary (`index`) to be on the offset.
+struct Certificate<'a> {
+    index: &'a SegmentIndex,
+    /// Nearer than this: off the offset.
+    near: f64,
+    /// Nearer than this for a swallowtail's or spike's cut point (see
+    /// [`Certificate::cut_point_on_offset`]).
+    near_cut: f64,
+    /// At least one source edge nearer than this.
+    far: f64,
+}
+
+impl<'a> Certificate<'a> {
+    fn new(index: &'a SegmentIndex, reach: f64, merge_mm: f64) -> Self {
+        let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
+        Certificate {
+            index,
+            near,
+            // A cut point lies on two raw edges, which may be chords of merged joins:
+            // those lie up to `merge_mm` nearer the source than the offset distance
+            // (the arcs they stand for; see `raw_offset_loop`), and so may a point on
+            // them.
+            near_cut: near - merge_mm,
+            far: far_reach(reach),
         }
-    };
-    let near = reach * (1.0 - DIRECT_OFFSET_SLACK);
-    let far = far_reach(reach);
-    let mut failed: Vec<(usize, DVec2)> = Vec::new();
-    for (li, l) in loops(&out).enumerate() {
-        for &p in l {
-            if index.within_both(p, near, far) != (false, true) {
-                failed.push((li, p));
+    }
+
+    /// The vertices of `raw` not at the offset distance from the source, as (loop
+    /// number in the order of `loops`, vertex).
+    fn uncertified_vertices(&self, raw: &Shapes) -> Vec<(usize, DVec2)> {
+        let mut failed: Vec<(usize, DVec2)> = Vec::new();
+        for (li, l) in loops(raw).enumerate() {
+            for &p in l {
+                if self.index.within_both(p, self.near, self.far) != (false, true) {
+                    failed.push((li, p));
+                }
             }
         }
+        failed
     }
-    if failed.is_empty() {
-        return Some(out);
+
+    /// Is the cut point `p` at the offset distance from the source (allowing for the
+    /// chords of merged joins)?
+    fn cut_point_on_offset(&self, p: DVec2) -> bool {
+        self.index.within_both(p, self.near_cut, self.far) == (false, true)
     }
-    // A cut point lies on two raw edges, which may be chords of merged joins: those lie
-    // up to `merge_mm` nearer the source than the offset distance (the arcs they stand
-    // for; see `raw_offset_loop`), and so may a point on them.
-    let near_cut = near - merge_mm;
-    let certified = |p: DVec2| index.within_both(p, near_cut, far) == (false, true);
+}
+
+/// Step 2 of [`offset_direct`] for the vertices the certificate failed (`failed`): a
+/// swallowtail's cut point (in `cut_points`) passes on the cut points' allowance; any
+/// other is the apex of a spike, which is cut ([`cut_spike`]) and its cut point
+/// certified in turn. None where one is neither; else whether any spike was cut.
+fn cut_uncertified_spikes(
+    raw: &mut Shapes,
+    failed: Vec<(usize, DVec2)>,
+    mut cut_points: Vec<DVec2>,
+    certificate: &Certificate,
+    delta_mm: f64,
+) -> Option<bool> {
     let mut spiked = false;
     for (li, p) in failed {
-        if cut_points.contains(&p) && certified(p) {
+        if cut_points.contains(&p) && certificate.cut_point_on_offset(p) {
             continue;
         }
-        let l = out.iter_mut().flat_map(|s| s.iter_mut()).nth(li)?;
+        let l = raw.iter_mut().flat_map(|s| s.iter_mut()).nth(li)?;
         // Gone with an earlier spike.
         let Some(k) = l.iter().position(|q| *q == p) else {
             continue;
         };
         let x = cut_spike(l, k, delta_mm)?;
-        if !certified(x) {
+        if !certificate.cut_point_on_offset(x) {
             return None;
         }
         cut_points.push(x);
         spiked = true;
     }
-    if spiked {
-        // The cuts keep every loop simple and its orientation (a cut drops a sliver by
-        // the apex only), but check both again rather than rely on it.
-        let raw: Vec<&[DVec2]> = loops(&out).map(|l| l.as_slice()).collect();
-        if raw
-            .iter()
-            .zip(&counter_clockwise)
-            .any(|(l, ccw)| (signed_area2(l) > 0.0) != *ccw)
-            || first_crossing(&raw).is_some()
-        {
-            return None;
-        }
-    }
-    Some(out)
+    Some(spiked)
+}
+
+/// Does every loop of `raw` keep the orientation `counter_clockwise` gives it (in the
+/// order of `loops`), with no two edges touching or crossing?
+fn simple_and_oriented(raw: &Shapes, counter_clockwise: &[bool]) -> bool {
+    let all: Vec<&[DVec2]> = loops(raw).map(|l| l.as_slice()).collect();
+    !(all
+        .iter()
+        .zip(counter_clockwise)
+        .any(|(l, ccw)| (signed_area2(l) > 0.0) != *ccw)
+        || first_crossing(&all).is_some())
 }
 
 /// Is every point inside loop `l` nearer than `reach` to it (so that an offset moving
