@@ -658,7 +658,7 @@ mod tests {
 
     /// Nearest distances from points far outside the index's box, where the nearest
     /// segment lies off to the side of the cell the point projects to, match the brute
-    /// force answer (the ring search once stopped early there).
+    /// force answer (the ring search must not stop before it has seen that segment).
     #[test]
     fn nearest_from_outside_the_box_is_exact() {
         let hole = |c: DVec2| -> Vec<DVec2> {

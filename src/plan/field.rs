@@ -43,23 +43,13 @@
 //!    gradient onto the exact level set. Only where the tangents meet ahead of one
 //!    crossing and behind the other along the level set (a corner or tip between
 //!    them); across an S-bend they meet beyond both, and the point is sought from the
-//!    middle of the piece instead (a point placed from beyond an end made the loop
-//!    double back on itself there). A crossing the exact level set does not reach
+//!    middle of the piece instead (a point placed from beyond an end would make the
+//!    loop double back on itself there). A crossing the exact level set does not reach
 //!    within its stretch (the grid cut the tip of a corner short) is left out between
 //!    two that lie on it, so the corner between those is found.
 //!
-//! Distance from the exact level sets (`examples/plan_compare.rs levels`; cell R_mach /
-//! 2), after the planner simplifies them by the contour deviation (default 0.025 mm):
-//! the `plan_layer` bench region mean 0.0077 mm, 99.9th percentile 0.027 mm, largest
-//! 0.032 mm; every 5th femur layer mean 0.0079 mm, 99th percentile 0.026 mm, 99.9th
-//! 0.042 mm; the non-star example mean 0.0084 mm, largest 0.028 mm (every crossing
-//! placed: 0.0074, 0.026, 0.032; 0.0078, 0.026, 0.043; 0.0077, 0.028). Every
-//! crossing placed and simplified by the 0.01 mm chord tolerance instead, the traced
-//! level sets themselves: the bench region mean 0.0029 mm, 99.9th percentile
-//! 0.012 mm (against the linear interpolant
-//! on a grid of R_mach / 3 before: 0.0032, 0.023); the femur mean 0.0046 mm, 99th
-//! percentile 0.021 mm, 99.9th 0.041 mm (before: 0.0058, 0.042, 0.127); the non-star
-//! example mean 0.0035 mm, largest 0.017 mm (before: 0.0045, 0.037).
+//! How far the contours lie from the exact level sets, on the bench region, the femur
+//! and the non-star example, and how to measure it: docs/planner-accuracy.md.
 
 use crate::geom::{loop_edges, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;
@@ -70,12 +60,12 @@ use std::ops::Range;
 ///
 /// A layer's field and level sets fill a few MB of grid-sized arrays. Freed at the end
 /// of every layer, they let the allocator return the pages to the kernel and fault
-/// fresh ones in for the next layer: with the `plan_layer` bench's region planned over
-/// and over on one thread (as the daemon plans layer after layer while it streams),
-/// about an eighth of the time went to those page faults and the allocator. Each
-/// thread (the daemon's planning thread, the rayon workers of `plan_layers`) keeps the
-/// arrays of its last field instead: up to `KEEP_COUNT` buffers of each element type
-/// (the level sets take one per level), together at most `KEEP_BYTES`.
+/// fresh ones in for the next layer, a measurable share of the planning time when one
+/// thread plans layer after layer, as the daemon does while it streams (figures in
+/// docs/planner-accuracy.md). Each thread (the daemon's planning thread, the rayon
+/// workers of `plan_layers`) keeps the arrays of its last field instead: up to
+/// `KEEP_COUNT` buffers of each element type (the level sets take one per level),
+/// together at most `KEEP_BYTES`.
 ///
 /// All of them, not only the largest: a big buffer kept while smaller ones come and go
 /// leaves glibc's trim threshold at its default, and the heap's top is handed back and
@@ -796,9 +786,9 @@ impl DistanceField {
     /// (a corner at its middle; an arc strays half that), so the normals may turn up
     /// to 4 × `sparse_mm` / chord. A corner of the level set between them turns their
     /// normals by its own angle, so it keeps the crossing; two corners turning back
-    /// within the two cells could cancel (placing every fourth crossing first lost
-    /// such corners on the femur; every other one did not). The crossing is placed
-    /// wherever the normals turn more or either end is off the level set.
+    /// within the cells spanned could cancel, which is why only every other crossing is
+    /// placed first (docs/planner-accuracy.md). The crossing is placed wherever the
+    /// normals turn more or either end is off the level set.
     fn place_loop(&self, keys: &[u64], t: f64, spacing: f64, sparse_mm: f64) -> Vec<Placed> {
         let at = |key: u64| {
             let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
