@@ -74,7 +74,7 @@ fn job(path: &str, every: usize, out: &str) -> anyhow::Result<()> {
 }
 
 /// Points along the paths, at most `step` apart.
-fn samples(paths: &[&edo::plan::shapes::Path], step: f64) -> Vec<DVec2> {
+fn samples(paths: &[&edo::geom::Path], step: f64) -> Vec<DVec2> {
     let mut out = Vec::new();
     for p in paths {
         let n = p.points.len();
@@ -90,7 +90,7 @@ fn samples(paths: &[&edo::plan::shapes::Path], step: f64) -> Vec<DVec2> {
 }
 
 /// The segments of some paths, closed ones as loops and open ones as polylines.
-fn path_index(ps: &[&edo::plan::shapes::Path]) -> SegmentIndex {
+fn path_index(ps: &[&edo::geom::Path]) -> SegmentIndex {
     let loops: Vec<&[DVec2]> = ps
         .iter()
         .filter(|p| p.closed)
@@ -106,14 +106,10 @@ fn path_index(ps: &[&edo::plan::shapes::Path]) -> SegmentIndex {
 
 /// Sampled symmetric Hausdorff distance between two sets of paths, and the length (mm,
 /// both ways) of the samples farther than `tol` from the other set.
-fn hausdorff(
-    a: &[&edo::plan::shapes::Path],
-    b: &[&edo::plan::shapes::Path],
-    tol: f64,
-) -> (f64, f64) {
+fn hausdorff(a: &[&edo::geom::Path], b: &[&edo::geom::Path], tol: f64) -> (f64, f64) {
     let (ia, ib) = (path_index(a), path_index(b));
     let step = 0.02;
-    let one_way = |from: &[&edo::plan::shapes::Path], to: &SegmentIndex| {
+    let one_way = |from: &[&edo::geom::Path], to: &SegmentIndex| {
         samples(from, step)
             .into_iter()
             .map(|p| to.distance(p))
@@ -243,7 +239,7 @@ fn ends(a: &str, b: &str, r: f64) -> anyhow::Result<()> {
     };
     let (la, lb) = (read(a)?, read(b)?);
     anyhow::ensure!(la.len() == lb.len(), "layer counts differ");
-    let ends_of = |ps: &[edo::plan::shapes::Path]| -> Vec<DVec2> {
+    let ends_of = |ps: &[edo::geom::Path]| -> Vec<DVec2> {
         ps.iter()
             .filter(|p| !p.closed)
             .flat_map(|p| p.points.first().into_iter().chain(p.points.last()).copied())
@@ -338,7 +334,7 @@ fn levels(path: &str) -> anyhow::Result<()> {
                 if c.j == 1 || c.j == plan.m + 1 {
                     continue;
                 }
-                let roads: Vec<&edo::plan::shapes::Path> = c.roads.iter().collect();
+                let roads: Vec<&edo::geom::Path> = c.roads.iter().collect();
                 for p in samples(&roads, 0.02) {
                     let (a, e) = match plan.centre {
                         Some(centre) if holes.is_empty() => (p.distance(centre), ie.distance(p)),

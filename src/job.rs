@@ -5,10 +5,10 @@
 //! Pure: [`Job::from_toml`] takes the text (and a name for messages); reading the file
 //! is the caller's business.
 
-use crate::geom::{Region, Tolerances};
+use crate::geom::{self as shapes, Region, Tolerances};
 use crate::machine::placement::PlacementMode;
 use crate::material::{Composition, GradientFunction, OffsetDirection};
-use crate::plan::{shapes, GradientDesign, LayerSlice, Pattern, PlanOptions, Subdivision};
+use crate::plan::{GradientDesign, LayerSlice, Pattern, PlanOptions, Subdivision};
 use glam::{DVec2, DVec3};
 use serde::Deserialize;
 

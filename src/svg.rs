@@ -5,8 +5,8 @@
 //!
 //! Pure: returns the SVG text; writing files is the caller's business.
 
+use crate::geom::Path;
 use crate::geom::Region;
-use crate::plan::shapes::Path;
 use crate::plan::{offset_composition_eq6, LayerPlan};
 use glam::DVec2;
 use std::fmt::Write;

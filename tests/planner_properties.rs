@@ -8,9 +8,9 @@
 //! - every composition sums to 1, and compositions change monotonically from Ci to Ce
 //!   for a monotone f(d).
 
+use edo::geom::Path;
 use edo::geom::{point_segment_distance, signed_area, Region};
 use edo::material::{Composition, GradientFunction};
-use edo::plan::shapes::Path;
 use edo::plan::{
     offset_composition_eq6, plan_region, GradientDesign, Pattern, PlanOptions, RegionPlan,
     Subdivision,

@@ -43,25 +43,15 @@
 //!    gradient onto the exact level set. Only where the tangents meet ahead of one
 //!    crossing and behind the other along the level set (a corner or tip between
 //!    them); across an S-bend they meet beyond both, and the point is sought from the
-//!    middle of the piece instead (a point placed from beyond an end made the loop
-//!    double back on itself there). A crossing the exact level set does not reach
+//!    middle of the piece instead (a point placed from beyond an end would make the
+//!    loop double back on itself there). A crossing the exact level set does not reach
 //!    within its stretch (the grid cut the tip of a corner short) is left out between
 //!    two that lie on it, so the corner between those is found.
 //!
-//! Distance from the exact level sets (`examples/plan_compare.rs levels`; cell R_mach /
-//! 2), after the planner simplifies them by the contour deviation (default 0.025 mm):
-//! the `plan_layer` bench region mean 0.0077 mm, 99.9th percentile 0.027 mm, largest
-//! 0.032 mm; every 5th femur layer mean 0.0079 mm, 99th percentile 0.026 mm, 99.9th
-//! 0.042 mm; the non-star example mean 0.0084 mm, largest 0.028 mm (every crossing
-//! placed: 0.0074, 0.026, 0.032; 0.0078, 0.026, 0.043; 0.0077, 0.028). Every
-//! crossing placed and simplified by the 0.01 mm chord tolerance instead, the traced
-//! level sets themselves: the bench region mean 0.0029 mm, 99.9th percentile
-//! 0.012 mm (against the linear interpolant
-//! on a grid of R_mach / 3 before: 0.0032, 0.023); the femur mean 0.0046 mm, 99th
-//! percentile 0.021 mm, 99.9th 0.041 mm (before: 0.0058, 0.042, 0.127); the non-star
-//! example mean 0.0035 mm, largest 0.017 mm (before: 0.0045, 0.037).
+//! How far the contours lie from the exact level sets, on the bench region, the femur
+//! and the non-star example, and how to measure it: docs/planner-accuracy.md.
 
-use crate::geom::{floor_clamped, next_in_loop, prev_in_loop, Region};
+use crate::geom::{loop_edges, next_in_loop, prev_in_loop, Region};
 use glam::DVec2;
 use pool::{give, take};
 use std::ops::Range;
@@ -70,12 +60,12 @@ use std::ops::Range;
 ///
 /// A layer's field and level sets fill a few MB of grid-sized arrays. Freed at the end
 /// of every layer, they let the allocator return the pages to the kernel and fault
-/// fresh ones in for the next layer: with the `plan_layer` bench's region planned over
-/// and over on one thread (as the daemon plans layer after layer while it streams),
-/// about an eighth of the time went to those page faults and the allocator. Each
-/// thread (the daemon's planning thread, the rayon workers of `plan_layers`) keeps the
-/// arrays of its last field instead: up to `KEEP_COUNT` buffers of each element type
-/// (the level sets take one per level), together at most `KEEP_BYTES`.
+/// fresh ones in for the next layer, a measurable share of the planning time when one
+/// thread plans layer after layer, as the daemon does while it streams (figures in
+/// docs/planner-accuracy.md). Each thread (the daemon's planning thread, the rayon
+/// workers of `plan_layers`) keeps the arrays of its last field instead: up to
+/// `KEEP_COUNT` buffers of each element type (the level sets take one per level),
+/// together at most `KEEP_BYTES`.
 ///
 /// All of them, not only the largest: a big buffer kept while smaller ones come and go
 /// leaves glibc's trim threshold at its default, and the heap's top is handed back and
@@ -140,6 +130,20 @@ mod pool {
         pub(super) static NEAREST: RefCell<Vec<Vec<super::Nearest>>> = const { RefCell::new(Vec::new()) };
         pub(super) static SIDE: RefCell<Vec<Vec<(u64, u32)>>> = const { RefCell::new(Vec::new()) };
         pub(super) static SEGMENT: RefCell<Vec<Vec<super::Segment>>> = const { RefCell::new(Vec::new()) };
+    }
+}
+
+/// `x.floor()` for the grid lookups: the same value wherever the result is clamped to
+/// a grid (it differs only for NaN, infinities and |x| ≥ 2⁶³, which give 0 or the
+/// clamped extreme either way), without the libm call the baseline x86-64 target makes
+/// for `floor`.
+#[inline]
+fn floor_clamped(x: f64) -> f64 {
+    let i = x as i64 as f64;
+    if i > x {
+        i - 1.0
+    } else {
+        i
     }
 }
 
@@ -218,9 +222,7 @@ impl Grid {
 fn fill_inside(grid: &Grid, loops: &[&Vec<DVec2>]) -> Vec<bool> {
     let mut rows: Vec<Vec<f64>> = vec![Vec::new(); grid.ny];
     for l in loops {
-        let n = l.len();
-        for i in 0..n {
-            let (a, b) = (l[i], l[(i + 1) % n]);
+        for (a, b) in loop_edges(l) {
             let (ylo, yhi) = (a.y.min(b.y), a.y.max(b.y));
             let r0 = ((ylo - grid.origin.y) / grid.h).ceil().max(0.0) as usize;
             let r1 = (((yhi - grid.origin.y) / grid.h).floor().max(-1.0) + 1.0) as usize;
@@ -355,8 +357,7 @@ impl Boundary {
         let mut loop_of = Vec::new();
         for l in loops {
             let (start, n) = (segs.len() as u32, l.len() as u32);
-            for i in 0..l.len() {
-                let (a, b) = (l[i], l[(i + 1) % l.len()]);
+            for (a, b) in loop_edges(l) {
                 let len2 = (b - a).length_squared();
                 segs.push(Edge {
                     a,
@@ -410,21 +411,15 @@ impl Boundary {
         let Some(&(start, n)) = self.loop_of.get(s as usize) else {
             return (f64::INFINITY, p);
         };
-        // The next edge round the loop (without an integer division).
+        // The next edge round the loop.
         let step = |k: u32, forward: bool| {
-            let i = k - start;
+            let (i, n) = ((k - start) as usize, n as usize);
             start
                 + if forward {
-                    if i + 1 == n {
-                        0
-                    } else {
-                        i + 1
-                    }
-                } else if i == 0 {
-                    n - 1
+                    next_in_loop(i, n)
                 } else {
-                    i - 1
-                }
+                    prev_in_loop(i, n)
+                } as u32
         };
         let mut best = self.to_edge(s, p);
         for forward in [true, false] {
@@ -457,11 +452,29 @@ fn distance_to_loops(
     boundary: &Boundary,
     spans: &[Range<usize>],
 ) -> (Vec<f64>, Vec<u32>) {
+    let mut near = seed_near_edges(grid, boundary);
+    // Node abscissae once (the same sums as `Grid::node`), not a conversion per relaxation.
+    let xs = grid.xs();
+    forward_pass(grid, &xs, spans, &mut near);
+    backward_pass(grid, &xs, spans, &mut near);
+    let n = grid.nx * grid.ny;
+    let mut d = take(&pool::F64, n, 0.0);
+    let mut seg = take(&pool::U32, n, 0);
+    for ((d, seg), near) in d.iter_mut().zip(&mut seg).zip(&near) {
+        *d = near.d2.sqrt();
+        *seg = near.seg;
+    }
+    give(&pool::NEAREST, near);
+    (d, seg)
+}
+
+/// The seeds of [`distance_to_loops`]: each node within 1.5 cells of a boundary edge's
+/// box gets its exact nearest point on the nearest such edge; the rest none yet.
+fn seed_near_edges(grid: &Grid, boundary: &Boundary) -> Vec<Nearest> {
     let (nx, ny) = (grid.nx, grid.ny);
-    let n = nx * ny;
     let mut near = take(
         &pool::NEAREST,
-        n,
+        nx * ny,
         Nearest {
             q: DVec2::splat(f64::NAN),
             d2: f64::INFINITY,
@@ -492,26 +505,30 @@ fn distance_to_loops(
             }
         }
     }
-    // Offer a node (at `p`) the nearest point `q` of a neighbour. A neighbour with the
-    // same nearest point offers the same distance, and a NaN point (none yet) a NaN
-    // distance, neither of which is smaller: no test for them is needed.
-    #[inline(always)]
-    fn relax(here: &mut Nearest, p: DVec2, there: &Nearest) {
-        let d2 = p.distance_squared(there.q);
-        if d2 < here.d2 {
-            *here = Nearest {
-                q: there.q,
-                d2,
-                seg: there.seg,
-            };
-        }
+    near
+}
+
+/// Offer a node (at `p`) the nearest point `q` of a neighbour. A neighbour with the
+/// same nearest point offers the same distance, and a NaN point (none yet) a NaN
+/// distance, neither of which is smaller: no test for them is needed.
+#[inline(always)]
+fn relax(here: &mut Nearest, p: DVec2, there: &Nearest) {
+    let d2 = p.distance_squared(there.q);
+    if d2 < here.d2 {
+        *here = Nearest {
+            q: there.q,
+            d2,
+            seg: there.seg,
+        };
     }
-    // Node abscissae once (the same sums as `Grid::node`), not a conversion per relaxation.
-    let xs = grid.xs();
+}
+
+/// The forward pass of [`distance_to_loops`]: rows upwards, each from the left (left,
+/// lower-left, below, lower-right), then back from the right (right). Rows are split
+/// off so the neighbours are plain slice reads. `xs`: the nodes' abscissae.
+fn forward_pass(grid: &Grid, xs: &[f64], spans: &[Range<usize>], near: &mut [Nearest]) {
+    let nx = grid.nx;
     let node = |c: usize, y: f64| DVec2::new(xs[c], y);
-    // Forward pass: rows upwards, each from the left (left, lower-left, below,
-    // lower-right), then back from the right (right). Rows are split off so the
-    // neighbours are plain slice reads.
     for (r, span) in spans.iter().enumerate() {
         let y = grid.origin.y + r as f64 * grid.h;
         let (done, rest) = near.split_at_mut(r * nx);
@@ -540,7 +557,12 @@ fn distance_to_loops(
             relax(&mut row[c], node(c, y), &q);
         }
     }
-    // Backward pass, mirrored.
+}
+
+/// The backward pass of [`distance_to_loops`]: [`forward_pass`] mirrored.
+fn backward_pass(grid: &Grid, xs: &[f64], spans: &[Range<usize>], near: &mut [Nearest]) {
+    let (nx, ny) = (grid.nx, grid.ny);
+    let node = |c: usize, y: f64| DVec2::new(xs[c], y);
     for (r, span) in spans.iter().enumerate().rev() {
         let y = grid.origin.y + r as f64 * grid.h;
         let (head, done) = near.split_at_mut((r + 1) * nx);
@@ -568,14 +590,6 @@ fn distance_to_loops(
             relax(&mut row[c], node(c, y), &q);
         }
     }
-    let mut d = take(&pool::F64, n, 0.0);
-    let mut seg = take(&pool::U32, n, 0);
-    for ((d, seg), near) in d.iter_mut().zip(&mut seg).zip(&near) {
-        *d = near.d2.sqrt();
-        *seg = near.seg;
-    }
-    give(&pool::NEAREST, near);
-    (d, seg)
 }
 
 impl Drop for DistanceField {
@@ -772,9 +786,9 @@ impl DistanceField {
     /// (a corner at its middle; an arc strays half that), so the normals may turn up
     /// to 4 × `sparse_mm` / chord. A corner of the level set between them turns their
     /// normals by its own angle, so it keeps the crossing; two corners turning back
-    /// within the two cells could cancel (placing every fourth crossing first lost
-    /// such corners on the femur; every other one did not). The crossing is placed
-    /// wherever the normals turn more or either end is off the level set.
+    /// within the cells spanned could cancel, which is why only every other crossing is
+    /// placed first (docs/planner-accuracy.md). The crossing is placed wherever the
+    /// normals turn more or either end is off the level set.
     fn place_loop(&self, keys: &[u64], t: f64, spacing: f64, sparse_mm: f64) -> Vec<Placed> {
         let at = |key: u64| {
             let (lo, hi) = ((key >> 32) as usize, (key & 0xffff_ffff) as usize);
@@ -984,34 +998,47 @@ impl DistanceField {
         if levels == 0 || self.d.len() != self.nx * self.ny {
             return Vec::new();
         }
+        let segs = self.march(m, levels);
+        self.place_levels(segs, m as f64, sparse_mm)
+    }
+
+    /// The pieces of each of the `levels` levels `k / m` through the cells, linked
+    /// through the sides they share (see [`DistanceField::level_sets`]).
+    fn march(&self, m: u32, levels: usize) -> Vec<Vec<Segment>> {
         let (nx, ny) = (self.nx, self.ny);
-        // Room for a level a few times round the grid's sides without regrowing.
-        let mut segs: Vec<Vec<Segment>> = (0..levels)
-            .map(|_| {
-                let mut v = take(&pool::SEGMENT, 0, NO_PIECE);
-                v.reserve(4 * (nx + ny));
-                v
-            })
-            .collect();
+        let mut march = Marching::new(levels, nx, ny);
         let mf = m as f64;
-        // Per level: the segment ending on each cell's top edge in the previous and the
-        // current row, and on the right edge of the cell just visited, with that
-        // edge's key (entries of cells that did not cross the level are stale, and
-        // the key tells them apart).
-        let none = (u64::MAX, NO_SEGMENT);
-        let mut top_below = take(&pool::SIDE, levels * nx, none);
-        let mut top_here = take(&pool::SIDE, levels * nx, none);
-        let mut right = vec![none; levels];
-        // floor(d m) per node: a cell crosses level k when the least of its corners'
-        // is below k and the greatest at least k (floor is monotone, so this is
-        // floor(lo m) and floor(hi m) of the cell's least and greatest value).
-        //
-        // Per row, the columns from the first to the last node with floor(d m) below m:
-        // a cell crosses a level below m only where one of its corners' is, so cells
-        // further out (beyond Ce, or beyond the transforms' spans) are not visited.
-        let mut band = take(&pool::I32, self.d.len(), 0);
-        let mut rows: Vec<Range<usize>> = Vec::with_capacity(ny);
         let below_m = m.min(i32::MAX as u32) as i32;
+        let (band, rows) = self.level_bands(mf, below_m);
+        for r in 0..ny - 1 {
+            march.next_row();
+            // Cells with a corner in either row's stretch (see `rows`).
+            let (lo, hi) = (&rows[r], &rows[r + 1]);
+            let cells = match (lo.is_empty(), hi.is_empty()) {
+                (true, true) => 0..0,
+                (false, true) => lo.clone(),
+                (true, false) => hi.clone(),
+                (false, false) => lo.start.min(hi.start)..lo.end.max(hi.end),
+            };
+            for c in cells.start.saturating_sub(1)..cells.end.min(nx - 1) {
+                march.cell(&self.d, &band, r, c, mf, below_m);
+            }
+        }
+        give(&pool::I32, band);
+        march.finish()
+    }
+
+    /// floor(d m) per node (`mf` is m): a cell crosses level k when the least of its
+    /// corners' is below k and the greatest at least k (floor is monotone, so this is
+    /// floor(lo m) and floor(hi m) of the cell's least and greatest value).
+    ///
+    /// And per row, the columns from the first to the last node with floor(d m) below m
+    /// (`below_m`): a cell crosses a level below m only where one of its corners' is, so
+    /// cells further out (beyond Ce, or beyond the transforms' spans) are not visited.
+    fn level_bands(&self, mf: f64, below_m: i32) -> (Vec<i32>, Vec<Range<usize>>) {
+        let nx = self.nx;
+        let mut band = take(&pool::I32, self.d.len(), 0);
+        let mut rows: Vec<Range<usize>> = Vec::with_capacity(self.ny);
         for (bs, vs) in band.chunks_exact_mut(nx).zip(self.d.chunks_exact(nx)) {
             for (b, v) in bs.iter_mut().zip(vs) {
                 // floor without a branch (d lies in [-1, 2], so d m fits).
@@ -1024,108 +1051,22 @@ impl DistanceField {
                 None => 0..0,
             });
         }
-        for r in 0..ny - 1 {
-            std::mem::swap(&mut top_below, &mut top_here);
-            // Cells with a corner in either row's stretch (see `rows`).
-            let (lo, hi) = (&rows[r], &rows[r + 1]);
-            let cells = match (lo.is_empty(), hi.is_empty()) {
-                (true, true) => 0..0,
-                (false, true) => lo.clone(),
-                (true, false) => hi.clone(),
-                (false, false) => lo.start.min(hi.start)..lo.end.max(hi.end),
-            };
-            for c in cells.start.saturating_sub(1)..cells.end.min(nx - 1) {
-                let ids = [
-                    (r * nx + c) as u64,
-                    (r * nx + c + 1) as u64,
-                    ((r + 1) * nx + c + 1) as u64,
-                    ((r + 1) * nx + c) as u64,
-                ];
-                let b = [
-                    band[ids[0] as usize],
-                    band[ids[1] as usize],
-                    band[ids[2] as usize],
-                    band[ids[3] as usize],
-                ];
-                // Level k/m is crossed when lo < k/m <= hi.
-                let k_lo = (b[0].min(b[1]).min(b[2]).min(b[3]) + 1).max(1);
-                let k_hi = b[0].max(b[1]).max(b[2]).max(b[3]).min(below_m - 1);
-                if k_lo > k_hi {
-                    continue;
-                }
-                let val = [
-                    self.d[ids[0] as usize],
-                    self.d[ids[1] as usize],
-                    self.d[ids[2] as usize],
-                    self.d[ids[3] as usize],
-                ];
-                let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
-                // The cell's sides (bottom, right, top, left), as the crossings' keys.
-                let sides = [
-                    edge_key(ids[0], ids[1]),
-                    edge_key(ids[1], ids[2]),
-                    edge_key(ids[2], ids[3]),
-                    edge_key(ids[3], ids[0]),
-                ];
-                for k in k_lo..=k_hi {
-                    let t = k as f64 / mf;
-                    let level = (k - 1) as usize;
-                    let case = usize::from(val[0] >= t)
-                        | usize::from(val[1] >= t) << 1
-                        | usize::from(val[2] >= t) << 2
-                        | usize::from(val[3] >= t) << 3
-                        | usize::from(centre_val >= t) << 4;
-                    let pieces = &CELL_PIECES[case];
-                    let out = &mut segs[level];
-                    // The right edge of the cell before (this cell's left edge), before
-                    // this cell's right edge replaces it.
-                    let left = right[level];
-                    for piece in &pieces.pieces[..pieces.count as usize] {
-                        let i = out.len() as u32;
-                        let mut seg = Segment {
-                            keys: [
-                                sides[piece.sides[0] as usize],
-                                sides[piece.sides[1] as usize],
-                            ],
-                            links: [NO_SEGMENT; 2],
-                            rotate: piece.rotate,
-                        };
-                        for end in 0..2 {
-                            let key = seg.keys[end];
-                            match piece.sides[end] {
-                                // Sides shared with cells already visited: link.
-                                e @ (0 | 3) => {
-                                    let slot = if e == 0 {
-                                        top_below[level * nx + c]
-                                    } else {
-                                        left
-                                    };
-                                    if slot.0 == key && slot.1 != NO_SEGMENT {
-                                        let j = slot.1;
-                                        seg.links[end] = j;
-                                        let other = &mut out[j as usize];
-                                        let back = usize::from(other.keys[1] == key);
-                                        other.links[back] = i;
-                                    }
-                                }
-                                // Sides the next cells share: leave the segment there.
-                                1 => right[level] = (key, i),
-                                _ => top_here[level * nx + c] = (key, i),
-                            }
-                        }
-                        out.push(seg);
-                    }
-                }
-            }
-        }
-        // Crossings on cell sides (between two grid nodes) are placed on the exact level
-        // set; those on cell diagonals (towards a cell's interpolated centre) only
-        // steer the marching through saddle cells and are left out. A level's piece
-        // through a cell then runs straight from side to side, and pieces of different
-        // levels, whose ends keep their order along every side, do not cross.
-        give(&pool::I32, band);
-        give(&pool::SIDE, top_below);
-        give(&pool::SIDE, top_here);
+        (band, rows)
+    }
+
+    /// The level sets' loops from their linked pieces (`segs`, per level; `mf` is m).
+    ///
+    /// Crossings on cell sides (between two grid nodes) are placed on the exact level
+    /// set; those on cell diagonals (towards a cell's interpolated centre) only steer
+    /// the marching through saddle cells and are left out. A level's piece through a
+    /// cell then runs straight from side to side, and pieces of different levels, whose
+    /// ends keep their order along every side, do not cross.
+    fn place_levels(
+        &self,
+        segs: Vec<Vec<Segment>>,
+        mf: f64,
+        sparse_mm: f64,
+    ) -> Vec<Vec<Vec<DVec2>>> {
         let spacing = 1.0 / mf;
         segs.into_iter()
             .enumerate()
@@ -1143,6 +1084,159 @@ impl DistanceField {
                     .collect()
             })
             .collect()
+    }
+}
+
+/// The marching of [`DistanceField::level_sets`], cell by cell and row by row: each
+/// level's pieces, linked as the cells are visited (a cell's bottom side is the top side
+/// of the cell below, kept from the previous row, and its left side the right side of
+/// the cell before it).
+struct Marching {
+    nx: usize,
+    /// The pieces of each level.
+    segs: Vec<Vec<Segment>>,
+    /// Per level: the segment ending on each cell's top edge in the previous and the
+    /// current row, and on the right edge of the cell just visited, with that edge's
+    /// key (entries of cells that did not cross the level are stale, and the key tells
+    /// them apart).
+    top_below: Vec<(u64, u32)>,
+    top_here: Vec<(u64, u32)>,
+    right: Vec<(u64, u32)>,
+}
+
+impl Marching {
+    fn new(levels: usize, nx: usize, ny: usize) -> Self {
+        // Room for a level a few times round the grid's sides without regrowing.
+        let segs: Vec<Vec<Segment>> = (0..levels)
+            .map(|_| {
+                let mut v = take(&pool::SEGMENT, 0, NO_PIECE);
+                v.reserve(4 * (nx + ny));
+                v
+            })
+            .collect();
+        let none = (u64::MAX, NO_SEGMENT);
+        Marching {
+            nx,
+            segs,
+            top_below: take(&pool::SIDE, levels * nx, none),
+            top_here: take(&pool::SIDE, levels * nx, none),
+            right: vec![none; levels],
+        }
+    }
+
+    /// Move on to the next row of cells: this row's top sides are the next one's bottom.
+    fn next_row(&mut self) {
+        std::mem::swap(&mut self.top_below, &mut self.top_here);
+    }
+
+    /// The pieces of every level crossing the cell from node (`c`, `r`), from the node
+    /// values `d` and their floor(d m) `band` (see [`DistanceField::level_bands`]).
+    fn cell(&mut self, d: &[f64], band: &[i32], r: usize, c: usize, mf: f64, below_m: i32) {
+        let nx = self.nx;
+        let ids = [
+            (r * nx + c) as u64,
+            (r * nx + c + 1) as u64,
+            ((r + 1) * nx + c + 1) as u64,
+            ((r + 1) * nx + c) as u64,
+        ];
+        let b = [
+            band[ids[0] as usize],
+            band[ids[1] as usize],
+            band[ids[2] as usize],
+            band[ids[3] as usize],
+        ];
+        // Level k/m is crossed when lo < k/m <= hi.
+        let k_lo = (b[0].min(b[1]).min(b[2]).min(b[3]) + 1).max(1);
+        let k_hi = b[0].max(b[1]).max(b[2]).max(b[3]).min(below_m - 1);
+        if k_lo > k_hi {
+            return;
+        }
+        let val = [
+            d[ids[0] as usize],
+            d[ids[1] as usize],
+            d[ids[2] as usize],
+            d[ids[3] as usize],
+        ];
+        let centre_val = 0.25 * (val[0] + val[1] + val[2] + val[3]);
+        // The cell's sides (bottom, right, top, left), as the crossings' keys.
+        let sides = [
+            edge_key(ids[0], ids[1]),
+            edge_key(ids[1], ids[2]),
+            edge_key(ids[2], ids[3]),
+            edge_key(ids[3], ids[0]),
+        ];
+        for k in k_lo..=k_hi {
+            let t = k as f64 / mf;
+            let level = (k - 1) as usize;
+            let case = usize::from(val[0] >= t)
+                | usize::from(val[1] >= t) << 1
+                | usize::from(val[2] >= t) << 2
+                | usize::from(val[3] >= t) << 3
+                | usize::from(centre_val >= t) << 4;
+            let pieces = &CELL_PIECES[case];
+            // The right edge of the cell before (this cell's left edge), before this
+            // cell's right edge replaces it.
+            let left = self.right[level];
+            for piece in &pieces.pieces[..pieces.count as usize] {
+                self.link_piece(level, c, &sides, piece, left);
+            }
+        }
+    }
+
+    /// Add the piece of `level` through cell column `c` joining `piece`'s two of the
+    /// cell's `sides`, linked to the pieces on the sides shared with cells already
+    /// visited (the bottom, from the row below; the left, `left`), and left on the sides
+    /// the next cells share.
+    fn link_piece(
+        &mut self,
+        level: usize,
+        c: usize,
+        sides: &[u64; 4],
+        piece: &CellPiece,
+        left: (u64, u32),
+    ) {
+        let nx = self.nx;
+        let out = &mut self.segs[level];
+        let i = out.len() as u32;
+        let mut seg = Segment {
+            keys: [
+                sides[piece.sides[0] as usize],
+                sides[piece.sides[1] as usize],
+            ],
+            links: [NO_SEGMENT; 2],
+            rotate: piece.rotate,
+        };
+        for end in 0..2 {
+            let key = seg.keys[end];
+            match piece.sides[end] {
+                // Sides shared with cells already visited: link.
+                e @ (0 | 3) => {
+                    let slot = if e == 0 {
+                        self.top_below[level * nx + c]
+                    } else {
+                        left
+                    };
+                    if slot.0 == key && slot.1 != NO_SEGMENT {
+                        let j = slot.1;
+                        seg.links[end] = j;
+                        let other = &mut out[j as usize];
+                        let back = usize::from(other.keys[1] == key);
+                        other.links[back] = i;
+                    }
+                }
+                // Sides the next cells share: leave the segment there.
+                1 => self.right[level] = (key, i),
+                _ => self.top_here[level * nx + c] = (key, i),
+            }
+        }
+        out.push(seg);
+    }
+
+    /// The pieces of each level, the side buffers given back.
+    fn finish(self) -> Vec<Vec<Segment>> {
+        give(&pool::SIDE, self.top_below);
+        give(&pool::SIDE, self.top_here);
+        self.segs
     }
 }
 
@@ -1401,7 +1495,7 @@ const BEND_TURN: f64 = 0.15;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::plan::shapes::circle;
+    use crate::geom::circle;
 
     #[test]
     fn annulus_levels_are_circles() {

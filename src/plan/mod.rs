@@ -29,8 +29,8 @@
 
 pub mod field;
 pub mod radial;
-pub mod shapes;
 
+use crate::geom::{self as shapes, ClipArea, Path, Shapes};
 use crate::geom::{Region, RegionError, SegmentIndex, Tolerances};
 use crate::material::{
     contour_composition, contour_distance, offset_composition, offset_count, segment_count,
@@ -38,7 +38,6 @@ use crate::material::{
 };
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
-use shapes::{ClipArea, Path, Shapes};
 
 /// How the region between Ci and Ce is divided into contours (job key `subdivision`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]

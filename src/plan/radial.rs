@@ -15,7 +15,9 @@
 //! 5. Check the contours cross neither each other nor the boundaries; the caller falls
 //!    back to the distance method (or refuses, if radial was asked for) when they do.
 
-use crate::geom::{first_crossing, point_in_loop, signed_area2};
+use crate::geom::{
+    first_crossing, loop_edges, next_in_loop, point_in_loop, prev_in_loop, signed_area2,
+};
 use glam::DVec2;
 
 /// Why the radial method cannot subdivide a region.
@@ -47,10 +49,7 @@ pub fn is_star_about(l: &[DVec2], c: DVec2) -> bool {
         return false;
     }
     let sign = signed_area2(l).signum();
-    (0..n).all(|i| {
-        let (a, b) = (l[i] - c, l[(i + 1) % n] - c);
-        a.perp_dot(b) * sign > 0.0
-    })
+    loop_edges(l).all(|(a, b)| (a - c).perp_dot(b - c) * sign > 0.0)
 }
 
 /// Distance from `c` along each of `k` equally spaced rays (angle 2πi/k) to the loop,
@@ -60,12 +59,10 @@ fn ray_radii(l: &[DVec2], c: DVec2, k: usize) -> Vec<f64> {
     if signed_area2(&pts) < 0.0 {
         pts.reverse();
     }
-    let n = pts.len();
     let step = std::f64::consts::TAU / k as f64;
     let mut out = vec![f64::NAN; k];
     let angle = |p: DVec2| (p - c).y.atan2((p - c).x).rem_euclid(std::f64::consts::TAU);
-    for i in 0..n {
-        let (a, b) = (pts[i], pts[(i + 1) % n]);
+    for (a, b) in loop_edges(&pts) {
         let (ta, mut tb) = (angle(a), angle(b));
         if tb < ta {
             tb += std::f64::consts::TAU;
@@ -90,8 +87,7 @@ fn ray_radii(l: &[DVec2], c: DVec2, k: usize) -> Vec<f64> {
             let theta = q as f64 * step;
             let dir = DVec2::new(theta.cos(), theta.sin());
             let mut best = f64::INFINITY;
-            for i in 0..n {
-                let (a, b) = (pts[i], pts[(i + 1) % n]);
+            for (a, b) in loop_edges(&pts) {
                 let e = b - a;
                 let den = dir.perp_dot(e);
                 if den.abs() < 1e-300 {
@@ -208,10 +204,10 @@ pub fn catmull_rom_closed(p: &[DVec2], chord_mm: f64) -> Vec<DVec2> {
     }
     let mut out = Vec::with_capacity(n * 2);
     for i in 0..n {
-        let p0 = p[(i + n - 1) % n];
+        let p0 = p[prev_in_loop(i, n)];
         let p1 = p[i];
-        let p2 = p[(i + 1) % n];
-        let p3 = p[(i + 2) % n];
+        let p2 = p[next_in_loop(i, n)];
+        let p3 = p[next_in_loop(next_in_loop(i, n), n)];
         out.push(p1);
         let mid = centripetal(p0, p1, p2, p3, 0.5);
         let sag = mid.distance(0.5 * (p1 + p2));
@@ -248,7 +244,7 @@ fn centripetal(p0: DVec2, p1: DVec2, p2: DVec2, p3: DVec2, u: f64) -> DVec2 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::plan::shapes::circle;
+    use crate::geom::circle;
 
     #[test]
     fn paper_annulus_gives_m_10() {

@@ -110,15 +110,39 @@ pub(super) fn cut(
     scratch: &mut Scratch,
 ) -> Result<(Vec<Region>, LayerNotes), SliceError> {
     let mut notes = LayerNotes::default();
-    // Step 1: segments. Corner above = z >= plane. The segment runs from the edge going
-    // down (above -> below) to the edge going up, which is z × normal: material on the left.
+    let mut segs = plane_segments(mesh, tri_edges, tris, z);
+    let (mut loops, mut open) = chain_segments(&mut segs, scratch);
+
+    // Step 3: join open chains that meet on an edge (a chain begun mid-way), then close
+    // gaps up to max_gap_mm, shortest first.
+    if open.len() > MAX_OPEN_CHAINS {
+        let end = *open[0].0.last().unwrap_or(&DVec2::ZERO);
+        return Err(SliceError::OpenLoop {
+            z_mm: z,
+            x: end.x,
+            y: end.y,
+            nearest_mm: None,
+            max_gap_mm: tol.max_gap_mm,
+        });
+    }
+    if !open.is_empty() {
+        join_open(&mut open, &mut loops, z, tol, &mut notes)?;
+    }
+    let islands = islands_of(loops, z, tol, &mut notes)?;
+    Ok((islands, notes))
+}
+
+/// Step 1: the segment each triangle of `tris` leaves in the plane at `z`. Corner above
+/// = z >= plane. The segment runs from the edge going down (above -> below) to the edge
+/// going up, which is z × normal: material on the left.
+fn plane_segments(mesh: &Mesh, tri_edges: &[[u32; 3]], tris: &[u32], z: f64) -> Vec<Segment> {
     let mut segs: Vec<Segment> = Vec::with_capacity(tris.len());
     for &t in tris {
         let tri = mesh.triangles[t as usize];
         let above = tri.map(|i| mesh.vertices[i as usize].z >= z);
         let (mut down, mut up) = (None, None);
         for k in 0..3 {
-            let k1 = (k + 1) % 3;
+            let k1 = geom::next_in_loop(k, 3);
             if above[k] && !above[k1] {
                 down = Some(k);
             } else if !above[k] && above[k1] {
@@ -132,20 +156,31 @@ pub(super) fn cut(
         segs.push(Segment {
             start_edge: edges[d],
             end_edge: edges[u],
-            start: edge_point(mesh, tri[d], tri[(d + 1) % 3], z),
-            end: edge_point(mesh, tri[u], tri[(u + 1) % 3], z),
+            start: edge_point(mesh, tri[d], tri[geom::next_in_loop(d, 3)], z),
+            end: edge_point(mesh, tri[u], tri[geom::next_in_loop(u, 3)], z),
             next_same: NONE,
             used: false,
         });
     }
+    segs
+}
+
+/// An open chain of segments: its points (the last is the chain's end), and the edges
+/// it starts and ends on.
+type OpenChain = (Vec<DVec2>, u32, u32);
+
+/// Step 2: chain `segs` by edge id into closed loops and open chains (`scratch` is left
+/// as it was found).
+fn chain_segments(
+    segs: &mut [Segment],
+    scratch: &mut Scratch,
+) -> (Vec<Vec<DVec2>>, Vec<OpenChain>) {
     for (i, s) in segs.iter_mut().enumerate() {
         s.next_same = scratch.head[s.start_edge as usize];
         scratch.head[s.start_edge as usize] = i as u32;
         scratch.ends[s.end_edge as usize] += 1;
     }
-
-    // Step 2: chain by edge id.
-    let take = |segs: &mut Vec<Segment>, head: &[u32], edge: u32| -> Option<usize> {
+    let take = |segs: &mut [Segment], head: &[u32], edge: u32| -> Option<usize> {
         let mut i = head[edge as usize];
         while i != NONE {
             if !segs[i as usize].used {
@@ -157,8 +192,7 @@ pub(super) fn cut(
         None
     };
     let mut loops: Vec<Vec<DVec2>> = Vec::new();
-    // Open chains: (points, start edge, end edge); the last point is the chain's end.
-    let mut open: Vec<(Vec<DVec2>, u32, u32)> = Vec::new();
+    let mut open: Vec<OpenChain> = Vec::new();
     // Chains of an open mesh start where no segment ends (pass 0); closed loops start
     // anywhere (pass 1).
     let order = (0..segs.len())
@@ -179,7 +213,7 @@ pub(super) fn cut(
                 loops.push(pts);
                 break;
             }
-            match take(&mut segs, &scratch.head, e) {
+            match take(segs, &scratch.head, e) {
                 Some(n) => {
                     pts.push(segs[n].start);
                     cur = n;
@@ -192,28 +226,21 @@ pub(super) fn cut(
             }
         }
     }
-    for s in &segs {
+    for s in segs.iter() {
         scratch.head[s.start_edge as usize] = NONE;
         scratch.ends[s.end_edge as usize] = 0;
     }
+    (loops, open)
+}
 
-    // Step 3: join open chains that meet on an edge (a chain begun mid-way), then close
-    // gaps up to max_gap_mm, shortest first.
-    if open.len() > MAX_OPEN_CHAINS {
-        let end = *open[0].0.last().unwrap_or(&DVec2::ZERO);
-        return Err(SliceError::OpenLoop {
-            z_mm: z,
-            x: end.x,
-            y: end.y,
-            nearest_mm: None,
-            max_gap_mm: tol.max_gap_mm,
-        });
-    }
-    if !open.is_empty() {
-        join_open(&mut open, &mut loops, z, tol, &mut notes)?;
-    }
-
-    // Step 4: clean loops and nest them into islands.
+/// Step 4: clean `loops` and nest them into islands; where they do not make sound
+/// regions (and the tolerances ask for validation), resolve them by an even-odd union.
+fn islands_of(
+    loops: Vec<Vec<DVec2>>,
+    z: f64,
+    tol: &SliceTolerances,
+    notes: &mut LayerNotes,
+) -> Result<Vec<Region>, SliceError> {
     let mut clean: Vec<(Vec<DVec2>, f64)> = Vec::with_capacity(loops.len());
     for l in loops {
         let l = drop_collinear(&l, tol.collinear_mm.max(tol.point_eq_mm));
@@ -246,7 +273,7 @@ pub(super) fn cut(
             });
         }
     }
-    Ok((islands, notes))
+    Ok(islands)
 }
 
 fn join_open(
@@ -389,20 +416,7 @@ fn first_invalid(islands: &[Region], tol: &geom::Tolerances) -> Option<(usize, g
 
 /// Islands of `loops` under the even-odd rule, computed by i_overlay.
 fn union_even_odd(loops: &[Vec<DVec2>], tol: &SliceTolerances) -> Vec<Region> {
-    use i_overlay::core::fill_rule::FillRule;
-    use i_overlay::float::simplify::SimplifyShape;
-    let contours: Vec<Vec<[f64; 2]>> = loops
-        .iter()
-        .map(|l| l.iter().map(|p| [p.x, p.y]).collect())
-        .collect();
-    let mut options = i_overlay::float::overlay::OverlayOptions::<f64>::default();
-    options.ogc = true;
-    options.min_output_area = tol.min_loop_area_mm2;
-    let shapes = contours.simplify_shape_custom(
-        FillRule::EvenOdd,
-        options,
-        i_overlay::core::solver::Solver::default(),
-    );
+    let shapes = geom::i_overlay_integration::even_odd_shapes_ogc(loops, tol.min_loop_area_mm2);
     let gt = geom::Tolerances {
         point_eq_mm: tol.point_eq_mm,
         ..Default::default()
@@ -410,11 +424,7 @@ fn union_even_odd(loops: &[Vec<DVec2>], tol: &SliceTolerances) -> Vec<Region> {
     shapes
         .into_iter()
         .filter_map(|shape| {
-            let mut it = shape.into_iter().map(|c| {
-                c.into_iter()
-                    .map(|[x, y]| DVec2::new(x, y))
-                    .collect::<Vec<_>>()
-            });
+            let mut it = shape.into_iter();
             let outer = it.next()?;
             let holes: Vec<Vec<DVec2>> = it
                 .filter(|h| geom::signed_area(h).abs() >= tol.min_loop_area_mm2)

@@ -16,7 +16,7 @@
 //! along every such pair, 2.5 % of the area at 10 µm cells and 0.4 mm roads).
 
 use super::ToolPath;
-use crate::geom::Region;
+use crate::geom::{edge_ends, loop_edges, Region};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -98,11 +98,15 @@ pub fn measure_with_voids(
     let Some(cells) = Cells::over(islands, paths, road_width_mm, cell_mm, MAX_MEASURE_CELLS) else {
         return (Coverage::default(), Vec::new());
     };
-    let mut cov = Coverage {
-        cell_mm: cells.cell_mm,
-        ..Default::default()
+    let mut count = RowCount {
+        cells,
+        cov: Coverage {
+            cell_mm: cells.cell_mm,
+            ..Default::default()
+        },
+        voids: Vec::new(),
+        max_void_points,
     };
-    let mut voids = Vec::new();
     let mut roads = capsules(&cells, paths, road_width_mm);
     let mut part = boundary_rows(&cells, islands);
     // Per row of the band: (road, first cell, end cell) of each capsule's run.
@@ -114,34 +118,11 @@ pub fn measure_with_voids(
     for first in (0..cells.ny).step_by(BAND_ROWS) {
         let rows = first..(first + BAND_ROWS).min(cells.ny);
         roads.advance(&rows);
-        for &(j0, j1, (a, b, r, road)) in roads.active() {
-            for j in j0.max(rows.start)..=j1.min(rows.end - 1) {
-                if let Some((i0, i1)) = cells.capsule_run(a, b, r, j) {
-                    band[j - first].push((road, i0 as u32, i1 as u32 + 1));
-                }
-            }
-        }
+        stamp_capsules(&cells, &roads, &rows, &mut band);
         part.advance(&rows);
         for j in rows {
             let runs = &mut band[j - first];
-            // Each road's runs merged (a cell counts once per road).
-            runs.sort_unstable();
-            merged.clear();
-            let mut k = 0;
-            while k < runs.len() {
-                let (road, mut start, mut end) = runs[k];
-                k += 1;
-                while k < runs.len() && runs[k].0 == road {
-                    let (_, s, e) = runs[k];
-                    if s > end {
-                        merged.push((start, end));
-                        start = s;
-                    }
-                    end = end.max(e);
-                    k += 1;
-                }
-                merged.push((start, end));
-            }
+            merge_road_runs(runs, &mut merged);
             runs.clear();
             events.clear();
             for &(s, e) in &merged {
@@ -150,63 +131,130 @@ pub fn measure_with_voids(
             }
             events.sort_unstable();
             inside_runs(&cells, &part, j, &mut xs, &mut inside);
-            let y = cells.centre_y(j);
-            let mut spans = inside.iter().copied().peekable();
-            // Cells [s, e) covered by `roads` different roads.
-            let mut tally = |s: u32, e: u32, roads: i32| {
-                let mut inside_cells = 0u64;
-                while let Some(&(a, b)) = spans.peek() {
-                    if b <= s {
-                        spans.next();
-                        continue;
-                    }
-                    if a >= e {
-                        break;
-                    }
-                    let (lo, hi) = (a.max(s), b.min(e));
-                    inside_cells += u64::from(hi - lo);
-                    if roads == 0 {
-                        for i in lo..hi {
-                            if voids.len() >= max_void_points {
-                                break;
-                            }
-                            voids.push(DVec2::new(cells.centre_x(i as usize), y));
-                        }
-                    }
-                    if b > e {
-                        break;
-                    }
-                    spans.next();
-                }
-                cov.part_cells += inside_cells;
-                match roads {
-                    0 => cov.void_cells += inside_cells,
-                    1 => {}
-                    _ => cov.overlap_cells += inside_cells,
-                }
-                if roads > 0 {
-                    cov.outside_cells += u64::from(e - s) - inside_cells;
-                }
-            };
-            let (mut at, mut count) = (0u32, 0i32);
-            let mut k = 0;
-            while k < events.len() {
-                let pos = events[k].0;
-                if pos > at {
-                    tally(at, pos, count);
-                    at = pos;
-                }
-                while k < events.len() && events[k].0 == pos {
-                    count += events[k].1;
-                    k += 1;
-                }
-            }
-            if (at as usize) < cells.nx {
-                tally(at, cells.nx as u32, count);
+            count.row(j, &events, &inside);
+        }
+    }
+    (count.cov, count.voids)
+}
+
+/// The runs of the capsules reaching the band `rows` (those `roads` holds after
+/// advancing to it), as (road, first cell, end cell), onto `band` (a list per row of
+/// the band).
+fn stamp_capsules(
+    cells: &Cells,
+    roads: &RowSweep<Capsule>,
+    rows: &Range<usize>,
+    band: &mut [Vec<(u32, u32, u32)>],
+) {
+    for &(j0, j1, (a, b, r, road)) in roads.active() {
+        for j in j0.max(rows.start)..=j1.min(rows.end - 1) {
+            if let Some((i0, i1)) = cells.capsule_run(a, b, r, j) {
+                band[j - rows.start].push((road, i0 as u32, i1 as u32 + 1));
             }
         }
     }
-    (cov, voids)
+}
+
+/// One row's capsule runs (`runs`, as (road, first cell, end cell); sorted here), each
+/// road's merged (a cell counts once per road), as (first cell, end cell) into `merged`.
+fn merge_road_runs(runs: &mut [(u32, u32, u32)], merged: &mut Vec<(u32, u32)>) {
+    runs.sort_unstable();
+    merged.clear();
+    let mut k = 0;
+    while k < runs.len() {
+        let (road, mut start, mut end) = runs[k];
+        k += 1;
+        while k < runs.len() && runs[k].0 == road {
+            let (_, s, e) = runs[k];
+            if s > end {
+                merged.push((start, end));
+                start = s;
+            }
+            end = end.max(e);
+            k += 1;
+        }
+        merged.push((start, end));
+    }
+}
+
+/// The counts of the measure so far, row by row.
+struct RowCount {
+    cells: Cells,
+    cov: Coverage,
+    voids: Vec<DVec2>,
+    max_void_points: usize,
+}
+
+impl RowCount {
+    /// Count row `j`: `events` are the roads' merged runs' starts (+1) and ends (−1) in
+    /// cell order, `inside` the runs of cells inside the part.
+    fn row(&mut self, j: usize, events: &[(u32, i32)], inside: &[(u32, u32)]) {
+        let y = self.cells.centre_y(j);
+        let mut spans = inside.iter().copied().peekable();
+        let (mut at, mut count) = (0u32, 0i32);
+        let mut k = 0;
+        while k < events.len() {
+            let pos = events[k].0;
+            if pos > at {
+                self.tally(y, &mut spans, at, pos, count);
+                at = pos;
+            }
+            while k < events.len() && events[k].0 == pos {
+                count += events[k].1;
+                k += 1;
+            }
+        }
+        if (at as usize) < self.cells.nx {
+            self.tally(y, &mut spans, at, self.cells.nx as u32, count);
+        }
+    }
+
+    /// Cells [s, e) of the row at `y` covered by `roads` different roads, met with the
+    /// runs inside the part (`spans`, from the first that may reach past `s`).
+    fn tally(
+        &mut self,
+        y: f64,
+        spans: &mut std::iter::Peekable<impl Iterator<Item = (u32, u32)>>,
+        s: u32,
+        e: u32,
+        roads: i32,
+    ) {
+        let cov = &mut self.cov;
+        let mut inside_cells = 0u64;
+        while let Some(&(a, b)) = spans.peek() {
+            if b <= s {
+                spans.next();
+                continue;
+            }
+            if a >= e {
+                break;
+            }
+            let (lo, hi) = (a.max(s), b.min(e));
+            inside_cells += u64::from(hi - lo);
+            if roads == 0 {
+                for i in lo..hi {
+                    if self.voids.len() >= self.max_void_points {
+                        break;
+                    }
+                    self.voids
+                        .push(DVec2::new(self.cells.centre_x(i as usize), y));
+                }
+            }
+            if b > e {
+                break;
+            }
+            spans.next();
+        }
+        cov.part_cells += inside_cells;
+        match roads {
+            0 => cov.void_cells += inside_cells,
+            1 => {}
+            _ => cov.overlap_cells += inside_cells,
+        }
+        if roads > 0 {
+            cov.outside_cells += u64::from(e - s) - inside_cells;
+        }
+    }
 }
 
 /// A square grid of cells over a layer: cell (i, j) has its centre at `lo` + ((i + ½),
@@ -375,10 +423,9 @@ fn for_each_capsule(
         if n == 1 {
             f(id, p.points[0], p.points[0], 0.5 * road_width_mm * w(0));
         }
-        let edges = if p.closed { n } else { n - 1 };
-        for k in 0..edges {
-            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-            let f_mean = 0.5 * (w(k) + w((k + 1) % n));
+        for (k, j) in edge_ends(n, p.closed) {
+            let (a, b) = (p.points[k], p.points[j]);
+            let f_mean = 0.5 * (w(k) + w(j));
             f(id, a, b, 0.5 * road_width_mm * f_mean);
         }
     }
@@ -390,9 +437,7 @@ fn boundary_rows(cells: &Cells, islands: &[Region]) -> RowSweep<(DVec2, DVec2)> 
     let row = |y: f64| (y - cells.lo.y) / cells.cell_mm - 0.5;
     let mut edges = Vec::new();
     for l in islands.iter().flat_map(|r| r.loops()) {
-        let m = l.len();
-        for k in 0..m {
-            let (a, b) = (l[k], l[(k + 1) % m]);
+        for (a, b) in loop_edges(l) {
             let (j0, j1) = (row(a.y.min(b.y)).floor(), row(a.y.max(b.y)).ceil());
             if !(j0.is_finite() && j1.is_finite()) || j1 < 0.0 {
                 continue;

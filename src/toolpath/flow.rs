@@ -48,7 +48,9 @@
 //!    the boundary does not count as a wall: [`super::ends`] fills that corner.
 
 use super::ToolPath;
-use crate::geom::{Region, SegmentIndex};
+use crate::geom::{
+    edge_count, edge_ends, loop_edge, loop_edges, neighbours, next_in_loop, Region, SegmentIndex,
+};
 use glam::DVec2;
 
 /// Settings of the flow raise (part of [`crate::pipeline::ProcessSettings`]).
@@ -100,21 +102,33 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
     for p in paths.iter_mut() {
         subdivide(p, w);
     }
-    // Step 2: one index over every road.
-    let roads = super::RoadIndex::new(paths);
     let boundary = SegmentIndex::of_regions(islands);
-    // Segment ids of each path in the index (loops first, then open paths) let a probe
-    // skip the path's own nearby edges: on the concave side of a curve (a loop's inside)
-    // they come nearer than the probe distance and would pass for a neighbour.
+    let facing = facing_sides(paths, w, &boundary, islands);
+    let bead = match_widths(paths, &facing, s);
+    apply_widths(paths, &bead, s, &boundary);
+}
+
+/// Step 2: what faces each vertex of each path on its left and right.
+fn facing_sides(
+    paths: &[ToolPath],
+    w: f64,
+    boundary: &SegmentIndex,
+    islands: &[Region],
+) -> Vec<Vec<[Side; 2]>> {
+    // One index over every road. Segment ids of each path in the index (loops first,
+    // then open paths) let a probe skip the path's own nearby edges: on the concave
+    // side of a curve (a loop's inside) they come nearer than the probe distance and
+    // would pass for a neighbour.
+    let roads = super::RoadIndex::new(paths);
     let mut facing: Vec<Vec<[Side; 2]>> = (0..paths.len())
-        .map(|i| probe_path(paths, i, &roads, &boundary, w))
+        .map(|i| probe_path(paths, i, &roads, boundary, w))
         .collect();
     // Over the last stretch of an open end that runs into the boundary at a slant, the
     // boundary does not count as a wall: the slanted-end continuation ([`super::ends`])
     // fills the corner there, and width matching against the slanting boundary would
     // narrow and shift the bead away from it. Neighbouring roads still count.
     for (p, sides) in paths.iter().zip(facing.iter_mut()) {
-        for k in slanted_end_stretch(p, w, &boundary, islands) {
+        for k in slanted_end_stretch(p, w, boundary, islands) {
             for side in sides[k].iter_mut() {
                 if matches!(side, Side::Wall(_)) {
                     *side = Side::Open;
@@ -122,11 +136,20 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
             }
         }
     }
+    facing
+}
 
-    // Step 3: width matching. Each bead vertex has a half-width h and a shift s of its
-    // centreline along its left normal (its edges are at s + h on the left and s − h on
-    // the right); all nominal and unshifted at first. Each takes what lies between the
-    // facing beads' edges, damped so that two beads sharing a gap settle on half each.
+/// Step 3: width matching. Each bead vertex has a half-width h and a shift s of its
+/// centreline along its left normal (its edges are at s + h on the left and s − h on
+/// the right); all nominal and unshifted at first. Each takes what lies between the
+/// facing beads' edges, damped so that two beads sharing a gap settle on half each.
+/// Returns (h, s) per vertex of each path.
+fn match_widths(
+    paths: &[ToolPath],
+    facing: &[Vec<[Side; 2]>],
+    s: &FlowSettings,
+) -> Vec<Vec<(f64, f64)>> {
+    let w = s.road_width_mm;
     let (h_min, h_max) = (
         0.5 * w * s.min_flow_factor.min(1.0),
         0.5 * w * s.max_flow_factor.max(1.0),
@@ -135,21 +158,6 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
         .iter()
         .map(|p| vec![(0.5 * w, 0.0); p.points.len()])
         .collect();
-    // How far the facing bead reaches towards us from its own centreline.
-    let reach_towards = |bead: &[Vec<(f64, f64)>], f: &Facing| {
-        let b = &bead[f.path as usize];
-        let n = b.len();
-        let e = f.edge as usize;
-        let (h, s) = (
-            0.5 * (b[e % n].0 + b[(e + 1) % n].0),
-            0.5 * (b[e % n].1 + b[(e + 1) % n].1),
-        );
-        if f.left_faces_us {
-            h + s
-        } else {
-            h - s
-        }
-    };
     for _ in 0..MATCH_ITERATIONS {
         let next: Vec<Vec<(f64, f64)>> = facing
             .iter()
@@ -178,7 +186,33 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
             .collect();
         bead = next;
     }
-    for (p, bs) in paths.iter_mut().zip(&bead) {
+    bead
+}
+
+/// How far the facing bead `f` reaches towards us from its own centreline, given every
+/// bead vertex's (half-width, shift).
+fn reach_towards(bead: &[Vec<(f64, f64)>], f: &Facing) -> f64 {
+    let b = &bead[f.path as usize];
+    // The facing edge's two vertices (its number is below the vertex count).
+    let (i, j) = (f.edge as usize, next_in_loop(f.edge as usize, b.len()));
+    let (h, s) = (0.5 * (b[i].0 + b[j].0), 0.5 * (b[i].1 + b[j].1));
+    if f.left_faces_us {
+        h + s
+    } else {
+        h - s
+    }
+}
+
+/// The matched beads (`bead`, per vertex) as width factors and shifted centrelines; a
+/// change too small to matter is left, and open roads' end caps kept (step 4).
+fn apply_widths(
+    paths: &mut [ToolPath],
+    bead: &[Vec<(f64, f64)>],
+    s: &FlowSettings,
+    boundary: &SegmentIndex,
+) {
+    let w = s.road_width_mm;
+    for (p, bs) in paths.iter_mut().zip(bead) {
         let normals = vertex_normals(&p.points, p.closed);
         for (k, &(h, shift)) in bs.iter().enumerate() {
             let f = 2.0 * h / w;
@@ -193,7 +227,7 @@ pub fn raise(paths: &mut [ToolPath], s: &FlowSettings, islands: &[Region]) {
             }
         }
         if !p.closed {
-            keep_end_caps(p, w, &boundary);
+            keep_end_caps(p, w, boundary);
         }
     }
 }
@@ -289,20 +323,8 @@ fn vertex_normals(points: &[DVec2], closed: bool) -> Vec<DVec2> {
     let n = points.len();
     (0..n)
         .map(|k| {
-            let prev = if k > 0 {
-                Some(points[k - 1])
-            } else if closed {
-                Some(points[n - 1])
-            } else {
-                None
-            };
-            let next = if k + 1 < n {
-                Some(points[k + 1])
-            } else if closed {
-                Some(points[0])
-            } else {
-                None
-            };
+            let (prev, next) = neighbours(k, n, closed);
+            let (prev, next) = (prev.map(|i| points[i]), next.map(|i| points[i]));
             let q = points[k];
             let left = |a: DVec2, b: DVec2| (b - a).normalize_or_zero().perp();
             let (a, b) = match (prev, next) {
@@ -331,165 +353,227 @@ fn probe_path(
     w: f64,
 ) -> Vec<[Side; 2]> {
     let p = &paths[i];
-    let (index, owner, first_segment) = (&roads.index, &roads.owner, &roads.first_segment);
-    let base = first_segment[i];
     let n = p.points.len();
     if n < 2 {
         return vec![[Side::Open, Side::Open]; n];
     }
-    let step = w / 8.0;
-    let reach = w; // probe up to a gap of 2w centre to centre
-                   // Own edges nearer (along the path) than this are never a neighbour.
-    let own_window = 1.5 * w + 2.0 * reach;
-    let mut cum = Vec::with_capacity(n + 1);
-    cum.push(0.0);
-    for j in 0..n {
-        let b = if j + 1 < n {
-            p.points[j + 1]
-        } else {
-            p.points[0]
-        };
-        let last = cum[j];
-        cum.push(last + p.points[j].distance(b));
-    }
-    let total = if p.closed { cum[n] } else { cum[n - 1] };
-    let segments = if p.closed { n } else { n - 1 } as u32;
-    let mut out = Vec::with_capacity(n);
-    for k in 0..n {
-        let s0 = cum[k];
-        let own_nearby = |id: u32| {
-            let Some(j) = id.checked_sub(base).filter(|&j| j < segments) else {
-                return false;
-            };
-            let (a, b) = (cum[j as usize], cum[j as usize + 1]);
-            let gap = |x: f64| {
-                if x < a {
-                    a - x
-                } else if x > b {
-                    x - b
-                } else {
-                    0.0
+    let prober = Prober::new(paths, roads, boundary, w);
+    let own = OwnEdges::of(p, roads.first_segment[i], prober.own_window);
+    (0..n)
+        .map(|k| {
+            let s0 = own.cum[k];
+            let probes = probes_at(p, k, w);
+            let mut sides = [Side::Open, Side::Open];
+            for (facing, side) in sides.iter_mut().zip([1.0, -1.0]) {
+                for (origin, nrm) in &probes {
+                    let found = prober.march(*origin, *nrm * side, |id| own.near(id, s0));
+                    if found.nearness(w) < facing.nearness(w) {
+                        *facing = found;
+                    }
                 }
-            };
-            let mut d = gap(s0);
-            if p.closed {
-                d = d.min(gap(s0 + total)).min(gap(s0 - total));
             }
-            d < own_window
-        };
-        let prev = if k > 0 {
-            Some(p.points[k - 1])
-        } else if p.closed {
-            Some(p.points[n - 1])
-        } else {
-            None
-        };
-        let next = if k + 1 < n {
-            Some(p.points[k + 1])
-        } else if p.closed {
-            Some(p.points[0])
-        } else {
-            None
-        };
-        let q0 = p.points[k];
-        // Probe beside each edge meeting at the vertex, along that edge's normal and
-        // from a point a road width along it, not along the bisector from the vertex:
-        // at a corner the bisector reaches the neighbouring road's corner √2 times
-        // further off than the road beside each edge, and a probe from the vertex along
-        // one edge's normal runs beside the other edge.
-        let edges: Vec<(f64, DVec2)> = [(-1.0, prev), (1.0, next)]
-            .into_iter()
-            .filter_map(|(dir, o)| o.map(|o| (dir, (o - q0).normalize_or_zero())))
-            .filter(|(_, u)| *u != DVec2::ZERO)
-            .collect();
-        let straight = match edges.as_slice() {
-            [(_, a), (_, b)] => -a.dot(*b) > STRAIGHT_COS,
-            _ => true,
-        };
-        let probes: Vec<(DVec2, DVec2)> = if straight {
-            // Along a straight run (subdivided edges) one probe from the vertex serves
-            // both edges; `perp` of the travel direction is the left side.
-            let t = match (prev, next) {
-                (Some(a), Some(b)) => b - a,
-                (Some(a), None) => q0 - a,
-                (None, Some(b)) => b - q0,
-                (None, None) => DVec2::ZERO,
-            };
-            let nrm = t.normalize_or_zero().perp();
-            if nrm == DVec2::ZERO {
-                Vec::new()
-            } else {
-                vec![(q0, nrm)]
-            }
-        } else {
-            // One road width back along the path: beside a right-angle corner the
-            // parallel neighbour ends its spacing short of the corner.
-            edges
-                .iter()
-                .map(|&(dir, u)| {
-                    let origin = walk(&p.points, p.closed, k, dir < 0.0, w);
-                    // Travel direction: into the vertex on the way in, out on the way out.
-                    (origin, (u * dir).perp())
-                })
-                .collect()
-        };
-        let mut sides = [Side::Open, Side::Open];
-        // How near a side's finding is: a road by its nominal edge, a wall by itself.
-        let nearness = |f: &Side| match f {
+            sides
+        })
+        .collect()
+}
+
+impl Side {
+    /// How near a side's finding is: a road by its nominal edge (road width `w`), a wall
+    /// by itself.
+    fn nearness(&self, w: f64) -> f64 {
+        match self {
             Side::Open => f64::INFINITY,
             Side::Road(f) => f.gap_mm - 0.5 * w,
             Side::Wall(t) => *t,
+        }
+    }
+}
+
+/// A path's own edges, which never count as its neighbour within `window` along it of
+/// the vertex probed (on a loop's concave side they come nearer than the probe).
+struct OwnEdges {
+    /// The path's first segment in the road index, and how many it has.
+    base: u32,
+    segments: u32,
+    /// Distance along the path to each vertex, and round the closing edge back to the
+    /// first (open paths too: it is read only past their last vertex).
+    cum: Vec<f64>,
+    /// The path's length.
+    total: f64,
+    closed: bool,
+    window: f64,
+}
+
+impl OwnEdges {
+    fn of(p: &ToolPath, base: u32, window: f64) -> Self {
+        let n = p.points.len();
+        let mut cum = Vec::with_capacity(n + 1);
+        cum.push(0.0);
+        for (a, b) in loop_edges(&p.points) {
+            let last = cum[cum.len() - 1];
+            cum.push(last + a.distance(b));
+        }
+        let segments = edge_count(n, p.closed);
+        OwnEdges {
+            base,
+            segments: segments as u32,
+            total: cum[segments],
+            cum,
+            closed: p.closed,
+            window,
+        }
+    }
+
+    /// Is segment `id` of the road index one of the path's own edges within the window
+    /// along it of the point `s0` along it?
+    fn near(&self, id: u32, s0: f64) -> bool {
+        let Some(j) = id.checked_sub(self.base).filter(|&j| j < self.segments) else {
+            return false;
         };
-        let limit = 2.0 * (0.5 * w + reach);
-        for (facing, side) in sides.iter_mut().zip([1.0, -1.0]) {
-            for (origin, nrm) in &probes {
-                let dir = *nrm * side;
-                let wall = boundary.ray_hit(*origin, dir, limit);
-                let mut found = wall.map_or(Side::Open, Side::Wall);
-                // Half the centre-to-centre gap: where another centreline becomes nearer
-                // than our own. Neighbours closer than w/2 are not roads of this plan.
-                let mut d = 0.25 * w + step;
-                while d <= 0.5 * w + reach && wall.is_none_or(|t| d < t) {
-                    let q = *origin + dir * d;
-                    // Only a segment within d − ε of q can be a neighbour found here; the
-                    // bounded look rules most steps out before the nearest-segment search
-                    // (which widens until it finds one, however far).
-                    let near = index.within(q, d - 1e-3 * w);
-                    if let Some((other, id)) = near
-                        .then(|| index.nearest_skipping(q, own_nearby))
-                        .flatten()
-                    {
-                        if other < d - 1e-3 * w {
-                            // Parallel neighbour at g: other = g - d, so g = d + other.
-                            let g = d + other;
-                            if wall.is_some_and(|t| t < g) {
-                                break; // beyond the part boundary
-                            }
-                            let path = owner[id as usize];
-                            let edge = id - first_segment[path as usize];
-                            let theirs = &paths[path as usize].points;
-                            let m = theirs.len();
-                            let (a, b) =
-                                (theirs[edge as usize % m], theirs[(edge as usize + 1) % m]);
-                            found = Side::Road(Facing {
-                                gap_mm: g,
-                                path,
-                                edge,
-                                left_faces_us: (b - a).perp().dot(dir) < 0.0,
-                            });
-                            break;
-                        }
+        let (a, b) = (self.cum[j as usize], self.cum[j as usize + 1]);
+        let gap = |x: f64| {
+            if x < a {
+                a - x
+            } else if x > b {
+                x - b
+            } else {
+                0.0
+            }
+        };
+        let mut d = gap(s0);
+        if self.closed {
+            d = d.min(gap(s0 + self.total)).min(gap(s0 - self.total));
+        }
+        d < self.window
+    }
+}
+
+/// The probes of vertex `k` of `p` (road width `w`), as (origin, left normal): beside
+/// each edge meeting at the vertex, along that edge's normal and from a point a road
+/// width along it, not along the bisector from the vertex: at a corner the bisector
+/// reaches the neighbouring road's corner √2 times further off than the road beside
+/// each edge, and a probe from the vertex along one edge's normal runs beside the other
+/// edge. Along a straight run, one probe from the vertex.
+fn probes_at(p: &ToolPath, k: usize, w: f64) -> Vec<(DVec2, DVec2)> {
+    let (prev, next) = neighbours(k, p.points.len(), p.closed);
+    let (prev, next) = (prev.map(|i| p.points[i]), next.map(|i| p.points[i]));
+    let q0 = p.points[k];
+    let edges: Vec<(f64, DVec2)> = [(-1.0, prev), (1.0, next)]
+        .into_iter()
+        .filter_map(|(dir, o)| o.map(|o| (dir, (o - q0).normalize_or_zero())))
+        .filter(|(_, u)| *u != DVec2::ZERO)
+        .collect();
+    let straight = match edges.as_slice() {
+        [(_, a), (_, b)] => -a.dot(*b) > STRAIGHT_COS,
+        _ => true,
+    };
+    if straight {
+        // Along a straight run (subdivided edges) one probe from the vertex serves
+        // both edges; `perp` of the travel direction is the left side.
+        let t = match (prev, next) {
+            (Some(a), Some(b)) => b - a,
+            (Some(a), None) => q0 - a,
+            (None, Some(b)) => b - q0,
+            (None, None) => DVec2::ZERO,
+        };
+        let nrm = t.normalize_or_zero().perp();
+        if nrm == DVec2::ZERO {
+            Vec::new()
+        } else {
+            vec![(q0, nrm)]
+        }
+    } else {
+        // One road width back along the path: beside a right-angle corner the
+        // parallel neighbour ends its spacing short of the corner.
+        edges
+            .iter()
+            .map(|&(dir, u)| {
+                let origin = walk(&p.points, p.closed, k, dir < 0.0, w);
+                // Travel direction: into the vertex on the way in, out on the way out.
+                (origin, (u * dir).perp())
+            })
+            .collect()
+    }
+}
+
+/// What a probe marches through: the layer's roads and the part boundary.
+struct Prober<'a> {
+    paths: &'a [ToolPath],
+    roads: &'a super::RoadIndex,
+    boundary: &'a SegmentIndex,
+    w: f64,
+    /// The march's step along the probe.
+    step: f64,
+    /// How far beyond the nominal bead edge the probe looks: up to a gap of 2w centre
+    /// to centre.
+    reach: f64,
+    /// Own edges nearer (along the path) than this are never a neighbour.
+    own_window: f64,
+}
+
+impl<'a> Prober<'a> {
+    fn new(
+        paths: &'a [ToolPath],
+        roads: &'a super::RoadIndex,
+        boundary: &'a SegmentIndex,
+        w: f64,
+    ) -> Self {
+        let reach = w;
+        Prober {
+            paths,
+            roads,
+            boundary,
+            w,
+            step: w / 8.0,
+            reach,
+            own_window: 1.5 * w + 2.0 * reach,
+        }
+    }
+
+    /// What faces the probe from `origin` along `dir` (unit): the part boundary where
+    /// it comes first, else the first road (not `own`) whose centreline becomes nearer
+    /// than ours, else open.
+    fn march(&self, origin: DVec2, dir: DVec2, own: impl Fn(u32) -> bool) -> Side {
+        let (w, index) = (self.w, &self.roads.index);
+        let limit = 2.0 * (0.5 * w + self.reach);
+        let wall = self.boundary.ray_hit(origin, dir, limit);
+        // Half the centre-to-centre gap: where another centreline becomes nearer than
+        // our own. Neighbours closer than w/2 are not roads of this plan.
+        let mut d = 0.25 * w + self.step;
+        while d <= 0.5 * w + self.reach && wall.is_none_or(|t| d < t) {
+            let q = origin + dir * d;
+            // Only a segment within d − ε of q can be a neighbour found here; the
+            // bounded look rules most steps out before the nearest-segment search
+            // (which widens until it finds one, however far).
+            let near = index.within(q, d - 1e-3 * w);
+            if let Some((other, id)) = near.then(|| index.nearest_skipping(q, &own)).flatten() {
+                if other < d - 1e-3 * w {
+                    // Parallel neighbour at g: other = g - d, so g = d + other.
+                    let g = d + other;
+                    if wall.is_some_and(|t| t < g) {
+                        break; // beyond the part boundary
                     }
-                    d += step;
-                }
-                if nearness(&found) < nearness(facing) {
-                    *facing = found;
+                    return Side::Road(self.facing(id, g, dir));
                 }
             }
+            d += self.step;
         }
-        out.push(sides);
+        wall.map_or(Side::Open, Side::Wall)
     }
-    out
+
+    /// The road segment `id` of the road index, facing a probe along `dir` at the
+    /// centre-to-centre gap `gap_mm`.
+    fn facing(&self, id: u32, gap_mm: f64, dir: DVec2) -> Facing {
+        let path = self.roads.owner[id as usize];
+        let edge = id - self.roads.first_segment[path as usize];
+        let (a, b) = loop_edge(&self.paths[path as usize].points, edge as usize);
+        Facing {
+            gap_mm,
+            path,
+            edge,
+            left_faces_us: (b - a).perp().dot(dir) < 0.0,
+        }
+    }
 }
 
 /// The point `dist` along `points` from vertex `k`, backwards or forwards (stopping at
@@ -498,12 +582,9 @@ fn walk(points: &[DVec2], closed: bool, k: usize, backwards: bool, dist: f64) ->
     let n = points.len();
     let (mut at, mut left) = (k, dist);
     for _ in 0..n / 2 {
-        let next = match (backwards, closed) {
-            (true, _) if at > 0 => at - 1,
-            (true, true) => n - 1,
-            (false, _) if at + 1 < n => at + 1,
-            (false, true) => 0,
-            _ => break,
+        let (prev, next) = neighbours(at, n, closed);
+        let Some(next) = (if backwards { prev } else { next }) else {
+            break;
         };
         let len = points[at].distance(points[next]);
         if len >= left {
@@ -523,12 +604,11 @@ fn subdivide(p: &mut ToolPath, max_len: f64) {
     if n < 2 {
         return;
     }
-    let edges = if p.closed { n } else { n - 1 };
     let mut pts = Vec::with_capacity(n);
     let mut fs = Vec::with_capacity(n);
-    for k in 0..edges {
-        let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-        let (fa, fb) = (p.width_factors[k], p.width_factors[(k + 1) % n]);
+    for (k, j) in edge_ends(n, p.closed) {
+        let (a, b) = (p.points[k], p.points[j]);
+        let (fa, fb) = (p.width_factors[k], p.width_factors[j]);
         let pieces = ((a.distance(b) / max_len).ceil() as usize).max(1);
         for q in 0..pieces {
             let t = q as f64 / pieces as f64;

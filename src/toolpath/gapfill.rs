@@ -26,8 +26,10 @@
 
 use super::coverage::Raster;
 use super::{PathRole, ToolPath};
-use crate::geom::{Region, SegmentIndex};
-use crate::plan::shapes::{self, Shapes};
+use crate::geom::{
+    self as shapes, edge_ends, loop_edge, loop_edges, next_in_loop, prev_in_loop, Region,
+    SegmentIndex, Shapes,
+};
 use glam::DVec2;
 use i_triangle::float::triangulatable::Triangulatable;
 use std::collections::HashMap;
@@ -150,13 +152,31 @@ fn gaps(islands: &[Region], paths: &[ToolPath], s: &GapFillSettings) -> Shapes {
     let Some(raster) = Raster::of_roads(islands, paths, w, cell) else {
         return Vec::new();
     };
+    let windows = merge_boxes(bare_clusters(&raster, islands));
+    if windows.is_empty() {
+        return Vec::new();
+    }
+    let part: Shapes = islands
+        .iter()
+        .map(|r| r.loops().cloned().collect())
+        .collect();
+    let edges = bead_boxes(paths, w);
+    let mut out = Vec::new();
+    for window in windows {
+        out.extend(gap_in_window(window, &part, paths, &edges, s));
+    }
+    out
+}
+
+/// The boxes of the clusters of part cells of `raster` no bead covers (4-neighbour),
+/// each grown by two cells (the gap reaches at most a cell past its cells' centres);
+/// clusters of fewer than [`MIN_GAP_CELLS`] are left.
+fn bare_clusters(raster: &Raster, islands: &[Region]) -> Vec<(DVec2, DVec2)> {
     let (nx, ny) = (raster.nx, raster.ny);
     let mut bare_cell = vec![false; nx * ny];
     raster.scan_part(islands, |c, _, inside| {
         bare_cell[c] = inside && raster.count[c] == 0;
     });
-    // Clusters of bare cells (4-neighbour), as cell boxes grown by two cells (the gap
-    // reaches at most a cell past its cells' centres), merged where they overlap.
     let pad = 2.0 * raster.cell_mm;
     let mut windows: Vec<(DVec2, DVec2)> = Vec::new();
     let mut seen = vec![false; nx * ny];
@@ -203,22 +223,18 @@ fn gaps(islands: &[Region], paths: &[ToolPath], s: &GapFillSettings) -> Shapes {
             corner(hi.0 + 1, hi.1 + 1) + DVec2::splat(pad),
         ));
     }
-    let windows = merge_boxes(windows);
-    if windows.is_empty() {
-        return Vec::new();
-    }
-    let part: Shapes = islands
-        .iter()
-        .map(|r| r.loops().cloned().collect())
-        .collect();
-    // Each road edge's box, to pick the beads that reach a window.
+    windows
+}
+
+/// Each road edge's bead box (road width `w`), as (path, edge, box), to pick the beads
+/// that reach a window.
+fn bead_boxes(paths: &[ToolPath], w: f64) -> Vec<(usize, usize, DVec2, DVec2)> {
     let mut edges: Vec<(usize, usize, DVec2, DVec2)> = Vec::new();
     for (pi, p) in paths.iter().enumerate() {
-        let n = p.points.len();
-        let count = if p.closed { n } else { n.saturating_sub(1) };
-        for k in 0..count.max(usize::from(n == 1)) {
-            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
-            let f = p.width_factors[k].max(p.width_factors[(k + 1) % n]);
+        // A one-point road's bead is a disc: the one edge from the point to itself.
+        for (k, j) in edge_ends(p.points.len(), p.closed || p.points.len() == 1) {
+            let (a, b) = (p.points[k], p.points[j]);
+            let f = p.width_factors[k].max(p.width_factors[j]);
             let r = 0.5 * w * f / DISC_COS;
             edges.push((
                 pi,
@@ -228,27 +244,36 @@ fn gaps(islands: &[Region], paths: &[ToolPath], s: &GapFillSettings) -> Shapes {
             ));
         }
     }
+    edges
+}
+
+/// The gaps inside the box `window`: the `part` there minus the beads (of the `edges`
+/// whose boxes reach it), opened by half the narrowest road.
+fn gap_in_window(
+    (lo, hi): (DVec2, DVec2),
+    part: &Shapes,
+    paths: &[ToolPath],
+    edges: &[(usize, usize, DVec2, DVec2)],
+    s: &GapFillSettings,
+) -> Shapes {
+    let w = s.road_width_mm;
     let r_open = 0.5 * s.min_width_mm;
     let chord = 0.05 * w;
-    let mut out = Vec::new();
-    for (lo, hi) in windows {
-        let rect = vec![vec![lo, DVec2::new(hi.x, lo.y), hi, DVec2::new(lo.x, hi.y)]];
-        let local_part = shapes::intersection(&part, &vec![rect]);
-        let mut beads: Shapes = Vec::new();
-        for &(pi, k, a, b) in &edges {
-            if a.x <= hi.x && b.x >= lo.x && a.y <= hi.y && b.y >= lo.y {
-                edge_bead(&paths[pi], k, w, &mut beads);
-            }
+    let rect = vec![vec![lo, DVec2::new(hi.x, lo.y), hi, DVec2::new(lo.x, hi.y)]];
+    let local_part = shapes::intersection(part, &vec![rect]);
+    let mut beads: Shapes = Vec::new();
+    for &(pi, k, a, b) in edges {
+        if a.x <= hi.x && b.x >= lo.x && a.y <= hi.y && b.y >= lo.y {
+            edge_bead(&paths[pi], k, w, &mut beads);
         }
-        let bare = shapes::difference(&local_part, &beads);
-        if bare.is_empty() {
-            continue;
-        }
-        let opened = shapes::offset(&shapes::offset(&bare, -r_open, chord), r_open, chord);
-        // Grown back, the opening may reach past the bare area at its corners.
-        out.extend(shapes::intersection(&opened, &bare));
     }
-    out
+    let bare = shapes::difference(&local_part, &beads);
+    if bare.is_empty() {
+        return Vec::new();
+    }
+    let opened = shapes::offset(&shapes::offset(&bare, -r_open, chord), r_open, chord);
+    // Grown back, the opening may reach past the bare area at its corners.
+    shapes::intersection(&opened, &bare)
 }
 
 /// Gaps of fewer raster cells (of half the narrowest road) than this are left.
@@ -298,7 +323,7 @@ fn edge_bead(p: &ToolPath, k: usize, w: f64, out: &mut Shapes) {
         out.push(vec![disc(p.points[0], half(0))]);
         return;
     }
-    let (a, b) = (p.points[k], p.points[(k + 1) % n]);
+    let (a, b) = loop_edge(&p.points, k);
     let nrm = (b - a).normalize_or_zero().perp();
     if nrm != DVec2::ZERO {
         let (ha, hb) = (half(k), half(k + 1));
@@ -313,8 +338,8 @@ fn edge_bead(p: &ToolPath, k: usize, w: f64, out: &mut Shapes) {
         if !p.closed && (v == 0 || v == n - 1) {
             return true;
         }
-        let prev = p.points[(v + n - 1) % n];
-        let next = p.points[(v + 1) % n];
+        let prev = p.points[prev_in_loop(v, n)];
+        let next = p.points[next_in_loop(v, n)];
         let (u, t) = (
             (p.points[v] - prev).normalize_or_zero(),
             (next - p.points[v]).normalize_or_zero(),
@@ -336,10 +361,43 @@ fn centrelines(
     s: &GapFillSettings,
 ) -> Vec<(Vec<DVec2>, Vec<f64>)> {
     let w = s.road_width_mm;
-    let step = 0.25 * w;
+    let Some((nodes, adj)) = chordal_axis(gap, 0.25 * w) else {
+        return Vec::new();
+    };
+    // Width at each node: twice the distance to the gap's boundary.
+    let refs: Vec<&[DVec2]> = gap.iter().map(|l| l.as_slice()).collect();
+    let boundary = SegmentIndex::new(&refs, &[]);
+    let width: Vec<f64> = nodes.iter().map(|&p| 2.0 * boundary.distance(p)).collect();
+
+    let mut out = Vec::new();
+    for line in longest_paths(&adj, &nodes, w) {
+        // Step 3: chords that hug the boundary (at a concave corner) give near-zero
+        // widths inside a gap the opening made at least `min_width` wide: skipped.
+        let axis: Vec<DVec2> = line
+            .iter()
+            .filter(|&&k| width[k] >= s.min_width_mm)
+            .map(|&k| nodes[k])
+            .collect();
+        if axis.len() < 2 || crate::geom::polyline_length(&axis) < s.min_width_mm {
+            continue;
+        }
+        let (points, widths) = recentre(&axis, &boundary, part, s);
+        if points.len() >= 2 {
+            out.push((points, widths));
+        }
+    }
+    out
+}
+
+/// Step 2: the chordal axis of a gap, its boundary first divided to at most `step` and
+/// triangulated (constrained Delaunay): a node at the midpoint of each chord (an edge
+/// two triangles share) and at the centroid of each triangle where three chords meet,
+/// with each node's neighbours across the triangles. None where the gap has no
+/// triangulation.
+fn chordal_axis(gap: &[Vec<DVec2>], step: f64) -> Option<(Vec<DVec2>, Vec<Vec<usize>>)> {
     let shape: Vec<Vec<DVec2>> = gap.iter().map(|l| divide(l, step)).collect();
     if shape.iter().flatten().any(|p| !p.is_finite()) || shape.first().is_none_or(|l| l.len() < 3) {
-        return Vec::new();
+        return None;
     }
     let tri = shape
         .triangulate()
@@ -348,7 +406,7 @@ fn centrelines(
     let pts: Vec<DVec2> = tri.points;
     let idx: Vec<usize> = tri.indices.iter().map(|&i| i as usize).collect();
     if idx.len() < 3 || idx.iter().any(|&i| i >= pts.len()) {
-        return Vec::new();
+        return None;
     }
     // Chords: edges two triangles share. Node per chord (its midpoint), plus the
     // centroid of each triangle where three chords meet.
@@ -358,7 +416,6 @@ fn centrelines(
             edge_tris.entry((a.min(b), a.max(b))).or_default().push(t);
         }
     }
-    let mut node_of: HashMap<(usize, usize), usize> = HashMap::new();
     let mut nodes: Vec<DVec2> = Vec::new();
     let mut chords_of = vec![Vec::new(); idx.len() / 3];
     let mut keys: Vec<_> = edge_tris.iter().filter(|(_, ts)| ts.len() == 2).collect();
@@ -366,7 +423,6 @@ fn centrelines(
     for (&(a, b), ts) in keys {
         let id = nodes.len();
         nodes.push(0.5 * (pts[a] + pts[b]));
-        node_of.insert((a, b), id);
         for &t in ts {
             chords_of[t].push(id);
         }
@@ -391,29 +447,7 @@ fn centrelines(
             _ => {}
         }
     }
-    // Width at each node: twice the distance to the gap's boundary.
-    let refs: Vec<&[DVec2]> = gap.iter().map(|l| l.as_slice()).collect();
-    let boundary = SegmentIndex::new(&refs, &[]);
-    let width: Vec<f64> = nodes.iter().map(|&p| 2.0 * boundary.distance(p)).collect();
-
-    let mut out = Vec::new();
-    for line in longest_paths(&adj, &nodes, w) {
-        // Step 3: chords that hug the boundary (at a concave corner) give near-zero
-        // widths inside a gap the opening made at least `min_width` wide: skipped.
-        let axis: Vec<DVec2> = line
-            .iter()
-            .filter(|&&k| width[k] >= s.min_width_mm)
-            .map(|&k| nodes[k])
-            .collect();
-        if axis.len() < 2 || crate::geom::polyline_length(&axis) < s.min_width_mm {
-            continue;
-        }
-        let (points, widths) = recentre(&axis, &boundary, part, s);
-        if points.len() >= 2 {
-            out.push((points, widths));
-        }
-    }
-    out
+    Some((nodes, adj))
 }
 
 /// The axis resampled to a quarter road width, each point moved to the middle of the
@@ -582,10 +616,8 @@ impl Ord for Ordered {
 
 /// `l` (a closed loop) with every edge divided to at most `step`.
 fn divide(l: &[DVec2], step: f64) -> Vec<DVec2> {
-    let n = l.len();
-    let mut out = Vec::with_capacity(n);
-    for k in 0..n {
-        let (a, b) = (l[k], l[(k + 1) % n]);
+    let mut out = Vec::with_capacity(l.len());
+    for (a, b) in loop_edges(l) {
         let pieces = ((a.distance(b) / step).ceil() as usize).clamp(1, 1 << 12);
         out.extend((0..pieces).map(|q| a.lerp(b, q as f64 / pieces as f64)));
     }

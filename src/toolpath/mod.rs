@@ -28,8 +28,8 @@ pub mod ends;
 pub mod flow;
 pub mod gapfill;
 
+use crate::geom::{next_in_loop, prev_in_loop, Path};
 use crate::material::OffsetDirection;
-use crate::plan::shapes::Path;
 use crate::plan::{offset_composition_eq6, LayerPlan};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
@@ -94,12 +94,12 @@ pub struct ToolPath {
 impl ToolPath {
     /// Centreline length including the closing edge of a loop, mm.
     pub fn length_mm(&self) -> f64 {
-        let open = crate::geom::polyline_length(&self.points);
-        if self.closed && self.points.len() > 1 {
-            open + self.points[self.points.len() - 1].distance(self.points[0])
-        } else {
-            open
-        }
+        self.edges().map(|(a, b)| a.distance(b)).sum()
+    }
+
+    /// The road's edges in order (see [`crate::geom::edges`]).
+    pub fn edges(&self) -> impl Iterator<Item = (DVec2, DVec2)> + '_ {
+        crate::geom::edges(&self.points, self.closed)
     }
 
     /// Where the nozzle ends after building the path.
@@ -135,8 +135,7 @@ impl RoadIndex {
         for closed in [true, false] {
             for (i, p) in paths.iter().enumerate().filter(|(_, p)| p.closed == closed) {
                 first_segment[i] = owner.len() as u32;
-                let n = p.points.len();
-                let edges = if closed { n } else { n.saturating_sub(1) };
+                let edges = crate::geom::edge_count(p.points.len(), closed);
                 owner.extend(std::iter::repeat_n(i as u32, edges));
             }
         }
@@ -239,9 +238,9 @@ fn groups(layer: &LayerPlan, order: SubRegionOrder) -> Vec<Group> {
 /// Signed turn at vertex `k` of a closed loop, radians (positive = left turn).
 fn turn_at(points: &[DVec2], k: usize) -> f64 {
     let n = points.len();
-    let a = points[(k + n - 1) % n];
+    let a = points[prev_in_loop(k, n)];
     let b = points[k];
-    let c = points[(k + 1) % n];
+    let c = points[next_in_loop(k, n)];
     let (u, v) = (b - a, c - b);
     if u.length_squared() == 0.0 || v.length_squared() == 0.0 {
         return 0.0;
