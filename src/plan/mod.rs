@@ -254,7 +254,7 @@ impl SubRegion {
             .zip(self.w.components())
             .map(|(f, w)| f + i as f64 * w)
             .collect();
-        Composition::new(v, 1e-6).unwrap_or_else(|_| self.from.clone())
+        Composition::new(v, COMPACT_COMPOSITION_SUM).unwrap_or_else(|_| self.from.clone())
     }
 }
 
@@ -1007,6 +1007,25 @@ const LEVEL_SPARSE_SHARE: f64 = 0.5;
 /// far from its exact level set.
 const NESTED_GAP_DEVIATIONS: f64 = 4.0;
 
+/// How far the fractions `from + i · W` of a sub-region's compact form may sum from 1
+/// (the rounding of i steps of W); beyond it [`SubRegion::composition_of`] gives `from`.
+const COMPACT_COMPOSITION_SUM: f64 = 1e-6;
+
+/// The reach within which [`split_boundary_runs`] looks for each boundary: the boundary
+/// offset, relatively this much more ...
+const RUN_REACH_SLACK: f64 = 1e-6;
+/// ... and this much more again, mm, so the boundary the interior was offset from is
+/// within reach despite the offset's rounding.
+const RUN_REACH_SLACK_MM: f64 = 1e-9;
+
+/// D_max samples a road in pieces at most a nozzle long; with a nozzle under this, mm,
+/// in pieces at most this long.
+const MIN_D_MAX_SAMPLE_MM: f64 = 1e-3;
+
+/// Most concentric offsets of a crown's core (a guard: the offsets end when the core is
+/// used up, after its width over the nozzle).
+const MAX_CORE_OFFSETS: usize = 100_000;
+
 /// Split the loops of the interior (the region shrunk by the boundary offset) into
 /// runs nearer a hole and runs nearer the outer loop. A loop wholly on one side stays
 /// one closed path; otherwise each run ends on the first vertex of the next, so the
@@ -1032,7 +1051,7 @@ fn split_boundary_runs(
         // `dist(p, outer) <= dist(p, holes)`, measuring first the boundary the previous
         // vertex was nearer: the far one needs measuring only if it comes within that.
         let mut last = true;
-        let reach = offset_mm.abs() * (1.0 + 1e-6) + 1e-9;
+        let reach = offset_mm.abs() * (1.0 + RUN_REACH_SLACK) + RUN_REACH_SLACK_MM;
         let near_outer: Vec<bool> = l
             .iter()
             .map(|&p| {
@@ -1193,7 +1212,7 @@ fn gap_along_gradient(
     index: &SegmentIndex,
     opts: &PlanOptions,
 ) -> f64 {
-    let step = opts.nozzle_mm.max(1e-3);
+    let step = opts.nozzle_mm.max(MIN_D_MAX_SAMPLE_MM);
     let mut best: f64 = 0.0;
     // The segment that last answered: the next sample, a piece further on, mostly has
     // it within `best` too.
@@ -1448,7 +1467,7 @@ fn crown_core(
         offsets.push(walls);
     }
     let mut level = core.clone();
-    for _ in 0..100_000 {
+    for _ in 0..MAX_CORE_OFFSETS {
         level = shapes::offset(&level, -opts.nozzle_mm, chord);
         if level.is_empty() {
             break;
