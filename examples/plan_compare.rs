@@ -1,4 +1,4 @@
-//! Planner speed and geometry checks (benches/plan_layer.rs quotes its figures):
+//! Planner speed and geometry checks (benches/README.md quotes its figures):
 //!
 //! - `plan_compare bench N [OUT.json]`: plan the bench region (2,000 vertices, two
 //!   holes, m = 20) N times, for `valgrind --tool=callgrind` (instructions per layer
