@@ -3,22 +3,10 @@
 //! moves. Target: at most 10 s on 2 cores. Thin tips are planned with `thin_regions =
 //! "fill"` (m = 1, islands narrower than a road skipped), so every layer is built.
 //!
-//! 2026-12-01, with width matching traced against the part boundary and gap fill:
-//! 8.56 s criterion median (8.15–9.02 s), 484,507 moves (was 3.23 s before both).
-//! Later that day, with slanted road ends continued into their corners and boundary rays
-//! and road probes bounded by their reach: 8.53 s (7.89–9.16 s, machine idle), 484,509
-//! moves. On one core over Benchy's layers the flow raise takes 2.65 s (4.39 s before
-//! the bounded probes), the slanted ends 0.09 s (no Benchy end qualifies), gap fill 4.6 s.
-//!
-//! 2026-12-03, the layers' flow raise, slanted ends and gap fill on both cores
-//! (`pipeline::job_layer_moves`, moves identical to the serial loop): 3.36 s (3.22–3.52
-//! s), against 5.46 s (5.26–5.68 s) for the serial loop in the same session, machine
-//! idle; 475,273 moves.
-//!
 //! `coverage/hip_largest_layer_10um`: the coverage measure (docs/toolpath.md) of the hip's
-//! largest layer as built (25.7 M part cells at 10 µm). 2026-12-03: 132 ms (124–136 ms)
-//! counted on runs of cells row by row, against 1.23 s (1.15–1.29 s) for the per-cell
-//! raster it replaced, same session, machine idle.
+//! largest layer as built (25.7 M part cells at 10 µm).
+//!
+//! Figures: `benches/README.md`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use edo::material::{Composition, GradientFunction};

@@ -1,4 +1,4 @@
-//! Planner speed and geometry checks (benches/plan_layer.rs quotes its figures):
+//! Planner speed and geometry checks (benches/README.md quotes its figures):
 //!
 //! - `plan_compare bench N [OUT.json]`: plan the bench region (2,000 vertices, two
 //!   holes, m = 20) N times, for `valgrind --tool=callgrind` (instructions per layer
@@ -14,7 +14,8 @@
 //!   is the distance to the level set where the wall's two sides face each other.
 
 use edo::geom::SegmentIndex;
-use edo::plan::{plan_layers, plan_region, LayerPlan, PlanOptions};
+use edo::plan::shapes::Path as RoadPath;
+use edo::plan::{plan_layers, plan_region, LayerPlan, PlanOptions, RegionPlan};
 use glam::DVec2;
 use std::path::Path;
 
@@ -121,112 +122,116 @@ fn hausdorff(a: &[&edo::geom::Path], b: &[&edo::geom::Path], tol: f64) -> (f64, 
     (x.0.max(y.0), x.1 + y.1)
 }
 
+/// Distances between matching roads of one kind (contours or offsets) of two plans.
+#[derive(Default)]
+struct Tally {
+    /// Road pairs compared.
+    compared: usize,
+    /// Length of the first plan's roads, mm.
+    total_mm: f64,
+    /// Length of roads farther than the tolerance from the other plan's, both ways, mm.
+    far_mm: f64,
+    /// The largest distance, mm, and where.
+    worst: (f64, String),
+}
+
+impl Tally {
+    /// Compare `x` with `y`; `at` names them (printed with VERBOSE when over `tol`).
+    fn compare(&mut self, x: &[RoadPath], y: &[RoadPath], tol: f64, at: impl Fn() -> String) {
+        let (h, far) = hausdorff(
+            &x.iter().collect::<Vec<_>>(),
+            &y.iter().collect::<Vec<_>>(),
+            tol,
+        );
+        self.far_mm += far;
+        self.total_mm += x.iter().map(|p| p.length_mm()).sum::<f64>();
+        if std::env::var("VERBOSE").is_ok() && h > tol {
+            println!("  {}: {h:.4} mm, {far:.2} mm beyond", at());
+        }
+        self.compared += 1;
+        if h > self.worst.0 {
+            self.worst = (h, at());
+        }
+    }
+}
+
 fn diff(a: &str, b: &str) -> anyhow::Result<()> {
     let read = |p: &str| -> anyhow::Result<Vec<LayerPlan>> {
         Ok(serde_json::from_str(&std::fs::read_to_string(p)?)?)
     };
     let (la, lb) = (read(a)?, read(b)?);
     anyhow::ensure!(la.len() == lb.len(), "layer counts differ");
-    let (mut worst_contour, mut worst_offset) = ((0.0f64, String::new()), (0.0f64, String::new()));
+    let (mut contours, mut offsets) = (Tally::default(), Tally::default());
     let mut structure = 0;
     let tol = 0.01;
-    let verbose = std::env::var("VERBOSE").is_ok();
-    let (mut far_len, mut total_len) = ((0.0, 0.0), (0.0, 0.0));
-    let mut compared = (0, 0);
     for (x, y) in la.iter().zip(&lb) {
         anyhow::ensure!(x.regions.len() == y.regions.len(), "layer {}", x.index);
         for (rx, ry) in x.regions.iter().zip(&y.regions) {
-            if rx.m != ry.m || rx.sub_regions.len() != ry.sub_regions.len() {
-                structure += 1;
-                eprintln!(
-                    "layer {} island {}: m {} / {}, sub-regions {} / {}",
-                    x.index,
-                    rx.island,
-                    rx.m,
-                    ry.m,
-                    rx.sub_regions.len(),
-                    ry.sub_regions.len()
-                );
-                continue;
-            }
-            for (cx, cy) in rx.contours.iter().zip(&ry.contours) {
-                let (h, far) = hausdorff(
-                    &cx.roads.iter().collect::<Vec<_>>(),
-                    &cy.roads.iter().collect::<Vec<_>>(),
-                    tol,
-                );
-                far_len.0 += far;
-                total_len.0 += cx.roads.iter().map(|p| p.length_mm()).sum::<f64>();
-                if verbose && h > tol {
-                    println!(
-                        "  layer {} island {} C{}: {h:.4} mm, {far:.2} mm beyond",
-                        x.index, rx.island, cx.j
-                    );
-                }
-                compared.0 += 1;
-                if h > worst_contour.0 {
-                    worst_contour = (
-                        h,
-                        format!("layer {} island {} C{}", x.index, rx.island, cx.j),
-                    );
-                }
-            }
-            for (sx, sy) in rx.sub_regions.iter().zip(&ry.sub_regions) {
-                if sx.n_max != sy.n_max || sx.offsets.len() != sy.offsets.len() {
-                    structure += 1;
-                    eprintln!(
-                        "layer {} island {} S{}: N_max {} / {}, offsets {} / {}, D_max {:.4} / {:.4}",
-                        x.index,
-                        rx.island,
-                        sx.n,
-                        sx.n_max,
-                        sy.n_max,
-                        sx.offsets.len(),
-                        sy.offsets.len(),
-                        sx.d_max_mm,
-                        sy.d_max_mm
-                    );
-                    continue;
-                }
-                for (i, (ox, oy)) in sx.offsets.iter().zip(&sy.offsets).enumerate() {
-                    let (h, far) = hausdorff(
-                        &ox.iter().collect::<Vec<_>>(),
-                        &oy.iter().collect::<Vec<_>>(),
-                        tol,
-                    );
-                    far_len.1 += far;
-                    total_len.1 += ox.iter().map(|p| p.length_mm()).sum::<f64>();
-                    if verbose && h > tol {
-                        println!(
-                            "  layer {} island {} S{} offset {}: {h:.4} mm, {far:.2} mm beyond",
-                            x.index,
-                            rx.island,
-                            sx.n,
-                            i + 1
-                        );
-                    }
-                    compared.1 += 1;
-                    if h > worst_offset.0 {
-                        worst_offset = (
-                            h,
-                            format!(
-                                "layer {} island {} S{} offset {}",
-                                x.index,
-                                rx.island,
-                                sx.n,
-                                i + 1
-                            ),
-                        );
-                    }
-                }
-            }
+            structure += diff_region(x.index, rx, ry, tol, &mut contours, &mut offsets);
         }
     }
     println!(
         "{} contours ({:.0} mm), {} offsets ({:.0} mm) compared; largest contour distance {:.5} mm ({}), largest offset distance {:.5} mm ({}); beyond {tol} mm (both ways): contours {:.2} mm, offsets {:.2} mm; {structure} structural differences",
-        compared.0, total_len.0, compared.1, total_len.1, worst_contour.0, worst_contour.1, worst_offset.0, worst_offset.1, far_len.0, far_len.1
+        contours.compared, contours.total_mm, offsets.compared, offsets.total_mm, contours.worst.0, contours.worst.1, offsets.worst.0, offsets.worst.1, contours.far_mm, offsets.far_mm
     );
     Ok(())
+}
+
+/// Compare the contours and offsets of one region of two plans of layer `layer`; the
+/// structural differences (m, sub-region or offset counts) found.
+fn diff_region(
+    layer: usize,
+    rx: &RegionPlan,
+    ry: &RegionPlan,
+    tol: f64,
+    contours: &mut Tally,
+    offsets: &mut Tally,
+) -> usize {
+    if rx.m != ry.m || rx.sub_regions.len() != ry.sub_regions.len() {
+        eprintln!(
+            "layer {layer} island {}: m {} / {}, sub-regions {} / {}",
+            rx.island,
+            rx.m,
+            ry.m,
+            rx.sub_regions.len(),
+            ry.sub_regions.len()
+        );
+        return 1;
+    }
+    for (cx, cy) in rx.contours.iter().zip(&ry.contours) {
+        contours.compare(&cx.roads, &cy.roads, tol, || {
+            format!("layer {layer} island {} C{}", rx.island, cx.j)
+        });
+    }
+    let mut structure = 0;
+    for (sx, sy) in rx.sub_regions.iter().zip(&ry.sub_regions) {
+        if sx.n_max != sy.n_max || sx.offsets.len() != sy.offsets.len() {
+            structure += 1;
+            eprintln!(
+                "layer {layer} island {} S{}: N_max {} / {}, offsets {} / {}, D_max {:.4} / {:.4}",
+                rx.island,
+                sx.n,
+                sx.n_max,
+                sy.n_max,
+                sx.offsets.len(),
+                sy.offsets.len(),
+                sx.d_max_mm,
+                sy.d_max_mm
+            );
+            continue;
+        }
+        for (i, (ox, oy)) in sx.offsets.iter().zip(&sy.offsets).enumerate() {
+            offsets.compare(ox, oy, tol, || {
+                format!(
+                    "layer {layer} island {} S{} offset {}",
+                    rx.island,
+                    sx.n,
+                    i + 1
+                )
+            });
+        }
+    }
+    structure
 }
 
 /// How the equal distance offsets of two plans differ at their ends and away from them:

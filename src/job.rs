@@ -238,7 +238,9 @@ pub struct Job {
 
 impl Job {
     /// Parse and validate a job from TOML text. `source_name` (usually the file path)
-    /// prefixes every message.
+    /// prefixes every message. The tables are checked in a fixed order (name,
+    /// materials, process, gradient, geometry, Z stations, size limits, toolpath), so a
+    /// file with several mistakes always reports the same one first.
     pub fn from_toml(text: &str, source_name: &str) -> Result<Job, JobError> {
         let raw: RawJob = toml::from_str(text).map_err(|e| JobError::Syntax {
             source_name: source_name.to_string(),
@@ -252,429 +254,26 @@ impl Job {
         let tolerances = Tolerances::default();
 
         check_name(&raw.name).map_err(|m| bad("name", m))?;
-        // Materials.
-        let materials = raw.materials.names;
-        if materials.is_empty() {
-            return Err(bad(
-                "materials.names",
-                "list at least one material (one per syringe)".into(),
-            ));
-        }
-        if materials.len() > 8 {
-            return Err(bad(
-                "materials.names",
-                format!(
-                    "{} materials listed; the machine has at most 8 syringes",
-                    materials.len()
-                ),
-            ));
-        }
-        for (i, n) in materials.iter().enumerate() {
-            if n.trim().is_empty() {
-                return Err(bad("materials.names", format!("name {i} is empty")));
-            }
-            if materials[..i].contains(n) {
-                return Err(bad("materials.names", format!("\"{n}\" is listed twice")));
-            }
-        }
-        // Process.
-        let p = raw.process;
-        let p_nozzle = p.nozzle;
-        positive(p.r_mach, "process.r_mach", &bad)?;
-        positive(p.nozzle, "process.nozzle", &bad)?;
-        if p.nozzle < MIN_NOZZLE_MM {
-            return Err(bad(
-                "process.nozzle",
-                format!(
-                    "{} mm is finer than any extrusion nozzle (at least {MIN_NOZZLE_MM} mm; the finest dispensing needles are about 0.05 mm); is it in mm?",
-                    p.nozzle
-                ),
-            ));
-        }
-        if p.nozzle > p.r_mach {
-            return Err(bad(
-                "process.nozzle",
-                format!(
-                    "the nozzle ({} mm) is wider than the machine resolution r_mach ({} mm): contours about r_mach apart would get overlapping roads; use r_mach >= nozzle",
-                    p.nozzle, p.r_mach
-                ),
-            ));
-        }
-        let mut plan = PlanOptions::new(p.r_mach, p.nozzle);
-        plan.tolerances = tolerances;
-        if let Some(b) = p.boundary_offset {
-            if !b.is_finite() || b < 0.0 {
-                return Err(bad(
-                    "process.boundary_offset",
-                    format!("must be a distance of 0 or more in mm, got {b}"),
-                ));
-            }
-            plan.boundary_offset_mm = b;
-        }
-        if let Some(c) = p.offset_end_clearance {
-            up_to_nozzle(c, p.nozzle, "process.offset_end_clearance", &bad)?;
-            plan.offset_end_clearance_mm = c;
-        }
-        if let Some(l) = p.min_road {
-            up_to_nozzle(l, p.nozzle, "process.min_road", &bad)?;
-            plan.min_road_mm = l;
-        }
-        if let Some(n) = p.radial_lines {
-            if !(8..=100_000).contains(&n) {
-                return Err(bad(
-                    "process.radial_lines",
-                    format!("must be between 8 and 100000, got {n}"),
-                ));
-            }
-            plan.radial_lines = n;
-        }
-        if let Some(t) = p.thin_regions {
-            plan.thin_regions = t;
-        }
-        if let Some(c) = p.field_cell {
-            positive(c, "process.field_cell", &bad)?;
-            plan.field_cell_mm = Some(c);
-        }
-        if let Some(c) = p.contour_deviation {
-            let (lo, hi) = plan.contour_deviation_limits_mm();
-            if !(c.is_finite() && c >= lo && c <= hi) {
-                return Err(bad(
-                    "process.contour_deviation",
-                    format!("must be a length from the planner's chord tolerance ({lo} mm) to a quarter of the nozzle ({hi} mm), got {c}"),
-                ));
-            }
-            plan.contour_deviation_mm = c;
-        }
-        let (min_mm, max_mm) = match p.layer {
-            None => (p.nozzle / 2.0, p.nozzle / 2.0),
-            Some(LayerSpec::Uniform(h)) => {
-                positive(h, "process.layer", &bad)?;
-                (h, h)
-            }
-            Some(LayerSpec::Range { min, max }) => {
-                positive(min, "process.layer.min", &bad)?;
-                positive(max, "process.layer.max", &bad)?;
-                if min > max {
-                    return Err(bad(
-                        "process.layer",
-                        format!("min ({min}) is above max ({max})"),
-                    ));
-                }
-                (min, max)
-            }
-        };
-        let cusp_mm = p.cusp.unwrap_or(max_mm / 2.0);
-        positive(cusp_mm, "process.cusp", &bad)?;
-        let max_gap_mm = p
-            .max_gap
-            .unwrap_or(crate::slice::SliceTolerances::default().max_gap_mm);
-        if !max_gap_mm.is_finite() || max_gap_mm < 0.0 {
-            return Err(bad(
-                "process.max_gap",
-                format!("must be a distance of 0 or more in mm, got {max_gap_mm}"),
-            ));
-        }
-        let layers = LayerHeights {
-            min_mm,
-            max_mm,
-            cusp_mm,
-            max_gap_mm,
-        };
-        // Gradient.
+        let materials = materials(raw.materials.names, &bad)?;
+        let nozzle_mm = raw.process.nozzle;
+        let mut plan = plan_options(&raw.process, tolerances, &bad)?;
+        let layers = layer_heights(&raw.process, &bad)?;
         let g = raw.gradient;
-        let n = materials.len();
-        let inner = Composition::with_len(g.inner, n, tolerances.composition_sum)
-            .map_err(|e| bad("gradient.inner", format!("M(Ci): {e}")))?;
-        let outer = Composition::with_len(g.outer, n, tolerances.composition_sum)
-            .map_err(|e| bad("gradient.outer", format!("M(Ce): {e}")))?;
-        let function = match g.function {
-            None => GradientFunction::LINEAR,
-            Some(FunctionSpec::Named(s)) => match s.as_str() {
-                "linear" => GradientFunction::LINEAR,
-                "smoothstep" => GradientFunction::Smoothstep,
-                other => {
-                    return Err(bad(
-                        "gradient.function",
-                        format!("unknown function \"{other}\"; use \"linear\", \"smoothstep\", {{ power = P }}, {{ table = [[d, f], ...] }} or {{ linear = {{ a = A, b = B }} }}"),
-                    ))
-                }
-            },
-            Some(FunctionSpec::Power { power }) => GradientFunction::Power(power),
-            Some(FunctionSpec::Table { table }) => GradientFunction::Table(table),
-            Some(FunctionSpec::Linear { linear }) => GradientFunction::Linear {
-                a: linear.a,
-                b: linear.b,
-            },
-        };
-        function
-            .validate(1e-9)
-            .map_err(|e| bad("gradient.function", e.to_string()))?;
-        let only_for = |key: &str, value: &Option<f64>, pattern: &str| -> Result<(), JobError> {
-            if value.is_some() && g.pattern != pattern {
-                return Err(bad(
-                    &format!("gradient.{key}"),
-                    format!(
-                        "applies to pattern = \"{pattern}\" only, this job's pattern is \"{}\"",
-                        g.pattern
-                    ),
-                ));
-            }
-            Ok(())
-        };
-        only_for("depth", &g.depth, "crown")?;
-        only_for("angle", &g.angle, "fibers")?;
-        let pattern = match g.pattern.as_str() {
-            "growth-rings" => Pattern::GrowthRings,
-            "crown" => {
-                let depth = g.depth.ok_or_else(|| {
-                    bad(
-                        "gradient.depth",
-                        "pattern = \"crown\" needs depth, the graded shell thickness under the outer surface in mm".into(),
-                    )
-                })?;
-                positive(depth, "gradient.depth", &bad)?;
-                Pattern::Crown { depth_mm: depth }
-            }
-            "fibers" => {
-                let angle = g.angle.unwrap_or(0.0);
-                if !angle.is_finite() {
-                    return Err(bad(
-                        "gradient.angle",
-                        format!("must be a finite angle in degrees, got {angle}"),
-                    ));
-                }
-                Pattern::Fibers { angle_deg: angle }
-            }
-            other => {
-                return Err(bad(
-                    "gradient.pattern",
-                    format!(
-                    "unknown pattern \"{other}\"; use \"growth-rings\", \"crown\" or \"fibers\""
-                ),
-                ))
-            }
-        };
-        if let Some(s) = g.subdivision {
-            if !matches!(pattern, Pattern::GrowthRings) && s != Subdivision::Auto {
-                return Err(bad(
-                    "gradient.subdivision",
-                    "applies to pattern = \"growth-rings\" only (crown contours are offsets, fiber contours lines)".into(),
-                ));
-            }
-            plan.subdivision = s;
-        }
-        if let Some(d) = g.direction {
-            plan.direction = d;
-        }
-        // Geometry.
-        let geo = raw.geometry;
-        let placement = match geo.placement {
-            None => PlacementMode::Centre,
-            Some(PlacementSpec::Named(n)) => match n.as_str() {
-                "centre" | "center" => PlacementMode::Centre,
-                "keep" => PlacementMode::Keep,
-                other => {
-                    return Err(bad(
-                        "geometry.placement",
-                        format!("unknown placement {other:?}; use \"centre\" (the default), \"keep\" or {{ at = [x, y] }}"),
-                    ))
-                }
-            },
-            Some(PlacementSpec::At { at }) => {
-                if !at.iter().all(|v| v.is_finite() && *v >= 0.0) {
-                    return Err(bad(
-                        "geometry.placement.at",
-                        format!("{at:?} is not a point of the bed (x, y in mm, not negative)"),
-                    ));
-                }
-                PlacementMode::At(at)
-            }
-        };
-        let geometry = match (geo.mesh, geo.polygon.is_some() || geo.regions.is_some()) {
-            (Some(_), true) => {
-                return Err(bad(
-                    "geometry",
-                    "give either mesh = \"part.stl\" or polygon/regions, not both".into(),
-                ))
-            }
-            (Some(path), false) => {
-                if geo.height.is_some() {
-                    return Err(bad(
-                        "geometry.height",
-                        "applies to an extruded polygon; a mesh has its own height".into(),
-                    ));
-                }
-                if path.trim().is_empty() {
-                    return Err(bad(
-                        "geometry.mesh",
-                        "is empty; give the path of an STL or 3MF file".into(),
-                    ));
-                }
-                Geometry::Mesh { path }
-            }
-            (None, _) => {
-                let height = geo.height.ok_or_else(|| {
-                    bad(
-                        "geometry.height",
-                        "missing: the extrusion height of the polygon, mm".into(),
-                    )
-                })?;
-                positive(height, "geometry.height", &bad)?;
-                let specs: Vec<(String, RawRegion)> = match (geo.polygon, geo.regions) {
-                    (Some(_), Some(_)) => {
-                        return Err(bad("geometry", "give either polygon (one island) or regions (several), not both".into()))
-                    }
-                    (None, None) => {
-                        return Err(bad(
-                            "geometry",
-                            "missing mesh = \"part.stl\", polygon = { outer = [...], holes = [...] } or regions = [...]".into(),
-                        ))
-                    }
-                    (Some(r), None) => vec![("geometry.polygon".to_string(), r)],
-                    (None, Some(rs)) => {
-                        if rs.is_empty() {
-                            return Err(bad("geometry.regions", "is empty".into()));
-                        }
-                        rs.into_iter()
-                            .enumerate()
-                            .map(|(i, r)| (format!("geometry.regions[{i}]"), r))
-                            .collect()
-                    }
-                };
-                let mut islands = Vec::with_capacity(specs.len());
-                for (key, r) in specs {
-                    let outer =
-                        loop_points(&r.outer, &format!("{key}.outer"), tolerances.chord_mm, &bad)?;
-                    let holes = r
-                        .holes
-                        .iter()
-                        .enumerate()
-                        .map(|(i, h)| {
-                            loop_points(h, &format!("{key}.holes[{i}]"), tolerances.chord_mm, &bad)
-                        })
-                        .collect::<Result<Vec<_>, _>>()?;
-                    let region = Region::new(outer, holes).normalised(&tolerances);
-                    region
-                        .validate(&tolerances)
-                        .map_err(|e| bad(&key, e.to_string()))?;
-                    islands.push(region);
-                }
-                for i in 0..islands.len() {
-                    for j in 0..i {
-                        if islands_overlap(&islands[i], &islands[j]) {
-                            return Err(bad(
-                                "geometry.regions",
-                                format!("regions {j} and {i} overlap; islands must be disjoint (put a region inside another's hole, not over it)"),
-                            ));
-                        }
-                    }
-                }
-                Geometry::Extruded {
-                    islands,
-                    height_mm: height,
-                }
-            }
-        };
-        // Z-varying gradient.
-        let mut z_stations = Vec::with_capacity(g.z.len());
-        for (k, st) in g.z.into_iter().enumerate() {
-            let key = format!("gradient.z[{k}]");
-            if !st.z.is_finite() {
-                return Err(bad(
-                    &format!("{key}.z"),
-                    format!("must be a finite height in mm, got {}", st.z),
-                ));
-            }
-            if let Some(prev) = z_stations.last().map(|p: &ZStation| p.z_mm) {
-                if st.z <= prev {
-                    return Err(bad(
-                        &format!("{key}.z"),
-                        format!("stations must ascend in z; {} follows {prev}", st.z),
-                    ));
-                }
-            }
-            let inner = Composition::with_len(st.inner, n, tolerances.composition_sum)
-                .map_err(|e| bad(&format!("{key}.inner"), format!("M(Ci): {e}")))?;
-            let outer = Composition::with_len(st.outer, n, tolerances.composition_sum)
-                .map_err(|e| bad(&format!("{key}.outer"), format!("M(Ce): {e}")))?;
-            z_stations.push(ZStation {
-                z_mm: st.z,
-                inner,
-                outer,
-            });
-        }
-        let z_step = g.z_step.unwrap_or(DEFAULT_Z_STEP);
-        if !z_step.is_finite() || z_step <= 0.0 || z_step > 1.0 {
-            return Err(bad(
-                "gradient.z_step",
-                format!("must be a fraction in (0, 1], got {z_step}"),
-            ));
-        }
-        if g.z_step.is_some() && z_stations.is_empty() {
-            return Err(bad(
-                "gradient.z_step",
-                "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
-            ));
-        }
-        if let Geometry::Extruded { islands, height_mm } = &geometry {
-            let area_mm2: f64 = islands.iter().map(|r| r.area()).sum();
-            let road_mm = area_mm2 / p_nozzle;
-            if road_mm > MAX_ROAD_PER_LAYER_MM {
-                return Err(bad(
-                    "geometry",
-                    format!(
-                        "the part's section is {area_mm2:.0} mm², about {road_mm:.0} mm of road a layer at the {p_nozzle} mm nozzle, more than a job may have ({MAX_ROAD_PER_LAYER_MM} mm: days of printing a layer); are the coordinates in mm?"
-                    ),
-                ));
-            }
-            // Uniform layers of the maximum, or (a Z gradient) no thinner than the minimum.
-            let (thinnest, key) = if z_stations.is_empty() {
-                (layers.max_mm, "process.layer")
-            } else {
-                (layers.min_mm, "process.layer.min")
-            };
-            let count = (height_mm / thinnest).ceil();
-            if count > MAX_LAYERS as f64 {
-                return Err(bad(
-                    "geometry.height",
-                    format!(
-                        "{height_mm} mm is {count} layers of {thinnest} mm ({key}), more than a job may have ({MAX_LAYERS}); is the height in mm?"
-                    ),
-                ));
-            }
-        }
-        let default_nozzle = crate::pipeline::ProcessSettings::default().nozzle_mm;
-        let mut toolpath = raw.toolpath.unwrap_or_default();
-        if toolpath.nozzle_mm != default_nozzle && toolpath.nozzle_mm != p_nozzle {
-            return Err(bad(
-                "toolpath.nozzle_mm",
-                format!(
-                    "is {} mm but process.nozzle is {p_nozzle} mm: set the nozzle once, in [process]",
-                    toolpath.nozzle_mm
-                ),
-            ));
-        }
-        toolpath.nozzle_mm = p_nozzle;
-        if let Err(e) = toolpath.validate() {
-            return Err(match e {
-                crate::pipeline::PipelineError::Setting { field, message } => {
-                    bad(&format!("toolpath.{field}"), message)
-                }
-                other => bad("toolpath", other.to_string()),
-            });
-        }
+        let design = gradient_design(&g, materials.len(), &tolerances, &bad)?;
+        gradient_plan_options(&g, &design.pattern, &mut plan, &bad)?;
+        let placement = placement(&raw.geometry.placement, &bad)?;
+        let geometry = geometry(raw.geometry, &tolerances, &bad)?;
+        let z_stations = z_stations(g.z, materials.len(), &tolerances, &bad)?;
+        let z_step = z_step(g.z_step, !z_stations.is_empty(), &bad)?;
+        check_extruded_size(&geometry, &layers, !z_stations.is_empty(), nozzle_mm, &bad)?;
+        let toolpath = toolpath_settings(raw.toolpath, nozzle_mm, &bad)?;
         Ok(Job {
             toolpath,
             placement,
             name: raw.name,
             geometry,
             materials,
-            design: GradientDesign {
-                pattern,
-                inner,
-                outer,
-                function,
-            },
+            design,
             z_stations,
             z_step,
             plan,
@@ -981,6 +580,541 @@ pub const MAX_LAYERS: usize = 100_000;
 
 /// Default largest fraction change across one layer of a Z-varying gradient.
 pub const DEFAULT_Z_STEP: f64 = 0.02;
+
+/// How far f(0) and f(1) of a job's gradient function may be from 0 and 1 (eq 3).
+pub const GRADIENT_FUNCTION_TOLERANCE: f64 = 1e-9;
+
+/// `materials.names`: one material per syringe, 1 to 8 of them, none blank or listed
+/// twice.
+fn materials(
+    names: Vec<String>,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<Vec<String>, JobError> {
+    if names.is_empty() {
+        return Err(bad(
+            "materials.names",
+            "list at least one material (one per syringe)".into(),
+        ));
+    }
+    if names.len() > 8 {
+        return Err(bad(
+            "materials.names",
+            format!(
+                "{} materials listed; the machine has at most 8 syringes",
+                names.len()
+            ),
+        ));
+    }
+    for (i, n) in names.iter().enumerate() {
+        if n.trim().is_empty() {
+            return Err(bad("materials.names", format!("name {i} is empty")));
+        }
+        if names[..i].contains(n) {
+            return Err(bad("materials.names", format!("\"{n}\" is listed twice")));
+        }
+    }
+    Ok(names)
+}
+
+/// `[process]` without the layer keys: the planner's options (r_mach, nozzle,
+/// boundary offset, offset-end clearance, shortest road, radial lines, thin regions,
+/// field cell, contour deviation) on `tolerances`.
+fn plan_options(
+    p: &RawProcess,
+    tolerances: Tolerances,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<PlanOptions, JobError> {
+    positive(p.r_mach, "process.r_mach", bad)?;
+    positive(p.nozzle, "process.nozzle", bad)?;
+    if p.nozzle < MIN_NOZZLE_MM {
+        return Err(bad(
+            "process.nozzle",
+            format!(
+                "{} mm is finer than any extrusion nozzle (at least {MIN_NOZZLE_MM} mm; the finest dispensing needles are about 0.05 mm); is it in mm?",
+                p.nozzle
+            ),
+        ));
+    }
+    if p.nozzle > p.r_mach {
+        return Err(bad(
+            "process.nozzle",
+            format!(
+                "the nozzle ({} mm) is wider than the machine resolution r_mach ({} mm): contours about r_mach apart would get overlapping roads; use r_mach >= nozzle",
+                p.nozzle, p.r_mach
+            ),
+        ));
+    }
+    let mut plan = PlanOptions::new(p.r_mach, p.nozzle);
+    plan.tolerances = tolerances;
+    if let Some(b) = p.boundary_offset {
+        if !b.is_finite() || b < 0.0 {
+            return Err(bad(
+                "process.boundary_offset",
+                format!("must be a distance of 0 or more in mm, got {b}"),
+            ));
+        }
+        plan.boundary_offset_mm = b;
+    }
+    if let Some(c) = p.offset_end_clearance {
+        up_to_nozzle(c, p.nozzle, "process.offset_end_clearance", bad)?;
+        plan.offset_end_clearance_mm = c;
+    }
+    if let Some(l) = p.min_road {
+        up_to_nozzle(l, p.nozzle, "process.min_road", bad)?;
+        plan.min_road_mm = l;
+    }
+    if let Some(n) = p.radial_lines {
+        if !(8..=100_000).contains(&n) {
+            return Err(bad(
+                "process.radial_lines",
+                format!("must be between 8 and 100000, got {n}"),
+            ));
+        }
+        plan.radial_lines = n;
+    }
+    if let Some(t) = p.thin_regions {
+        plan.thin_regions = t;
+    }
+    if let Some(c) = p.field_cell {
+        positive(c, "process.field_cell", bad)?;
+        plan.field_cell_mm = Some(c);
+    }
+    if let Some(c) = p.contour_deviation {
+        let (lo, hi) = plan.contour_deviation_limits_mm();
+        if !(c.is_finite() && c >= lo && c <= hi) {
+            return Err(bad(
+                "process.contour_deviation",
+                format!("must be a length from the planner's chord tolerance ({lo} mm) to a quarter of the nozzle ({hi} mm), got {c}"),
+            ));
+        }
+        plan.contour_deviation_mm = c;
+    }
+    Ok(plan)
+}
+
+/// `process.layer`, `process.cusp` and `process.max_gap`: the layer heights (half
+/// the nozzle, uniform, when `layer` is absent).
+fn layer_heights(
+    p: &RawProcess,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<LayerHeights, JobError> {
+    let (min_mm, max_mm) = match p.layer {
+        None => (p.nozzle / 2.0, p.nozzle / 2.0),
+        Some(LayerSpec::Uniform(h)) => {
+            positive(h, "process.layer", bad)?;
+            (h, h)
+        }
+        Some(LayerSpec::Range { min, max }) => {
+            positive(min, "process.layer.min", bad)?;
+            positive(max, "process.layer.max", bad)?;
+            if min > max {
+                return Err(bad(
+                    "process.layer",
+                    format!("min ({min}) is above max ({max})"),
+                ));
+            }
+            (min, max)
+        }
+    };
+    let cusp_mm = p.cusp.unwrap_or(max_mm / 2.0);
+    positive(cusp_mm, "process.cusp", bad)?;
+    let max_gap_mm = p
+        .max_gap
+        .unwrap_or(crate::slice::SliceTolerances::default().max_gap_mm);
+    if !max_gap_mm.is_finite() || max_gap_mm < 0.0 {
+        return Err(bad(
+            "process.max_gap",
+            format!("must be a distance of 0 or more in mm, got {max_gap_mm}"),
+        ));
+    }
+    Ok(LayerHeights {
+        min_mm,
+        max_mm,
+        cusp_mm,
+        max_gap_mm,
+    })
+}
+
+/// `[gradient]` without its Z stations: M(Ci), M(Ce) (eq 2), f(d) (eq 3) and the
+/// pattern.
+fn gradient_design(
+    g: &RawGradient,
+    n_materials: usize,
+    tolerances: &Tolerances,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<GradientDesign, JobError> {
+    let inner = Composition::with_len(g.inner.clone(), n_materials, tolerances.composition_sum)
+        .map_err(|e| bad("gradient.inner", format!("M(Ci): {e}")))?;
+    let outer = Composition::with_len(g.outer.clone(), n_materials, tolerances.composition_sum)
+        .map_err(|e| bad("gradient.outer", format!("M(Ce): {e}")))?;
+    let function = gradient_function(g.function.as_ref(), bad)?;
+    let pattern = gradient_pattern(g, bad)?;
+    Ok(GradientDesign {
+        pattern,
+        inner,
+        outer,
+        function,
+    })
+}
+
+/// `gradient.function`: f(d) of eq (3), linear when absent.
+fn gradient_function(
+    spec: Option<&FunctionSpec>,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<GradientFunction, JobError> {
+    let function = match spec {
+        None => GradientFunction::LINEAR,
+        Some(FunctionSpec::Named(s)) => match s.as_str() {
+            "linear" => GradientFunction::LINEAR,
+            "smoothstep" => GradientFunction::Smoothstep,
+            other => {
+                return Err(bad(
+                    "gradient.function",
+                    format!("unknown function \"{other}\"; use \"linear\", \"smoothstep\", {{ power = P }}, {{ table = [[d, f], ...] }} or {{ linear = {{ a = A, b = B }} }}"),
+                ))
+            }
+        },
+        Some(FunctionSpec::Power { power }) => GradientFunction::Power(*power),
+        Some(FunctionSpec::Table { table }) => GradientFunction::Table(table.clone()),
+        Some(FunctionSpec::Linear { linear }) => GradientFunction::Linear {
+            a: linear.a,
+            b: linear.b,
+        },
+    };
+    function
+        .validate(GRADIENT_FUNCTION_TOLERANCE)
+        .map_err(|e| bad("gradient.function", e.to_string()))?;
+    Ok(function)
+}
+
+/// `gradient.pattern` with its own keys (`depth` for a crown, `angle` for fibers),
+/// refusing a key of another pattern.
+fn gradient_pattern(
+    g: &RawGradient,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<Pattern, JobError> {
+    let only_for = |key: &str, value: &Option<f64>, pattern: &str| -> Result<(), JobError> {
+        if value.is_some() && g.pattern != pattern {
+            return Err(bad(
+                &format!("gradient.{key}"),
+                format!(
+                    "applies to pattern = \"{pattern}\" only, this job's pattern is \"{}\"",
+                    g.pattern
+                ),
+            ));
+        }
+        Ok(())
+    };
+    only_for("depth", &g.depth, "crown")?;
+    only_for("angle", &g.angle, "fibers")?;
+    match g.pattern.as_str() {
+        "growth-rings" => Ok(Pattern::GrowthRings),
+        "crown" => {
+            let depth = g.depth.ok_or_else(|| {
+                bad(
+                    "gradient.depth",
+                    "pattern = \"crown\" needs depth, the graded shell thickness under the outer surface in mm".into(),
+                )
+            })?;
+            positive(depth, "gradient.depth", bad)?;
+            Ok(Pattern::Crown { depth_mm: depth })
+        }
+        "fibers" => {
+            let angle = g.angle.unwrap_or(0.0);
+            if !angle.is_finite() {
+                return Err(bad(
+                    "gradient.angle",
+                    format!("must be a finite angle in degrees, got {angle}"),
+                ));
+            }
+            Ok(Pattern::Fibers { angle_deg: angle })
+        }
+        other => Err(bad(
+            "gradient.pattern",
+            format!("unknown pattern \"{other}\"; use \"growth-rings\", \"crown\" or \"fibers\""),
+        )),
+    }
+}
+
+/// `gradient.subdivision` and `gradient.direction`, which are planner options.
+fn gradient_plan_options(
+    g: &RawGradient,
+    pattern: &Pattern,
+    plan: &mut PlanOptions,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<(), JobError> {
+    if let Some(s) = g.subdivision {
+        if !matches!(pattern, Pattern::GrowthRings) && s != Subdivision::Auto {
+            return Err(bad(
+                "gradient.subdivision",
+                "applies to pattern = \"growth-rings\" only (crown contours are offsets, fiber contours lines)".into(),
+            ));
+        }
+        plan.subdivision = s;
+    }
+    if let Some(d) = g.direction {
+        plan.direction = d;
+    }
+    Ok(())
+}
+
+/// `geometry.placement`: where the part goes on the bed (centred by default).
+fn placement(
+    spec: &Option<PlacementSpec>,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<PlacementMode, JobError> {
+    match spec {
+        None => Ok(PlacementMode::Centre),
+        Some(PlacementSpec::Named(n)) => match n.as_str() {
+            "centre" | "center" => Ok(PlacementMode::Centre),
+            "keep" => Ok(PlacementMode::Keep),
+            other => Err(bad(
+                "geometry.placement",
+                format!("unknown placement {other:?}; use \"centre\" (the default), \"keep\" or {{ at = [x, y] }}"),
+            )),
+        },
+        Some(PlacementSpec::At { at }) => {
+            if !at.iter().all(|v| v.is_finite() && *v >= 0.0) {
+                return Err(bad(
+                    "geometry.placement.at",
+                    format!("{at:?} is not a point of the bed (x, y in mm, not negative)"),
+                ));
+            }
+            Ok(PlacementMode::At(*at))
+        }
+    }
+}
+
+/// `[geometry]` without the placement: a mesh's path, or extruded islands.
+fn geometry(
+    geo: RawGeometry,
+    tolerances: &Tolerances,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<Geometry, JobError> {
+    match (geo.mesh, geo.polygon.is_some() || geo.regions.is_some()) {
+        (Some(_), true) => Err(bad(
+            "geometry",
+            "give either mesh = \"part.stl\" or polygon/regions, not both".into(),
+        )),
+        (Some(path), false) => {
+            if geo.height.is_some() {
+                return Err(bad(
+                    "geometry.height",
+                    "applies to an extruded polygon; a mesh has its own height".into(),
+                ));
+            }
+            if path.trim().is_empty() {
+                return Err(bad(
+                    "geometry.mesh",
+                    "is empty; give the path of an STL or 3MF file".into(),
+                ));
+            }
+            Ok(Geometry::Mesh { path })
+        }
+        (None, _) => {
+            let height = geo.height.ok_or_else(|| {
+                bad(
+                    "geometry.height",
+                    "missing: the extrusion height of the polygon, mm".into(),
+                )
+            })?;
+            positive(height, "geometry.height", bad)?;
+            let islands = extruded_islands(geo.polygon, geo.regions, tolerances, bad)?;
+            Ok(Geometry::Extruded {
+                islands,
+                height_mm: height,
+            })
+        }
+    }
+}
+
+/// `geometry.polygon` (one island) or `geometry.regions` (several): each island's
+/// loops, normalised and validated, and no two islands overlapping.
+fn extruded_islands(
+    polygon: Option<RawRegion>,
+    regions: Option<Vec<RawRegion>>,
+    tolerances: &Tolerances,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<Vec<Region>, JobError> {
+    let specs: Vec<(String, RawRegion)> = match (polygon, regions) {
+        (Some(_), Some(_)) => {
+            return Err(bad(
+                "geometry",
+                "give either polygon (one island) or regions (several), not both".into(),
+            ))
+        }
+        (None, None) => {
+            return Err(bad(
+                "geometry",
+                "missing mesh = \"part.stl\", polygon = { outer = [...], holes = [...] } or regions = [...]".into(),
+            ))
+        }
+        (Some(r), None) => vec![("geometry.polygon".to_string(), r)],
+        (None, Some(rs)) => {
+            if rs.is_empty() {
+                return Err(bad("geometry.regions", "is empty".into()));
+            }
+            rs.into_iter()
+                .enumerate()
+                .map(|(i, r)| (format!("geometry.regions[{i}]"), r))
+                .collect()
+        }
+    };
+    let mut islands = Vec::with_capacity(specs.len());
+    for (key, r) in specs {
+        let outer = loop_points(&r.outer, &format!("{key}.outer"), tolerances.chord_mm, bad)?;
+        let holes = r
+            .holes
+            .iter()
+            .enumerate()
+            .map(|(i, h)| loop_points(h, &format!("{key}.holes[{i}]"), tolerances.chord_mm, bad))
+            .collect::<Result<Vec<_>, _>>()?;
+        let region = Region::new(outer, holes).normalised(tolerances);
+        region
+            .validate(tolerances)
+            .map_err(|e| bad(&key, e.to_string()))?;
+        islands.push(region);
+    }
+    for i in 0..islands.len() {
+        for j in 0..i {
+            if islands_overlap(&islands[i], &islands[j]) {
+                return Err(bad(
+                    "geometry.regions",
+                    format!("regions {j} and {i} overlap; islands must be disjoint (put a region inside another's hole, not over it)"),
+                ));
+            }
+        }
+    }
+    Ok(islands)
+}
+
+/// `[[gradient.z]]`: the stations of a Z-varying gradient, ascending in z.
+fn z_stations(
+    stations: Vec<RawZStation>,
+    n_materials: usize,
+    tolerances: &Tolerances,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<Vec<ZStation>, JobError> {
+    let mut z_stations = Vec::with_capacity(stations.len());
+    for (k, st) in stations.into_iter().enumerate() {
+        let key = format!("gradient.z[{k}]");
+        if !st.z.is_finite() {
+            return Err(bad(
+                &format!("{key}.z"),
+                format!("must be a finite height in mm, got {}", st.z),
+            ));
+        }
+        if let Some(prev) = z_stations.last().map(|p: &ZStation| p.z_mm) {
+            if st.z <= prev {
+                return Err(bad(
+                    &format!("{key}.z"),
+                    format!("stations must ascend in z; {} follows {prev}", st.z),
+                ));
+            }
+        }
+        let inner = Composition::with_len(st.inner, n_materials, tolerances.composition_sum)
+            .map_err(|e| bad(&format!("{key}.inner"), format!("M(Ci): {e}")))?;
+        let outer = Composition::with_len(st.outer, n_materials, tolerances.composition_sum)
+            .map_err(|e| bad(&format!("{key}.outer"), format!("M(Ce): {e}")))?;
+        z_stations.push(ZStation {
+            z_mm: st.z,
+            inner,
+            outer,
+        });
+    }
+    Ok(z_stations)
+}
+
+/// `gradient.z_step`: a fraction in (0, 1], only with Z stations.
+fn z_step(
+    z_step: Option<f64>,
+    z_gradient: bool,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<f64, JobError> {
+    let step = z_step.unwrap_or(DEFAULT_Z_STEP);
+    if !step.is_finite() || step <= 0.0 || step > 1.0 {
+        return Err(bad(
+            "gradient.z_step",
+            format!("must be a fraction in (0, 1], got {step}"),
+        ));
+    }
+    if z_step.is_some() && !z_gradient {
+        return Err(bad(
+            "gradient.z_step",
+            "applies only with a Z-varying gradient ([[gradient.z]] stations)".into(),
+        ));
+    }
+    Ok(step)
+}
+
+/// An extruded part no bigger than a job may be: [`MAX_ROAD_PER_LAYER_MM`] of road a
+/// layer and [`MAX_LAYERS`] layers (a mesh's size is checked when it is loaded).
+fn check_extruded_size(
+    geometry: &Geometry,
+    layers: &LayerHeights,
+    z_gradient: bool,
+    nozzle_mm: f64,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<(), JobError> {
+    let Geometry::Extruded { islands, height_mm } = geometry else {
+        return Ok(());
+    };
+    let area_mm2: f64 = islands.iter().map(|r| r.area()).sum();
+    let road_mm = area_mm2 / nozzle_mm;
+    if road_mm > MAX_ROAD_PER_LAYER_MM {
+        return Err(bad(
+            "geometry",
+            format!(
+                "the part's section is {area_mm2:.0} mm², about {road_mm:.0} mm of road a layer at the {nozzle_mm} mm nozzle, more than a job may have ({MAX_ROAD_PER_LAYER_MM} mm: days of printing a layer); are the coordinates in mm?"
+            ),
+        ));
+    }
+    // Uniform layers of the maximum, or (a Z gradient) no thinner than the minimum.
+    let (thinnest, key) = if z_gradient {
+        (layers.min_mm, "process.layer.min")
+    } else {
+        (layers.max_mm, "process.layer")
+    };
+    let count = (height_mm / thinnest).ceil();
+    if count > MAX_LAYERS as f64 {
+        return Err(bad(
+            "geometry.height",
+            format!(
+                "{height_mm} mm is {count} layers of {thinnest} mm ({key}), more than a job may have ({MAX_LAYERS}); is the height in mm?"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// `[toolpath]`, defaults where absent, its nozzle the process's.
+fn toolpath_settings(
+    raw: Option<crate::pipeline::ProcessSettings>,
+    nozzle_mm: f64,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<crate::pipeline::ProcessSettings, JobError> {
+    let default_nozzle = crate::pipeline::ProcessSettings::default().nozzle_mm;
+    let mut toolpath = raw.unwrap_or_default();
+    if toolpath.nozzle_mm != default_nozzle && toolpath.nozzle_mm != nozzle_mm {
+        return Err(bad(
+            "toolpath.nozzle_mm",
+            format!(
+                "is {} mm but process.nozzle is {nozzle_mm} mm: set the nozzle once, in [process]",
+                toolpath.nozzle_mm
+            ),
+        ));
+    }
+    toolpath.nozzle_mm = nozzle_mm;
+    if let Err(e) = toolpath.validate() {
+        return Err(match e {
+            crate::pipeline::PipelineError::Setting { field, message } => {
+                bad(&format!("toolpath.{field}"), message)
+            }
+            other => bad("toolpath", other.to_string()),
+        });
+    }
+    Ok(toolpath)
+}
 
 fn positive<E>(v: f64, key: &str, bad: &impl Fn(&str, String) -> E) -> Result<(), E> {
     if !v.is_finite() || v <= 0.0 {

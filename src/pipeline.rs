@@ -231,26 +231,6 @@ impl ProcessSettings {
 
     /// Check every field's range.
     pub fn validate(&self) -> Result<(), PipelineError> {
-        let positive = |v: f64, field: &'static str| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(PipelineError::Setting {
-                    field,
-                    message: format!("must be a positive number, got {v}"),
-                })
-            }
-        };
-        let non_negative = |v: f64, field: &'static str| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(PipelineError::Setting {
-                    field,
-                    message: format!("must be 0 or more, got {v}"),
-                })
-            }
-        };
         positive(self.nozzle_mm, "nozzle_mm")?;
         positive(self.road_width(), "road_width_mm")?;
         positive(self.print_feed_mm_s, "print_feed_mm_s")?;
@@ -262,54 +242,36 @@ impl ProcessSettings {
         if let Some([x, y]) = self.purge_xy_mm {
             if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
             {
-                return Err(PipelineError::Setting {
-                    field: "purge_xy_mm",
-                    message: format!("must be a finite position on the machine, got [{x}, {y}]"),
-                });
+                return Err(setting_error(
+                    "purge_xy_mm",
+                    format!("must be a finite position on the machine, got [{x}, {y}]"),
+                ));
             }
         }
         if !(self.max_flow_factor.is_finite() && self.max_flow_factor >= 1.0) {
-            return Err(PipelineError::Setting {
-                field: "max_flow_factor",
-                message: format!("must be 1 or more, got {}", self.max_flow_factor),
-            });
+            return Err(setting_error(
+                "max_flow_factor",
+                format!("must be 1 or more, got {}", self.max_flow_factor),
+            ));
         }
-        let fraction = |v: f64, field: &'static str| {
-            if v.is_finite() && v > 0.0 && v <= 1.0 {
-                Ok(())
-            } else {
-                Err(PipelineError::Setting {
-                    field,
-                    message: format!("must be more than 0 and at most 1, got {v}"),
-                })
-            }
-        };
         fraction(self.min_flow_factor, "min_flow_factor")?;
         fraction(self.gap_fill_min_factor, "gap_fill_min_factor")?;
-        if !(self.flow_min_gap_fraction.is_finite() && self.flow_min_gap_fraction >= 0.0) {
-            return Err(PipelineError::Setting {
-                field: "flow_min_gap_fraction",
-                message: format!("must be 0 or more, got {}", self.flow_min_gap_fraction),
-            });
-        }
+        non_negative(self.flow_min_gap_fraction, "flow_min_gap_fraction")?;
         if !self.seam_angle_deg.is_finite() {
-            return Err(PipelineError::Setting {
-                field: "seam_angle_deg",
-                message: "must be finite".into(),
-            });
+            return Err(setting_error("seam_angle_deg", "must be finite".into()));
         }
         if !(0.0..180.0).contains(&self.seam_corner_min_deg) {
-            return Err(PipelineError::Setting {
-                field: "seam_corner_min_deg",
-                message: format!("must be in [0, 180), got {}", self.seam_corner_min_deg),
-            });
+            return Err(setting_error(
+                "seam_corner_min_deg",
+                format!("must be in [0, 180), got {}", self.seam_corner_min_deg),
+            ));
         }
         if let Some(n) = self.syringes {
             if n == 0 || n > MAX_SYRINGES {
-                return Err(PipelineError::Setting {
-                    field: "syringes",
-                    message: format!("must be 1 to {MAX_SYRINGES}, got {n}"),
-                });
+                return Err(setting_error(
+                    "syringes",
+                    format!("must be 1 to {MAX_SYRINGES}, got {n}"),
+                ));
             }
         }
         Ok(())
@@ -564,46 +526,14 @@ pub fn moves_for_paths(
     first_index: u32,
     state: &mut StreamState,
 ) -> Result<LayerMoves, PipelineError> {
-    let syringes = match (settings.syringes, paths.first()) {
-        (Some(n), _) => n,
-        (None, Some(p)) => p.composition.len(),
-        (None, None) => state.planned_nl.len().max(1),
-    };
-    for p in &paths {
-        if p.composition.len() != syringes {
-            return Err(PipelineError::Syringes {
-                layer: layer.index,
-                expected: syringes,
-                got: p.composition.len(),
-            });
-        }
-    }
+    let syringes = syringe_count(layer, &paths, settings, state)?;
     if state.planned_nl.len() < syringes {
         state.planned_nl.resize(syringes, 0.0);
         state.commanded_nl.resize(syringes, 0);
     }
     let planned_before = state.planned_nl.clone();
     let commanded_before = state.commanded_nl.clone();
-    let mut b = Builder {
-        layer: layer.index,
-        job_id,
-        next: first_index,
-        moves: Vec::new(),
-        stats: LayerStats {
-            layer: layer.index,
-            max_width_factor: 0.0,
-            ..Default::default()
-        },
-        state,
-        settings,
-        z_mm: layer.z_mm,
-        section_mm2: settings.road_width() * layer.thickness_mm,
-        commanded: Vec::new(),
-        segment: 0,
-        error_volume_nl: 0.0,
-        path_index: 0,
-        extrusion_paths: Vec::new(),
-    };
+    let mut b = Builder::new(layer, settings, job_id, first_index, state);
     let designed = designed_stream(&paths, settings, layer.thickness_mm);
     b.commanded = commanded_compositions(&designed, settings);
     b.push(MoveKind::LayerMark {
@@ -615,34 +545,69 @@ pub fn moves_for_paths(
         b.path_index = i as u32;
         b.path(p)?;
     }
-    b.stats.paths = paths.len();
-    b.stats.moves = b.moves.len();
-    b.stats.planned_nl = b
-        .state
-        .planned_nl
-        .iter()
-        .zip(&planned_before)
-        .map(|(a, c)| a - c)
-        .collect();
-    b.stats.commanded_nl = b
-        .state
-        .commanded_nl
-        .iter()
-        .zip(&commanded_before)
-        .map(|(a, c)| a - c)
-        .collect();
-    if b.error_volume_nl > 0.0 {
-        b.stats.composition_error_mean /= b.error_volume_nl;
+    Ok(b.finish(paths, &planned_before, &commanded_before))
+}
+
+/// The syringes the layer's paths are mixed from: the settings' count, else the
+/// compositions' length, else the stream's so far; every path must have that many.
+fn syringe_count(
+    layer: &LayerPlan,
+    paths: &[ToolPath],
+    settings: &ProcessSettings,
+    state: &StreamState,
+) -> Result<usize, PipelineError> {
+    let syringes = match (settings.syringes, paths.first()) {
+        (Some(n), _) => n,
+        (None, Some(p)) => p.composition.len(),
+        (None, None) => state.planned_nl.len().max(1),
+    };
+    for p in paths {
+        if p.composition.len() != syringes {
+            return Err(PipelineError::Syringes {
+                layer: layer.index,
+                expected: syringes,
+                got: p.composition.len(),
+            });
+        }
     }
-    b.state.layers += 1;
-    let next_index = b.next;
-    Ok(LayerMoves {
-        moves: b.moves,
-        stats: b.stats,
-        paths,
-        next_index,
-        extrusion_paths: b.extrusion_paths,
-    })
+    Ok(syringes)
+}
+
+fn setting_error(field: &'static str, message: String) -> PipelineError {
+    PipelineError::Setting { field, message }
+}
+
+/// A setting that must be a positive number.
+fn positive(v: f64, field: &'static str) -> Result<(), PipelineError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(setting_error(
+            field,
+            format!("must be a positive number, got {v}"),
+        ))
+    }
+}
+
+/// A setting that must be 0 or more.
+fn non_negative(v: f64, field: &'static str) -> Result<(), PipelineError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(setting_error(field, format!("must be 0 or more, got {v}")))
+    }
+}
+
+/// A setting that must be in (0, 1].
+fn fraction(v: f64, field: &'static str) -> Result<(), PipelineError> {
+    if v.is_finite() && v > 0.0 && v <= 1.0 {
+        Ok(())
+    } else {
+        Err(setting_error(
+            field,
+            format!("must be more than 0 and at most 1, got {v}"),
+        ))
+    }
 }
 
 fn to_um(mm: f64) -> i32 {
@@ -670,6 +635,75 @@ struct Builder<'a> {
     /// Index in the layer's paths of the path being built.
     path_index: u32,
     extrusion_paths: Vec<(u32, u32)>,
+}
+
+impl<'a> Builder<'a> {
+    /// A builder for `layer`'s moves from index `first_index` on.
+    fn new(
+        layer: &LayerPlan,
+        settings: &'a ProcessSettings,
+        job_id: u32,
+        first_index: u32,
+        state: &'a mut StreamState,
+    ) -> Self {
+        Builder {
+            layer: layer.index,
+            job_id,
+            next: first_index,
+            moves: Vec::new(),
+            stats: LayerStats {
+                layer: layer.index,
+                max_width_factor: 0.0,
+                ..Default::default()
+            },
+            state,
+            settings,
+            z_mm: layer.z_mm,
+            section_mm2: settings.road_width() * layer.thickness_mm,
+            commanded: Vec::new(),
+            segment: 0,
+            error_volume_nl: 0.0,
+            path_index: 0,
+            extrusion_paths: Vec::new(),
+        }
+    }
+
+    /// The layer's moves and statistics once every path is built: the volumes planned
+    /// and commanded in this layer are the stream's totals less those `*_before` it.
+    fn finish(
+        mut self,
+        paths: Vec<ToolPath>,
+        planned_before: &[f64],
+        commanded_before: &[u64],
+    ) -> LayerMoves {
+        self.stats.paths = paths.len();
+        self.stats.moves = self.moves.len();
+        self.stats.planned_nl = self
+            .state
+            .planned_nl
+            .iter()
+            .zip(planned_before)
+            .map(|(a, c)| a - c)
+            .collect();
+        self.stats.commanded_nl = self
+            .state
+            .commanded_nl
+            .iter()
+            .zip(commanded_before)
+            .map(|(a, c)| a - c)
+            .collect();
+        if self.error_volume_nl > 0.0 {
+            self.stats.composition_error_mean /= self.error_volume_nl;
+        }
+        self.state.layers += 1;
+        LayerMoves {
+            moves: self.moves,
+            stats: self.stats,
+            paths,
+            next_index: self.next,
+            extrusion_paths: self.extrusion_paths,
+        }
+    }
 }
 
 /// The designed extrusion stream of a layer: (volume nl, composition) per extrusion

@@ -7,7 +7,7 @@
 
 use crate::geom::Path;
 use crate::geom::Region;
-use crate::plan::{offset_composition_eq6, LayerPlan};
+use crate::plan::{offset_composition_eq6, LayerPlan, RegionPlan};
 use glam::DVec2;
 use std::fmt::Write;
 
@@ -131,123 +131,146 @@ fn path_element(out: &mut String, f: &Frame, p: &Path, colour: &str, width: f64,
     );
 }
 
-/// One layer as an SVG document.
+/// One layer as an SVG document: the part's boundary, the equal distance offsets under
+/// the contours, and the legend to the right of the part.
 pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
-    let mut lo = DVec2::splat(f64::INFINITY);
-    let mut hi = DVec2::splat(f64::NEG_INFINITY);
-    for r in input.islands {
-        let (a, b) = r.bounds();
-        lo = lo.min(a);
-        hi = hi.max(b);
-    }
-    if !lo.is_finite() || !hi.is_finite() {
-        lo = DVec2::ZERO;
-        hi = DVec2::ONE;
-    }
-    let margin = 0.05 * (hi - lo).max_element().max(1.0);
-    let f = Frame {
-        lo: lo - DVec2::splat(margin),
-        hi: hi + DVec2::splat(margin),
-    };
-    let size = f.hi - f.lo;
-    let legend_w = size.x.max(size.y) * 0.75;
-    let total_w = size.x + legend_w;
-    // Legend rows: title, materials, contour header, up to 14 contours, footer.
-    let contour_rows = layer
-        .regions
-        .first()
-        .map_or(0, |r| r.contours.len().min(14));
-    let rows = 4 + input.materials.len() + contour_rows;
-    let line = size.x.max(size.y) / 28.0;
-    let height = size.y.max(line * (rows as f64 + 1.0));
-    let px_per_mm = 1000.0 / total_w;
+    let f = Frame::around_part(input.islands);
+    let page = LegendPage::new(&f, layer, input);
     let mut out = String::new();
-    let _ = writeln!(
-        out,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {total_w:.3} {height:.3}" width="{:.0}" height="{:.0}">"#,
-        total_w * px_per_mm,
-        height * px_per_mm
-    );
-    let _ = writeln!(
-        out,
-        "<title>{} layer {} z={:.3} mm</title>",
-        escape(input.job_name),
-        layer.index,
-        layer.z_mm
-    );
-    let _ = writeln!(
-        out,
-        r#"<rect x="0" y="0" width="{total_w:.3}" height="{:.3}" fill="white"/>"#,
-        size.y
-    );
-    // Part boundary.
-    let _ = writeln!(out, r#"<g id="boundary">"#);
-    let hair = 0.1 * input.nozzle_mm;
-    for r in input.islands {
-        for l in r.loops() {
-            let _ = writeln!(
-                out,
-                r#"<polygon points="{}" fill="none" stroke="grey" stroke-width="{hair:.3}"/>"#,
-                f.points(l)
-            );
+    page.open(&mut out, layer, input);
+    boundary_group(&mut out, &f, input);
+    road_groups(&mut out, &f, layer, input.nozzle_mm);
+    page.legend(&mut out, layer, input);
+    out
+}
+
+/// Most contours the legend lists (evenly picked from C1..Cm+1).
+const LEGEND_CONTOURS: usize = 14;
+
+impl Frame {
+    /// The frame around the part with a margin of 5 % of its larger side (at least
+    /// 0.05 mm).
+    fn around_part(islands: &[Region]) -> Frame {
+        let mut lo = DVec2::splat(f64::INFINITY);
+        let mut hi = DVec2::splat(f64::NEG_INFINITY);
+        for r in islands {
+            let (a, b) = r.bounds();
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+        if !lo.is_finite() || !hi.is_finite() {
+            lo = DVec2::ZERO;
+            hi = DVec2::ONE;
+        }
+        let margin = 0.05 * (hi - lo).max_element().max(1.0);
+        Frame {
+            lo: lo - DVec2::splat(margin),
+            hi: hi + DVec2::splat(margin),
         }
     }
-    let _ = writeln!(out, "</g>");
-    // Equal distance offsets, thinner, under the contours.
-    let _ = writeln!(out, r#"<g id="offsets">"#);
-    for r in &layer.regions {
-        for s in &r.sub_regions {
-            for (k, paths) in s.offsets.iter().enumerate() {
-                let colour = mix_colour(offset_composition_eq6(r, s, k as u32 + 1).fractions());
-                for p in paths {
-                    path_element(&mut out, &f, p, &colour, 0.35 * input.nozzle_mm, "");
-                }
-            }
+}
+
+/// The page of a layer preview: the part's frame on the left, the legend on the right.
+struct LegendPage {
+    /// The part's frame, mm.
+    size: DVec2,
+    legend_w: f64,
+    total_w: f64,
+    height: f64,
+    /// One legend row, mm.
+    line: f64,
+}
+
+impl LegendPage {
+    fn new(f: &Frame, layer: &LayerPlan, input: &PreviewInput) -> LegendPage {
+        let size = f.hi - f.lo;
+        let legend_w = size.x.max(size.y) * 0.75;
+        let total_w = size.x + legend_w;
+        // Legend rows: title, materials, contour header, the contours listed, footer.
+        let contour_rows = layer
+            .regions
+            .first()
+            .map_or(0, |r| r.contours.len().min(LEGEND_CONTOURS));
+        let rows = 4 + input.materials.len() + contour_rows;
+        let line = size.x.max(size.y) / 28.0;
+        let height = size.y.max(line * (rows as f64 + 1.0));
+        LegendPage {
+            size,
+            legend_w,
+            total_w,
+            height,
+            line,
         }
     }
-    let _ = writeln!(out, "</g>");
-    let _ = writeln!(out, r#"<g id="contours">"#);
-    for r in &layer.regions {
-        for c in &r.contours {
-            let colour = mix_colour(c.composition.fractions());
-            for p in &c.roads {
-                path_element(&mut out, &f, p, &colour, 0.7 * input.nozzle_mm, "");
-            }
-        }
-    }
-    let _ = writeln!(out, "</g>");
-    // Legend.
-    let x0 = size.x + legend_w * 0.08;
-    let font = line * 0.6;
-    let mut y = line;
-    let _ = writeln!(
-        out,
-        r#"<g id="legend" font-family="sans-serif" font-size="{font:.3}">"#
-    );
-    let _ = writeln!(
-        out,
-        r#"<text x="{x0:.3}" y="{y:.3}" font-weight="bold">{} — layer {}, z {:.3} mm</text>"#,
-        escape(input.job_name),
-        layer.index,
-        layer.z_mm
-    );
-    y += line;
-    for (k, name) in input.materials.iter().enumerate() {
-        let mut pure = vec![0.0; input.materials.len()];
-        pure[k] = 1.0;
+
+    /// The `<svg>` element (1000 px wide), its title and a white background.
+    fn open(&self, out: &mut String, layer: &LayerPlan, input: &PreviewInput) {
+        let (total_w, height) = (self.total_w, self.height);
+        let px_per_mm = 1000.0 / total_w;
         let _ = writeln!(
             out,
-            r#"<rect x="{x0:.3}" y="{:.3}" width="{:.3}" height="{:.3}" fill="{}"/><text x="{:.3}" y="{y:.3}">{}</text>"#,
-            y - font,
-            font,
-            font,
-            mix_colour(&pure),
-            x0 + font * 1.5,
-            escape(name)
+            r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {total_w:.3} {height:.3}" width="{:.0}" height="{:.0}">"#,
+            total_w * px_per_mm,
+            height * px_per_mm
+        );
+        let _ = writeln!(
+            out,
+            "<title>{} layer {} z={:.3} mm</title>",
+            escape(input.job_name),
+            layer.index,
+            layer.z_mm
+        );
+        let _ = writeln!(
+            out,
+            r#"<rect x="0" y="0" width="{total_w:.3}" height="{:.3}" fill="white"/>"#,
+            self.size.y
+        );
+    }
+
+    /// The legend: job and layer, a swatch per material, the contour compositions
+    /// (first region), and the end of the document.
+    fn legend(&self, out: &mut String, layer: &LayerPlan, input: &PreviewInput) {
+        let line = self.line;
+        let x0 = self.size.x + self.legend_w * 0.08;
+        let font = line * 0.6;
+        let mut y = line;
+        let _ = writeln!(
+            out,
+            r#"<g id="legend" font-family="sans-serif" font-size="{font:.3}">"#
+        );
+        let _ = writeln!(
+            out,
+            r#"<text x="{x0:.3}" y="{y:.3}" font-weight="bold">{} — layer {}, z {:.3} mm</text>"#,
+            escape(input.job_name),
+            layer.index,
+            layer.z_mm
         );
         y += line;
+        for (k, name) in input.materials.iter().enumerate() {
+            let mut pure = vec![0.0; input.materials.len()];
+            pure[k] = 1.0;
+            let _ = writeln!(
+                out,
+                r#"<rect x="{x0:.3}" y="{:.3}" width="{:.3}" height="{:.3}" fill="{}"/><text x="{:.3}" y="{y:.3}">{}</text>"#,
+                y - font,
+                font,
+                font,
+                mix_colour(&pure),
+                x0 + font * 1.5,
+                escape(name)
+            );
+            y += line;
+        }
+        if let Some(r) = layer.regions.first() {
+            self.contour_legend(out, r, x0, y);
+        }
+        let _ = writeln!(out, "</g>\n</svg>");
     }
-    if let Some(r) = layer.regions.first() {
+
+    /// Up to [`LEGEND_CONTOURS`] contours of `r` with their compositions, from `y`.
+    fn contour_legend(&self, out: &mut String, r: &RegionPlan, x0: f64, mut y: f64) {
+        let line = self.line;
+        let font = line * 0.6;
         let _ = writeln!(
             out,
             r#"<text x="{x0:.3}" y="{y:.3}">contours C1..C{} ({:?}, m = {})</text>"#,
@@ -256,7 +279,7 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
             r.m
         );
         y += line * 0.5;
-        let rows = (r.contours.len()).min(14);
+        let rows = (r.contours.len()).min(LEGEND_CONTOURS);
         let step = (r.contours.len() as f64 / rows as f64).max(1.0);
         let mut k = 0.0;
         while (k as usize) < r.contours.len() {
@@ -287,8 +310,49 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
             y + line * 0.5
         );
     }
-    let _ = writeln!(out, "</g>\n</svg>");
-    out
+}
+
+/// The part's boundary, grey hairlines a tenth of the nozzle wide.
+fn boundary_group(out: &mut String, f: &Frame, input: &PreviewInput) {
+    let _ = writeln!(out, r#"<g id="boundary">"#);
+    let hair = 0.1 * input.nozzle_mm;
+    for r in input.islands {
+        for l in r.loops() {
+            let _ = writeln!(
+                out,
+                r#"<polygon points="{}" fill="none" stroke="grey" stroke-width="{hair:.3}"/>"#,
+                f.points(l)
+            );
+        }
+    }
+    let _ = writeln!(out, "</g>");
+}
+
+/// The roads coloured by composition: equal distance offsets, thinner, under the
+/// contours.
+fn road_groups(out: &mut String, f: &Frame, layer: &LayerPlan, nozzle_mm: f64) {
+    let _ = writeln!(out, r#"<g id="offsets">"#);
+    for r in &layer.regions {
+        for s in &r.sub_regions {
+            for (k, paths) in s.offsets.iter().enumerate() {
+                let colour = mix_colour(offset_composition_eq6(r, s, k as u32 + 1).fractions());
+                for p in paths {
+                    path_element(out, f, p, &colour, 0.35 * nozzle_mm, "");
+                }
+            }
+        }
+    }
+    let _ = writeln!(out, "</g>");
+    let _ = writeln!(out, r#"<g id="contours">"#);
+    for r in &layer.regions {
+        for c in &r.contours {
+            let colour = mix_colour(c.composition.fractions());
+            for p in &c.roads {
+                path_element(out, f, p, &colour, 0.7 * nozzle_mm, "");
+            }
+        }
+    }
+    let _ = writeln!(out, "</g>");
 }
 
 /// What a road preview draws besides the roads.

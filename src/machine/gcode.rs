@@ -6,7 +6,7 @@
 //! are rounded cumulatively per drive (to 10⁻⁵ mm), so the sum of each drive's E over the
 //! file equals that drive's commanded volume / A within 10⁻⁵ mm.
 
-use super::{Move, MoveKind};
+use super::{Move, MoveKind, PositionUm};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write;
 
@@ -117,44 +117,73 @@ pub fn write_gcode(
         return Err(GcodeError::TooManyDrives(drives));
     }
     let drives = drives.max(1);
-    let nl_to_mm = |v: u32| f64::from(v) / 1000.0 / a;
-    let mut ext = vec![Drive::default(); drives];
-    // Retract/prime E is rounded on its own so it never disturbs the extrusion sums.
-    let mut aux = vec![Drive::default(); drives];
-    let mut lines = 0usize;
-    let mut line = |out: &mut String, s: &str| {
-        out.push_str(s);
-        out.push('\n');
-        lines += 1;
+    let mut w = GcodeWriter {
+        out,
+        lines: 0,
+        settings,
+        drives,
+        ext: vec![Drive::default(); drives],
+        aux: vec![Drive::default(); drives],
+        mix: MarlinMix::new(drives),
     };
-    for h in header {
-        line(out, &format!("; {h}"));
-    }
-    let all: Vec<String> = (0..drives).map(|d| d.to_string()).collect();
-    match settings.flavor {
-        Flavor::Rrf => {
-            line(
-                out,
-                "; RepRapFirmware 3: one mixing tool over all syringe drives",
-            );
-            line(out, &format!("M563 P0 D{} H-1 S\"edo\"", all.join(":")));
-            line(out, "T0");
-        }
-        Flavor::Marlin => {
-            line(
-                out,
-                "; Marlin MIXING_EXTRUDER: mix per move, E is the total plunger travel",
-            );
-            line(out, "T0");
-        }
-    }
-    line(out, "G21 ; millimetres");
-    line(out, "G90 ; absolute positions");
-    line(out, "M83 ; relative extrusion");
-    let mut mix = MarlinMix::new(drives);
+    w.preamble(header);
     let mut s = String::new();
     for m in moves {
         s.clear();
+        w.command(m, &mut s);
+        w.line(&s);
+    }
+    Ok(GcodeStats {
+        extrude_e_mm: w.ext.iter().map(|d| d.printed_units as f64 / 1e6).collect(),
+        lines: w.lines,
+    })
+}
+
+/// The file being written and the E rounding state of every drive.
+struct GcodeWriter<'a> {
+    out: &'a mut String,
+    /// Lines written.
+    lines: usize,
+    settings: &'a GcodeSettings,
+    drives: usize,
+    /// Extrusion E per drive.
+    ext: Vec<Drive>,
+    /// Retract/prime E, rounded on its own so it never disturbs the extrusion sums.
+    aux: Vec<Drive>,
+    mix: MarlinMix,
+}
+
+impl GcodeWriter<'_> {
+    fn line(&mut self, s: &str) {
+        self.out.push_str(s);
+        self.out.push('\n');
+        self.lines += 1;
+    }
+
+    /// The header comments, the flavour's tool set-up and the units and modes.
+    fn preamble(&mut self, header: &[String]) {
+        for h in header {
+            self.line(&format!("; {h}"));
+        }
+        let all: Vec<String> = (0..self.drives).map(|d| d.to_string()).collect();
+        match self.settings.flavor {
+            Flavor::Rrf => {
+                self.line("; RepRapFirmware 3: one mixing tool over all syringe drives");
+                self.line(&format!("M563 P0 D{} H-1 S\"edo\"", all.join(":")));
+                self.line("T0");
+            }
+            Flavor::Marlin => {
+                self.line("; Marlin MIXING_EXTRUDER: mix per move, E is the total plunger travel");
+                self.line("T0");
+            }
+        }
+        self.line("G21 ; millimetres");
+        self.line("G90 ; absolute positions");
+        self.line("M83 ; relative extrusion");
+    }
+
+    /// The command of one move into `s` (a Marlin mix it needs is written first).
+    fn command(&mut self, m: &Move, s: &mut String) {
         match &m.kind {
             MoveKind::Home => s.push_str("G28"),
             MoveKind::LayerMark { layer, z_um } => {
@@ -176,79 +205,88 @@ pub fn write_gcode(
             MoveKind::Retract {
                 volumes_nl,
                 duration_ms,
-            }
-            | MoveKind::Prime {
+            } => self.plunger(-1.0, volumes_nl, *duration_ms, s),
+            MoveKind::Prime {
                 volumes_nl,
                 duration_ms,
-            } => {
-                let sign = if matches!(m.kind, MoveKind::Retract { .. }) {
-                    -1.0
-                } else {
-                    1.0
-                };
-                let units: Vec<i64> = (0..drives)
-                    .map(|d| aux[d].add(sign * volumes_nl.get(d).map_or(0.0, |&v| nl_to_mm(v))))
-                    .collect();
-                // Plunger-only move: E over the duration, as a feed in mm/min of the
-                // largest drive's travel.
-                let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e6;
-                let feed = most * 60_000.0 / f64::from((*duration_ms).max(1));
-                let what = if sign < 0.0 { "retract" } else { "prime" };
-                match settings.flavor {
-                    Flavor::Rrf => {
-                        let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
-                        let _ = write!(s, "G1 E{} F{:.1} ; {what}", es.join(":"), feed.max(1.0));
-                    }
-                    Flavor::Marlin => {
-                        let total: i64 = units.iter().sum();
-                        let _ = write!(s, "G1 E{} F{:.1} ; {what}", e(total), feed.max(1.0));
-                    }
-                }
-            }
+            } => self.plunger(1.0, volumes_nl, *duration_ms, s),
             MoveKind::Extrude {
                 to,
                 feed_um_s,
                 volumes_nl,
                 ..
-            } => {
-                let units: Vec<i64> = (0..drives)
-                    .map(|d| ext[d].add(volumes_nl.get(d).map_or(0.0, |&v| nl_to_mm(v))))
-                    .collect();
-                let xyz = format!("G1 X{} Y{} Z{}", mm(to.x_um), mm(to.y_um), mm(to.z_um));
-                match settings.flavor {
-                    Flavor::Rrf => {
-                        let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
-                        let _ = write!(s, "{xyz} E{} F{}", es.join(":"), f_mm_min(*feed_um_s));
-                    }
-                    Flavor::Marlin => {
-                        let total: i64 = units.iter().sum();
-                        if settings.marlin_direct_mixing {
-                            let _ = write!(s, "{xyz} E{}", e(total));
-                            if total > 0 {
-                                for (d, u) in units.iter().enumerate() {
-                                    let _ = write!(s, " {}{}", MARLIN_MIX_AXES[d], e(*u));
-                                }
-                            }
-                            let _ = write!(s, " F{}", f_mm_min(*feed_um_s));
-                        } else {
-                            if let Some(weights) = mix.next(&units) {
-                                for (d, w) in weights.iter().enumerate() {
-                                    line(out, &format!("M163 S{d} P{w:.6}"));
-                                }
-                                line(out, "M164 S0");
-                            }
-                            let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(*feed_um_s));
+            } => self.extrude(to, *feed_um_s, volumes_nl, s),
+        }
+    }
+
+    /// A plunger-only move (retract: `sign` −1, prime: +1): E over the duration, as a
+    /// feed in mm/min of the largest drive's travel.
+    fn plunger(&mut self, sign: f64, volumes_nl: &[u32], duration_ms: u32, s: &mut String) {
+        let area_mm2 = self.settings.barrel_area_mm2;
+        let units: Vec<i64> = (0..self.drives)
+            .map(|d| {
+                let travel_mm = volumes_nl.get(d).map_or(0.0, |&v| nl_to_mm(v, area_mm2));
+                self.aux[d].add(sign * travel_mm)
+            })
+            .collect();
+        let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e6;
+        let feed = most * 60_000.0 / f64::from(duration_ms.max(1));
+        let what = if sign < 0.0 { "retract" } else { "prime" };
+        match self.settings.flavor {
+            Flavor::Rrf => {
+                let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
+                let _ = write!(s, "G1 E{} F{:.1} ; {what}", es.join(":"), feed.max(1.0));
+            }
+            Flavor::Marlin => {
+                let total: i64 = units.iter().sum();
+                let _ = write!(s, "G1 E{} F{:.1} ; {what}", e(total), feed.max(1.0));
+            }
+        }
+    }
+
+    /// An extruding move: per-drive E (RRF), or total E with the mix as `G1` weights or
+    /// `M163`/`M164` lines before it (Marlin).
+    fn extrude(&mut self, to: &PositionUm, feed_um_s: u32, volumes_nl: &[u32], s: &mut String) {
+        let area_mm2 = self.settings.barrel_area_mm2;
+        let units: Vec<i64> = (0..self.drives)
+            .map(|d| {
+                let travel_mm = volumes_nl.get(d).map_or(0.0, |&v| nl_to_mm(v, area_mm2));
+                self.ext[d].add(travel_mm)
+            })
+            .collect();
+        let xyz = format!("G1 X{} Y{} Z{}", mm(to.x_um), mm(to.y_um), mm(to.z_um));
+        match self.settings.flavor {
+            Flavor::Rrf => {
+                let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
+                let _ = write!(s, "{xyz} E{} F{}", es.join(":"), f_mm_min(feed_um_s));
+            }
+            Flavor::Marlin => {
+                let total: i64 = units.iter().sum();
+                if self.settings.marlin_direct_mixing {
+                    let _ = write!(s, "{xyz} E{}", e(total));
+                    if total > 0 {
+                        for (d, u) in units.iter().enumerate() {
+                            let _ = write!(s, " {}{}", MARLIN_MIX_AXES[d], e(*u));
                         }
                     }
+                    let _ = write!(s, " F{}", f_mm_min(feed_um_s));
+                } else {
+                    if let Some(weights) = self.mix.next(&units) {
+                        for (d, w) in weights.iter().enumerate() {
+                            self.line(&format!("M163 S{d} P{w:.6}"));
+                        }
+                        self.line("M164 S0");
+                    }
+                    let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(feed_um_s));
                 }
             }
         }
-        line(out, &s);
     }
-    Ok(GcodeStats {
-        extrude_e_mm: ext.iter().map(|d| d.printed_units as f64 / 1e6).collect(),
-        lines,
-    })
+}
+
+/// Plunger travel for `v` nl through a barrel of `area_mm2`, mm.
+fn nl_to_mm(v: u32, area_mm2: f64) -> f64 {
+    f64::from(v) / 1000.0 / area_mm2
 }
 
 /// Marlin `M163`/`M164` mixes, sent only when needed. The mix is the composition of the

@@ -105,11 +105,10 @@ pub(crate) fn edge_uses(triangles: &[[u32; 3]]) -> Vec<(u64, u32, u8)> {
 }
 
 /// Validate `mesh` and return a repaired copy with the report; refuses non-finite
-/// coordinates, bad indices and an empty mesh.
+/// coordinates, bad indices and an empty mesh. Runs steps 1–6 of the module's doc.
 pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport), MeshError> {
     // Step 1.
     mesh.check_indices_and_coordinates()?;
-    let nv = mesh.vertices.len();
     if mesh.triangles.is_empty() {
         return Err(MeshError::NoTriangles);
     }
@@ -117,42 +116,95 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
         triangles_in: mesh.triangles.len(),
         ..Default::default()
     };
+    // Step 2.
+    let (vertices, remap) = merge_identical_vertices(&mesh.vertices);
+    // Step 3.
+    let triangles = without_degenerate(&mesh.triangles, &remap, &mut report);
+    // Step 4.
+    let triangles = without_duplicates(triangles, &mut report);
+    let mut out = compact(&vertices, triangles);
+    if out.triangles.is_empty() {
+        return Err(MeshError::NoTriangles);
+    }
+    report.repairs.vertices_merged = used_vertices(mesh).saturating_sub(vertices.len());
+    report.repairs.degenerate_removed = report.degenerate_triangles;
+    report.repairs.duplicates_removed = report.duplicate_triangles;
+    report.zero_area_triangles = (0..out.triangles.len())
+        .filter(|&t| {
+            let [a, b, c] = out.corners(t);
+            0.5 * (b - a).cross(c - a).length() < options.zero_area_mm2
+        })
+        .count();
+    // Step 5.
+    let links = classify_edges(&out, options, &mut report);
+    // Step 6.
+    if report.inconsistent_orientation_edges > 0 {
+        orient_consistently(&mut out, &links, &mut report);
+    }
+    report.triangles = out.triangles.len();
+    report.vertices = out.vertices.len();
+    if let Some((lo, hi)) = out.bounds() {
+        report.bbox_min_mm = lo.to_array();
+        report.bbox_max_mm = hi.to_array();
+    }
+    report.volume_mm3 = out.signed_volume();
+    Ok((out, report))
+}
 
-    // Step 2: merge bit-identical positions (-0.0 == 0.0).
+/// Step 2: one vertex per bit-identical position (-0.0 == 0.0), and where each input
+/// vertex went.
+fn merge_identical_vertices(input: &[DVec3]) -> (Vec<DVec3>, Vec<u32>) {
+    let nv = input.len();
     let key = |v: DVec3| (v + DVec3::ZERO).to_array().map(f64::to_bits);
     let mut order: Vec<u32> = (0..nv as u32).collect();
-    order.sort_unstable_by_key(|&i| key(mesh.vertices[i as usize]));
+    order.sort_unstable_by_key(|&i| key(input[i as usize]));
     let mut remap = vec![0u32; nv];
     let mut vertices: Vec<DVec3> = Vec::new();
     let mut last = None;
     for &i in &order {
-        let k = key(mesh.vertices[i as usize]);
+        let k = key(input[i as usize]);
         if last != Some(k) {
-            vertices.push(mesh.vertices[i as usize]);
+            vertices.push(input[i as usize]);
             last = Some(k);
         }
         remap[i as usize] = vertices.len() as u32 - 1;
     }
-    // Vertices no triangle uses are not "merged"; count merges among used corners.
-    let used = {
-        let mut u = vec![false; nv];
-        mesh.triangles
-            .iter()
-            .flatten()
-            .for_each(|&i| u[i as usize] = true);
-        u.iter().filter(|&&b| b).count()
-    };
-    let mut triangles: Vec<[u32; 3]> = Vec::with_capacity(mesh.triangles.len());
-    for tri in &mesh.triangles {
+    (vertices, remap)
+}
+
+/// Vertices some triangle uses: vertices no triangle uses are not "merged", so merges
+/// are counted among used corners.
+fn used_vertices(mesh: &Mesh) -> usize {
+    let mut u = vec![false; mesh.vertices.len()];
+    mesh.triangles
+        .iter()
+        .flatten()
+        .for_each(|&i| u[i as usize] = true);
+    u.iter().filter(|&&b| b).count()
+}
+
+/// Step 3: the triangles on the merged vertices, without those with two corners on
+/// one vertex (counted in the report).
+fn without_degenerate(
+    triangles: &[[u32; 3]],
+    remap: &[u32],
+    report: &mut MeshReport,
+) -> Vec<[u32; 3]> {
+    let mut kept: Vec<[u32; 3]> = Vec::with_capacity(triangles.len());
+    for tri in triangles {
         let t = tri.map(|i| remap[i as usize]);
-        // Step 3.
         if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
             report.degenerate_triangles += 1;
             continue;
         }
-        triangles.push(t);
+        kept.push(t);
     }
-    // Step 4: keep the first of each vertex set.
+    kept
+}
+
+/// Step 4: the first triangle of each vertex set (either orientation); the others
+/// are counted in the report.
+fn without_duplicates(mut triangles: Vec<[u32; 3]>, report: &mut MeshReport) -> Vec<[u32; 3]> {
     let mut by_set: Vec<([u32; 3], u32)> = triangles
         .iter()
         .enumerate()
@@ -175,7 +227,11 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
         k += 1;
         keep[k - 1]
     });
-    // Compact the vertex list to used vertices.
+    triangles
+}
+
+/// The mesh of `triangles` with only the vertices they use, in order of first use.
+fn compact(vertices: &[DVec3], mut triangles: Vec<[u32; 3]>) -> Mesh {
     let mut new_index = vec![u32::MAX; vertices.len()];
     let mut compact: Vec<DVec3> = Vec::new();
     for t in triangles.iter_mut() {
@@ -187,28 +243,25 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
             *i = new_index[*i as usize];
         }
     }
-    let mut out = Mesh {
+    Mesh {
         vertices: compact,
         triangles,
-    };
-    if out.triangles.is_empty() {
-        return Err(MeshError::NoTriangles);
     }
-    report.repairs.vertices_merged = used.saturating_sub(vertices.len());
-    report.repairs.degenerate_removed = report.degenerate_triangles;
-    report.repairs.duplicates_removed = report.duplicate_triangles;
-    report.zero_area_triangles = (0..out.triangles.len())
-        .filter(|&t| {
-            let [a, b, c] = out.corners(t);
-            0.5 * (b - a).cross(c - a).length() < options.zero_area_mm2
-        })
-        .count();
+}
 
-    // Step 5: edges.
+/// A manifold edge's two triangles, and whether they run the edge the same way (their
+/// orientations disagree).
+type ManifoldLink = (u32, u32, bool);
+
+/// Step 5: count open, non-manifold and inconsistently oriented edges (with the first
+/// open edges' midpoints) into the report; the manifold edges' links.
+fn classify_edges(
+    out: &Mesh,
+    options: &RepairOptions,
+    report: &mut MeshReport,
+) -> Vec<ManifoldLink> {
     let uses = edge_uses(&out.triangles);
-    let nt = out.triangles.len();
-    // Manifold neighbours: (other triangle, same_direction).
-    let mut links: Vec<(u32, u32, bool)> = Vec::new();
+    let mut links: Vec<ManifoldLink> = Vec::new();
     let mut i = 0;
     while i < uses.len() {
         let mut j = i + 1;
@@ -242,77 +295,84 @@ pub fn repair(mesh: &Mesh, options: &RepairOptions) -> Result<(Mesh, MeshReport)
         }
         i = j;
     }
+    links
+}
 
-    // Step 6: breadth-first orientation over manifold edges.
-    if report.inconsistent_orientation_edges > 0 {
-        let mut adj_start = vec![0u32; nt + 1];
-        for &(a, b, _) in &links {
-            adj_start[a as usize + 1] += 1;
-            adj_start[b as usize + 1] += 1;
+/// Step 6: flip triangles so that manifold neighbours agree, flipping the smaller part
+/// of each connected piece; flips and remaining conflicts go into the report.
+fn orient_consistently(out: &mut Mesh, links: &[ManifoldLink], report: &mut MeshReport) {
+    let flip = orientation_flips(out.triangles.len(), links);
+    for (t, f) in flip.iter().enumerate() {
+        if *f == Some(true) {
+            out.triangles[t].swap(1, 2);
+            report.repairs.triangles_flipped += 1;
         }
-        for t in 0..nt {
-            adj_start[t + 1] += adj_start[t];
+    }
+    report.orientation_conflicts = links
+        .iter()
+        .filter(|&&(a, b, same)| {
+            same ^ flip[a as usize].unwrap_or(false) ^ flip[b as usize].unwrap_or(false)
+        })
+        .count();
+}
+
+/// Which of `nt` triangles to flip: breadth first over the manifold links of each
+/// connected piece, then the piece's choice inverted if it flips more than half.
+fn orientation_flips(nt: usize, links: &[ManifoldLink]) -> Vec<Option<bool>> {
+    let (adj_start, adj) = link_adjacency(nt, links);
+    let mut flip: Vec<Option<bool>> = vec![None; nt];
+    let mut queue = std::collections::VecDeque::new();
+    for seed in 0..nt {
+        if flip[seed].is_some() {
+            continue;
         }
-        let mut fill = adj_start.clone();
-        let mut adj = vec![(0u32, false); 2 * links.len()];
-        for &(a, b, same) in &links {
-            adj[fill[a as usize] as usize] = (b, same);
-            fill[a as usize] += 1;
-            adj[fill[b as usize] as usize] = (a, same);
-            fill[b as usize] += 1;
-        }
-        let mut flip: Vec<Option<bool>> = vec![None; nt];
-        let mut queue = std::collections::VecDeque::new();
-        for seed in 0..nt {
-            if flip[seed].is_some() {
-                continue;
-            }
-            let mut component = vec![seed as u32];
-            flip[seed] = Some(false);
-            queue.push_back(seed as u32);
-            while let Some(t) = queue.pop_front() {
-                let ft = flip[t as usize].unwrap_or(false);
-                for &(n, same) in
-                    &adj[adj_start[t as usize] as usize..adj_start[t as usize + 1] as usize]
-                {
-                    if flip[n as usize].is_none() {
-                        // Same direction on the shared edge means one of them must flip.
-                        flip[n as usize] = Some(ft ^ same);
-                        component.push(n);
-                        queue.push_back(n);
-                    }
-                }
-            }
-            let flipped = component
-                .iter()
-                .filter(|&&t| flip[t as usize] == Some(true))
-                .count();
-            if 2 * flipped > component.len() {
-                for &t in &component {
-                    flip[t as usize] = flip[t as usize].map(|f| !f);
+        let mut component = vec![seed as u32];
+        flip[seed] = Some(false);
+        queue.push_back(seed as u32);
+        while let Some(t) = queue.pop_front() {
+            let ft = flip[t as usize].unwrap_or(false);
+            for &(n, same) in
+                &adj[adj_start[t as usize] as usize..adj_start[t as usize + 1] as usize]
+            {
+                if flip[n as usize].is_none() {
+                    // Same direction on the shared edge means one of them must flip.
+                    flip[n as usize] = Some(ft ^ same);
+                    component.push(n);
+                    queue.push_back(n);
                 }
             }
         }
-        for (t, f) in flip.iter().enumerate() {
-            if *f == Some(true) {
-                out.triangles[t].swap(1, 2);
-                report.repairs.triangles_flipped += 1;
-            }
-        }
-        report.orientation_conflicts = links
+        let flipped = component
             .iter()
-            .filter(|&&(a, b, same)| {
-                same ^ flip[a as usize].unwrap_or(false) ^ flip[b as usize].unwrap_or(false)
-            })
+            .filter(|&&t| flip[t as usize] == Some(true))
             .count();
+        if 2 * flipped > component.len() {
+            for &t in &component {
+                flip[t as usize] = flip[t as usize].map(|f| !f);
+            }
+        }
     }
+    flip
+}
 
-    report.triangles = out.triangles.len();
-    report.vertices = out.vertices.len();
-    if let Some((lo, hi)) = out.bounds() {
-        report.bbox_min_mm = lo.to_array();
-        report.bbox_max_mm = hi.to_array();
+/// The links as adjacency lists (compressed rows): triangle t's neighbours are
+/// `adj[adj_start[t]..adj_start[t + 1]]`, each with whether they disagree.
+fn link_adjacency(nt: usize, links: &[ManifoldLink]) -> (Vec<u32>, Vec<(u32, bool)>) {
+    let mut adj_start = vec![0u32; nt + 1];
+    for &(a, b, _) in links {
+        adj_start[a as usize + 1] += 1;
+        adj_start[b as usize + 1] += 1;
     }
-    report.volume_mm3 = out.signed_volume();
-    Ok((out, report))
+    for t in 0..nt {
+        adj_start[t + 1] += adj_start[t];
+    }
+    let mut fill = adj_start.clone();
+    let mut adj = vec![(0u32, false); 2 * links.len()];
+    for &(a, b, same) in links {
+        adj[fill[a as usize] as usize] = (b, same);
+        fill[a as usize] += 1;
+        adj[fill[b as usize] as usize] = (a, same);
+        fill[b as usize] += 1;
+    }
+    (adj_start, adj)
 }

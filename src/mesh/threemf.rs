@@ -135,179 +135,261 @@ fn parse_transform(s: &str) -> Option<DAffine3> {
     })
 }
 
+/// Read a model part's objects and build items, and emit the build as one mesh in mm.
 fn parse_model(text: &str, part: &str, limits: &MeshLimits) -> Result<Mesh, MeshError> {
-    let err_at = |reader: &quick_xml::Reader<&[u8]>, message: String| MeshError::ThreeMfXml {
-        part: part.to_string(),
-        message,
-        offset: reader.buffer_position(),
-    };
     let mut reader = quick_xml::Reader::from_str(text);
-    let mut scale = 1.0;
-    let mut saw_model = false;
-    let mut objects: HashMap<u64, Object> = HashMap::new();
-    let mut current: Option<(u64, Object)> = None;
-    let mut items: Vec<(u64, DAffine3)> = Vec::new();
-    let mut in_build = false;
-    let mut vertex_budget: u64 = 0;
+    let mut model = ModelReader::new(part, limits);
     loop {
         let event = reader
             .read_event()
-            .map_err(|e| err_at(&reader, format!("XML error: {e}")))?;
-        let (e, is_empty) = match event {
+            .map_err(|e| xml_error(part, &reader, format!("XML error: {e}")))?;
+        match event {
             Event::Eof => break,
-            Event::Start(e) => (e, false),
-            Event::Empty(e) => (e, true),
-            Event::End(e) => {
-                match e.local_name().as_ref() {
-                    "object" => {
-                        if let Some((id, obj)) = current.take() {
-                            objects.insert(id, obj);
-                        }
-                    }
-                    "build" => in_build = false,
-                    _ => {}
-                }
-                continue;
-            }
-            _ => continue,
-        };
-        let name = e.local_name();
-        match name.as_ref() {
-            "model" => {
-                saw_model = true;
-                let unit = attr(&e, "unit").unwrap_or_else(|| "millimeter".to_string());
-                scale = unit_scale(&unit)
-                    .ok_or_else(|| err_at(&reader, format!("unknown unit {unit:?}")))?;
-            }
-            "object" => {
-                let id = attr(&e, "id")
-                    .and_then(|s| s.parse::<u64>().ok())
-                    .ok_or_else(|| err_at(&reader, "object without a numeric id".into()))?;
-                if is_empty {
-                    objects.insert(id, Object::default());
-                } else {
-                    current = Some((id, Object::default()));
-                }
-            }
-            "vertex" => {
-                let Some((id, obj)) = current.as_mut() else {
-                    continue;
-                };
-                let coord = |k: &str| attr(&e, k).and_then(|s| s.parse::<f64>().ok());
-                let (Some(x), Some(y), Some(z)) = (coord("x"), coord("y"), coord("z")) else {
-                    return Err(err_at(
-                        &reader,
-                        format!(
-                            "object {id} vertex {} lacks a numeric x, y or z",
-                            obj.vertices.len()
-                        ),
-                    ));
-                };
-                let v = DVec3::new(x, y, z);
-                if !v.is_finite() {
-                    return Err(MeshError::NotFinite {
-                        format: "3MF",
-                        triangle: obj.triangles.len() as u64,
-                        corner: 0,
-                        at: Some(format!(
-                            "{part} object {id} vertex {}, byte {}",
-                            obj.vertices.len(),
-                            reader.buffer_position()
-                        )),
-                    });
-                }
-                vertex_budget += 1;
-                if vertex_budget > 3 * limits.max_triangles {
-                    return Err(err_at(
-                        &reader,
-                        "more vertices than 3 × max_triangles".into(),
-                    ));
-                }
-                obj.vertices.push(v);
-            }
-            "triangle" => {
-                let Some((id, obj)) = current.as_mut() else {
-                    continue;
-                };
-                let idx = |k: &str| attr(&e, k).and_then(|s| s.parse::<u32>().ok());
-                let (Some(a), Some(b), Some(c)) = (idx("v1"), idx("v2"), idx("v3")) else {
-                    return Err(err_at(
-                        &reader,
-                        format!(
-                            "object {id} triangle {} lacks numeric v1, v2 or v3",
-                            obj.triangles.len()
-                        ),
-                    ));
-                };
-                obj.triangles.push([a, b, c]);
-            }
-            "component" => {
-                let Some((id, obj)) = current.as_mut() else {
-                    continue;
-                };
-                if attr(&e, "path").is_some() {
-                    return Err(err_at(
-                        &reader,
-                        format!("object {id}: components in other model parts (production extension p:path) are not supported"),
-                    ));
-                }
-                let target = attr(&e, "objectid")
-                    .and_then(|s| s.parse::<u64>().ok())
-                    .ok_or_else(|| {
-                        err_at(
-                            &reader,
-                            format!("object {id}: component without a numeric objectid"),
-                        )
-                    })?;
-                let t = match attr(&e, "transform") {
-                    None => DAffine3::IDENTITY,
-                    Some(s) => parse_transform(&s).ok_or_else(|| {
-                        err_at(
-                            &reader,
-                            format!("object {id}: bad component transform {s:?}"),
-                        )
-                    })?,
-                };
-                obj.components.push((target, t));
-            }
-            "build" => in_build = !is_empty,
-            "item" if in_build => {
-                let target = attr(&e, "objectid")
-                    .and_then(|s| s.parse::<u64>().ok())
-                    .ok_or_else(|| {
-                        err_at(&reader, "build item without a numeric objectid".into())
-                    })?;
-                let t = match attr(&e, "transform") {
-                    None => DAffine3::IDENTITY,
-                    Some(s) => parse_transform(&s).ok_or_else(|| {
-                        err_at(&reader, format!("build item {target}: bad transform {s:?}"))
-                    })?,
-                };
-                items.push((target, t));
-            }
+            Event::Start(e) => model.element(&e, false, &reader)?,
+            Event::Empty(e) => model.element(&e, true, &reader)?,
+            Event::End(e) => model.end(e.local_name().as_ref()),
             _ => {}
         }
     }
-    if !saw_model {
-        return Err(MeshError::ThreeMfNoModel(format!(
-            "a <model> element in {part}"
-        )));
+    model.into_mesh()
+}
+
+/// What has been read of a model part so far.
+struct ModelReader<'a> {
+    part: &'a str,
+    limits: &'a MeshLimits,
+    /// Millimetres per model unit.
+    scale: f64,
+    saw_model: bool,
+    objects: HashMap<u64, Object>,
+    /// The object whose elements are being read, with its id.
+    current: Option<(u64, Object)>,
+    /// Build items: object id and transform.
+    items: Vec<(u64, DAffine3)>,
+    in_build: bool,
+    /// Vertices read in all objects, against the limit of 3 × max_triangles.
+    vertices_read: u64,
+}
+
+type XmlReader<'t> = quick_xml::Reader<&'t [u8]>;
+
+/// An XML error in `part` at the reader's position.
+fn xml_error(part: &str, reader: &XmlReader, message: String) -> MeshError {
+    MeshError::ThreeMfXml {
+        part: part.to_string(),
+        message,
+        offset: reader.buffer_position(),
     }
-    if items.is_empty() {
-        return Err(MeshError::ThreeMf {
-            part: part.to_string(),
-            message: "the <build> has no items: nothing to print".into(),
-        });
+}
+
+impl<'a> ModelReader<'a> {
+    fn new(part: &'a str, limits: &'a MeshLimits) -> Self {
+        ModelReader {
+            part,
+            limits,
+            scale: 1.0,
+            saw_model: false,
+            objects: HashMap::new(),
+            current: None,
+            items: Vec::new(),
+            in_build: false,
+            vertices_read: 0,
+        }
     }
-    let mut mesh = Mesh::default();
-    let unit = DAffine3::from_scale(DVec3::splat(scale));
-    for (id, t) in items {
-        emit(&objects, id, unit * t, 0, &mut mesh, part, limits)?;
+
+    /// An element's start (`is_empty`: it has no content and no end).
+    fn element(
+        &mut self,
+        e: &BytesStart,
+        is_empty: bool,
+        reader: &XmlReader,
+    ) -> Result<(), MeshError> {
+        let part = self.part;
+        match e.local_name().as_ref() {
+            "model" => {
+                self.saw_model = true;
+                let unit = attr(e, "unit").unwrap_or_else(|| "millimeter".to_string());
+                self.scale = unit_scale(&unit)
+                    .ok_or_else(|| xml_error(part, reader, format!("unknown unit {unit:?}")))?;
+            }
+            "object" => {
+                let id = attr(e, "id")
+                    .and_then(|s| s.parse::<u64>().ok())
+                    .ok_or_else(|| xml_error(part, reader, "object without a numeric id".into()))?;
+                if is_empty {
+                    self.objects.insert(id, Object::default());
+                } else {
+                    self.current = Some((id, Object::default()));
+                }
+            }
+            "vertex" => self.vertex(e, reader)?,
+            "triangle" => self.triangle(e, reader)?,
+            "component" => self.component(e, reader)?,
+            "build" => self.in_build = !is_empty,
+            "item" if self.in_build => self.build_item(e, reader)?,
+            _ => {}
+        }
+        Ok(())
     }
-    if mesh.triangles.is_empty() {
-        return Err(MeshError::NoTriangles);
+
+    /// An element's end: an object is complete, or the build is.
+    fn end(&mut self, name: &str) {
+        match name {
+            "object" => {
+                if let Some((id, obj)) = self.current.take() {
+                    self.objects.insert(id, obj);
+                }
+            }
+            "build" => self.in_build = false,
+            _ => {}
+        }
     }
-    Ok(mesh)
+
+    /// `<vertex x y z>` of the current object.
+    fn vertex(&mut self, e: &BytesStart, reader: &XmlReader) -> Result<(), MeshError> {
+        let part = self.part;
+        let Some((id, obj)) = self.current.as_mut() else {
+            return Ok(());
+        };
+        let coord = |k: &str| attr(e, k).and_then(|s| s.parse::<f64>().ok());
+        let (Some(x), Some(y), Some(z)) = (coord("x"), coord("y"), coord("z")) else {
+            return Err(xml_error(
+                part,
+                reader,
+                format!(
+                    "object {id} vertex {} lacks a numeric x, y or z",
+                    obj.vertices.len()
+                ),
+            ));
+        };
+        let v = DVec3::new(x, y, z);
+        if !v.is_finite() {
+            return Err(MeshError::NotFinite {
+                format: "3MF",
+                triangle: obj.triangles.len() as u64,
+                corner: 0,
+                at: Some(format!(
+                    "{part} object {id} vertex {}, byte {}",
+                    obj.vertices.len(),
+                    reader.buffer_position()
+                )),
+            });
+        }
+        self.vertices_read += 1;
+        if self.vertices_read > 3 * self.limits.max_triangles {
+            return Err(xml_error(
+                part,
+                reader,
+                "more vertices than 3 × max_triangles".into(),
+            ));
+        }
+        obj.vertices.push(v);
+        Ok(())
+    }
+
+    /// `<triangle v1 v2 v3>` of the current object.
+    fn triangle(&mut self, e: &BytesStart, reader: &XmlReader) -> Result<(), MeshError> {
+        let part = self.part;
+        let Some((id, obj)) = self.current.as_mut() else {
+            return Ok(());
+        };
+        let idx = |k: &str| attr(e, k).and_then(|s| s.parse::<u32>().ok());
+        let (Some(a), Some(b), Some(c)) = (idx("v1"), idx("v2"), idx("v3")) else {
+            return Err(xml_error(
+                part,
+                reader,
+                format!(
+                    "object {id} triangle {} lacks numeric v1, v2 or v3",
+                    obj.triangles.len()
+                ),
+            ));
+        };
+        obj.triangles.push([a, b, c]);
+        Ok(())
+    }
+
+    /// `<component objectid transform>` of the current object.
+    fn component(&mut self, e: &BytesStart, reader: &XmlReader) -> Result<(), MeshError> {
+        let part = self.part;
+        let Some((id, obj)) = self.current.as_mut() else {
+            return Ok(());
+        };
+        if attr(e, "path").is_some() {
+            return Err(xml_error(
+                part,
+                reader,
+                format!("object {id}: components in other model parts (production extension p:path) are not supported"),
+            ));
+        }
+        let target = attr(e, "objectid")
+            .and_then(|s| s.parse::<u64>().ok())
+            .ok_or_else(|| {
+                xml_error(
+                    part,
+                    reader,
+                    format!("object {id}: component without a numeric objectid"),
+                )
+            })?;
+        let t = match attr(e, "transform") {
+            None => DAffine3::IDENTITY,
+            Some(s) => parse_transform(&s).ok_or_else(|| {
+                xml_error(
+                    part,
+                    reader,
+                    format!("object {id}: bad component transform {s:?}"),
+                )
+            })?,
+        };
+        obj.components.push((target, t));
+        Ok(())
+    }
+
+    /// `<item objectid transform>` of the build.
+    fn build_item(&mut self, e: &BytesStart, reader: &XmlReader) -> Result<(), MeshError> {
+        let part = self.part;
+        let target = attr(e, "objectid")
+            .and_then(|s| s.parse::<u64>().ok())
+            .ok_or_else(|| {
+                xml_error(part, reader, "build item without a numeric objectid".into())
+            })?;
+        let t = match attr(e, "transform") {
+            None => DAffine3::IDENTITY,
+            Some(s) => parse_transform(&s).ok_or_else(|| {
+                xml_error(
+                    part,
+                    reader,
+                    format!("build item {target}: bad transform {s:?}"),
+                )
+            })?,
+        };
+        self.items.push((target, t));
+        Ok(())
+    }
+
+    /// The build's items, their objects expanded, in mm.
+    fn into_mesh(self) -> Result<Mesh, MeshError> {
+        let part = self.part;
+        if !self.saw_model {
+            return Err(MeshError::ThreeMfNoModel(format!(
+                "a <model> element in {part}"
+            )));
+        }
+        if self.items.is_empty() {
+            return Err(MeshError::ThreeMf {
+                part: part.to_string(),
+                message: "the <build> has no items: nothing to print".into(),
+            });
+        }
+        let mut mesh = Mesh::default();
+        let unit = DAffine3::from_scale(DVec3::splat(self.scale));
+        for (id, t) in self.items {
+            emit(&self.objects, id, unit * t, 0, &mut mesh, part, self.limits)?;
+        }
+        if mesh.triangles.is_empty() {
+            return Err(MeshError::NoTriangles);
+        }
+        Ok(mesh)
+    }
 }
 
 /// Append object `id` under transform `t` (object space -> mm), expanding components.

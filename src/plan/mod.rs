@@ -253,7 +253,7 @@ impl SubRegion {
             .zip(self.w.components())
             .map(|(f, w)| f + i as f64 * w)
             .collect();
-        Composition::new(v, 1e-6).unwrap_or_else(|_| self.from.clone())
+        Composition::new(v, COMPACT_COMPOSITION_SUM).unwrap_or_else(|_| self.from.clone())
     }
 }
 
@@ -413,6 +413,36 @@ struct PreSubdivision {
     inner_is_boundary: bool,
 }
 
+impl PreSubdivision {
+    /// Step 2 on the levels: A_1 of growth rings is the holes and A_m+1 of growth
+    /// rings and the crown is the area inside Ce, so their boundary offsets are the
+    /// holes grown by b (`holes_out`, when C1 is a real boundary) and the outer loop
+    /// shrunk by b (`outer_in`); fiber levels are half-planes, offset as such.
+    fn offset_bounding_levels(
+        &mut self,
+        outer_in: Shapes,
+        holes_out: Shapes,
+        b: f64,
+        chord_mm: f64,
+    ) {
+        let parallel = self.method == SubdivisionMethod::Parallel;
+        let levels = &mut self.levels;
+        if self.inner_is_boundary {
+            levels[0] = if parallel {
+                levels[0].offset(b, chord_mm, None)
+            } else {
+                Level::Shapes(holes_out)
+            };
+        }
+        let last = levels.len() - 1;
+        levels[last] = if parallel {
+            levels[last].offset(-b, chord_mm, None)
+        } else {
+            Level::Shapes(outer_in)
+        };
+    }
+}
+
 /// Eq (1), and what `thin_regions` says to do when it gives m = 0.
 fn resolved_m(l_short_mm: f64, island: usize, opts: &PlanOptions) -> Result<u32, PlanError> {
     match segment_count(l_short_mm, opts.r_mach_mm) {
@@ -440,336 +470,75 @@ fn printable(roads: Vec<Path>, opts: &PlanOptions) -> Vec<Path> {
         .collect()
 }
 
-/// Plan one region: validate it, subdivide it, and fill every sub-region (steps 1–4).
+/// Plan one region: validate it, subdivide it, and fill every sub-region (steps 1–4 of
+/// the module's doc).
 pub fn plan_region(
     region: &Region,
     island: usize,
     design: &GradientDesign,
     opts: &PlanOptions,
 ) -> Result<RegionPlan, PlanError> {
-    let tol = &opts.tolerances;
     if design.inner.len() != design.outer.len() {
         return Err(PlanError::CompositionMismatch {
             inner: design.inner.len(),
             outer: design.outer.len(),
         });
     }
-    let region = region.normalised(tol);
-    region
-        .validate(tol)
-        .map_err(|problem| PlanError::Region { island, problem })?;
-    let chord = tol.chord_mm;
-    // Drop vertices that carry no shape beyond the chord tolerance (dense scans and
-    // slicer output): every later offset and boolean scales with the vertex count.
-    // Kept only if the simplified region is still sound.
-    let region = {
-        let simpler = Region::new(
-            crate::geom::simplify_loop(&region.outer, chord),
-            region
-                .holes
-                .iter()
-                .map(|h| crate::geom::simplify_loop(h, chord))
-                .collect(),
-        );
-        if simpler.validate(tol).is_ok() {
-            simpler
-        } else {
-            region
-        }
-    };
-    let eps = (tol.point_eq_mm * 1e3).max(1e-7);
+    let region = sound_region(region, island, &opts.tolerances)?;
+    let eps = clip_eps_mm(&opts.tolerances);
 
     // Step 1: pre-subdivision.
-    let pre = match &design.pattern {
-        Pattern::GrowthRings => growth_rings(&region, island, opts)?,
-        Pattern::Crown { depth_mm } => crown(&region, island, *depth_mm, opts)?,
-        Pattern::Fibers { angle_deg } => fibers(&region, island, *angle_deg, opts)?,
-    };
-    let m = pre.m;
+    let mut pre = pre_subdivision(&region, island, &design.pattern, opts)?;
 
-    // Step 2: boundary offsets and the interior the roads may occupy. The region shrunk
-    // by b is its outer loop shrunk by b less its holes grown by b, and those two
-    // offsets are also the offset Cm+1 (growth rings, crown) and C1 (growth rings):
-    // each is computed once.
+    // Step 2: boundary offsets and the interior the roads may occupy.
     let b = opts.boundary_offset_mm;
-    let outer_in = shapes::offset(
-        &shapes::from_loops(std::slice::from_ref(&region.outer)),
-        -b,
-        chord,
-    );
-    let holes_out = shapes::offset(&shapes::from_loops(&region.holes), b, chord);
-    let interior = shapes::difference(&outer_in, &holes_out);
+    let BoundaryOffsets {
+        outer_in,
+        holes_out,
+        interior,
+    } = boundary_offsets(&region, b, opts.tolerances.chord_mm);
     if interior.is_empty() {
-        if opts.thin_regions == ThinRegions::Fill {
-            return Ok(RegionPlan {
-                island,
-                method: pre.method,
-                m: 0,
-                l_short_mm: pre.l_short_mm,
-                centre: pre.centre,
-                area_mm2: region.area(),
-                contours: Vec::new(),
-                sub_regions: Vec::new(),
-                note: Some(format!(
-                    "skipped: narrower than one road (nothing remains {b} mm inside its boundary)"
-                )),
-            });
-        }
-        return Err(PlanError::NarrowerThanRoad {
-            island,
-            offset_mm: b,
-        });
+        return skipped_narrower_than_road(&region, island, &pre, opts);
     }
-    // A1 of growth rings is the holes and Am+1 of growth rings and the crown is the
-    // area inside Ce; fiber levels are half-planes, offset as such.
-    let parallel = pre.method == SubdivisionMethod::Parallel;
-    let mut levels = pre.levels;
-    if pre.inner_is_boundary {
-        levels[0] = if parallel {
-            levels[0].offset(b, chord, None)
-        } else {
-            Level::Shapes(holes_out)
-        };
-    }
-    let last = levels.len() - 1;
-    levels[last] = if parallel {
-        levels[last].offset(-b, chord, None)
-    } else {
-        Level::Shapes(outer_in)
-    };
-    let level_shapes: Vec<Shapes> = levels.iter().map(Level::to_shapes).collect();
-    // Roads of C1 and Cm+1 where they are part surfaces: the interior's own boundary,
-    // split into the runs nearer the holes (C1) and nearer the outer loop (Cm+1). Taken
-    // from the same loops, they can meet but never cross, even where a wall is thinner
-    // than two roads.
-    let (hole_runs, outer_runs) = if parallel {
+    pre.offset_bounding_levels(outer_in, holes_out, b, opts.tolerances.chord_mm);
+    let level_shapes: Vec<Shapes> = pre.levels.iter().map(Level::to_shapes).collect();
+    let boundary_runs = if pre.method == SubdivisionMethod::Parallel {
         (Vec::new(), Vec::new())
     } else {
         split_boundary_runs(&interior, &region, b)
     };
 
     // Step 3: contours and their compositions, eq (2) and (4).
-    let compositions: Vec<Composition> = (1..=m + 1)
-        .map(|j| {
-            contour_composition(
-                &design.function,
-                contour_distance(j, m),
-                &design.inner,
-                &design.outer,
-            )
-        })
-        .collect();
-    let interior_area = ClipArea::inside(&interior, tol.clip_margin_mm);
-    let contours: Vec<Contour> = (1..=m + 1)
-        .map(|j| Contour {
-            j,
-            d: contour_distance(j, m),
-            composition: compositions[(j - 1) as usize].clone(),
-            // Inner contours are clipped strictly to the interior: where one would run
-            // closer to a boundary than the boundary offset it stops, rather than cross
-            // that boundary's road. Fiber lines C1 and Cm+1 lie inside the interior.
-            roads: if j == m + 1 && !parallel {
-                outer_runs.clone()
-            } else if j == 1 && pre.inner_is_boundary && !parallel {
-                hole_runs.clone()
-            } else {
-                printable(
-                    levels[(j - 1) as usize].roads(
-                        &interior_area,
-                        parallel && (j == 1 || j == m + 1),
-                        eps,
-                    ),
-                    opts,
-                )
-            },
-        })
-        .collect();
+    let compositions = contour_compositions(design, pre.m);
+    let interior_area = ClipArea::inside(&interior, opts.tolerances.clip_margin_mm);
+    let contours = contours(
+        &pre,
+        &compositions,
+        &interior_area,
+        boundary_runs,
+        eps,
+        opts,
+    );
 
-    // Step 4: EDO fill of each sub-region.
-    let mut sub_regions = Vec::with_capacity(m as usize + 1);
-    if pre.method == SubdivisionMethod::Offset {
-        if let Some(core) = crown_core(&level_shapes[0], &interior, &compositions[0], opts, eps) {
-            sub_regions.push(core);
-        }
+    // Step 4: EDO fill of each sub-region, eq (5), (6) and (7).
+    let sub_regions = SubRegionFill {
+        pre: &pre,
+        level_indices: level_shapes
+            .iter()
+            .map(|_| std::cell::OnceCell::new())
+            .collect(),
+        level_shapes,
+        interior: &interior,
+        contours: &contours,
+        compositions: &compositions,
+        opts,
+        eps,
     }
-    // The boundary index of each level, built when first needed: the contour one
-    // sub-region's offsets face is the one the next (or previous) starts them from.
-    let level_indices: Vec<std::cell::OnceCell<SegmentIndex>> = level_shapes
-        .iter()
-        .map(|_| std::cell::OnceCell::new())
-        .collect();
-    let level_index = |j: u32| {
-        level_indices[j as usize].get_or_init(|| shapes::boundary_index(&level_shapes[j as usize]))
-    };
-    for n in 1..=m {
-        let (lower, upper) = (&levels[(n - 1) as usize], &levels[n as usize]);
-        // Growth-ring levels nest between the offset boundaries, so their difference
-        // already lies in the interior; crown and fiber levels are cut to it.
-        let (lower_shape, upper_shape) =
-            (&level_shapes[(n - 1) as usize], &level_shapes[n as usize]);
-        let s = match pre.method {
-            SubdivisionMethod::Radial | SubdivisionMethod::Distance => {
-                // Two contour levels of the subdivision (neither boundary offset) are
-                // nested and at least about L_short / m apart: far enough apart
-                // (beyond what sampling or simplifying each by the contour deviation
-                // moves them), their difference is their loops, without the overlay.
-                // Next to a boundary offset (n = 1 or m), whose arcs and the level's
-                // simplification are not so far apart, the same holds where no edge of
-                // the lower level comes within a chord tolerance of the upper one.
-                let apart = || {
-                    let upper_index = level_index(n);
-                    shapes::loops(lower_shape).all(|l| upper_index.clear_of_loop(l, chord))
-                };
-                let nested = !lower_shape.is_empty()
-                    && if n >= 2 && n < m {
-                        pre.l_short_mm / m as f64
-                            > NESTED_GAP_DEVIATIONS * opts.contour_deviation_mm()
-                    } else {
-                        apart()
-                    };
-                nested
-                    .then(|| shapes::nested_difference(upper_shape, lower_shape))
-                    .flatten()
-                    .unwrap_or_else(|| shapes::difference(upper_shape, lower_shape))
-            }
-            SubdivisionMethod::Offset | SubdivisionMethod::Parallel => {
-                shapes::intersection(&shapes::difference(upper_shape, lower_shape), &interior)
-            }
-        };
-        let area = shapes::area(&s);
-        if area <= tol.min_loop_area_mm2 {
-            continue;
-        }
-        // The offsets stop `offset_end_clearance_mm` short of the contour they run
-        // towards (C_n inward, C_n+1 outward).
-        let (facing_j, start_j) = match opts.direction {
-            OffsetDirection::Inward => (n - 1, n),
-            OffsetDirection::Outward => (n, n - 1),
-        };
-        let facing_index = level_index(facing_j);
-        let d_max_mm = match (lower, upper) {
-            // Parallel lines: the gap between them, as far as the part reaches (where
-            // the boundary-offset C_m+1 or C1 misses the interior near a corner, the
-            // material up to the interior's edge is still to be filled).
-            (
-                Level::HalfPlane {
-                    s: s_lower, normal, ..
-                },
-                Level::HalfPlane { s: s_upper, .. },
-            ) => {
-                let (lo, hi) = shapes::loops(&interior)
-                    .flat_map(|l| l.iter())
-                    .map(|p| normal.dot(*p))
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
-                        (a.min(x), b.max(x))
-                    });
-                (s_upper.min(hi) - s_lower.max(lo)).max(0.0)
-            }
-            _ => gap_along_gradient(
-                &contours[n as usize].roads,
-                pre.centre,
-                level_index(n - 1),
-                opts,
-            ),
-        };
-        let n_max = offset_count(d_max_mm, opts.nozzle_mm);
-        let (m_n, m_n1) = (&compositions[(n - 1) as usize], &compositions[n as usize]);
-        let from = match opts.direction {
-            OffsetDirection::Inward => m_n1.clone(),
-            OffsetDirection::Outward => m_n.clone(),
-        };
-        let w = if n_max >= 2 {
-            step_width(opts.direction, n_max, m_n, m_n1)
-        } else {
-            step_width(opts.direction, 2, m_n, m_n)
-        };
-        // Equal distance offsets, each one step from the previous: eroding (or
-        // dilating) by r1 then r2 is eroding by r1 + r2, and small steps keep the
-        // outline cheap where a contour has many vertices.
-        let step = d_max_mm / n_max.max(1) as f64;
-        let mut offsets = Vec::new();
-        // Growth-ring offsets of one bounding contour already lie on the sub-region's
-        // side of it, so only the other contour can cut them: clip against that
-        // contour's area alone (half the edges of the sub-region).
-        let growth = matches!(
-            pre.method,
-            SubdivisionMethod::Radial | SubdivisionMethod::Distance
-        );
-        let clearance = opts.offset_end_clearance_mm;
-        // Trimmed to the clearance, a growth-ring offset's pieces each lie wholly on one
-        // side of the facing contour: trim the whole offset and keep the pieces on the
-        // sub-region's side, which is the clip then the trim without the clipper.
-        let trim_only = growth && clearance > 0.0;
-        let keep_inside_facing = opts.direction == OffsetDirection::Outward;
-        let s_area = (!trim_only).then(|| match (growth, opts.direction) {
-            (true, OffsetDirection::Inward) => ClipArea::outside(lower_shape, tol.clip_margin_mm),
-            (true, OffsetDirection::Outward) => ClipArea::inside(upper_shape, tol.clip_margin_mm),
-            _ => ClipArea::inside(&s, tol.clip_margin_mm),
-        });
-        let mut level = match opts.direction {
-            OffsetDirection::Inward => upper.clone(),
-            OffsetDirection::Outward => lower.clone(),
-        };
-        for i in 1..n_max {
-            // The first offset starts from a contour level, whose index is at hand.
-            let index = (i == 1).then(|| level_index(start_j));
-            level = match (opts.direction, lower.is_empty(), pre.centre) {
-                (OffsetDirection::Inward, _, _) => level.offset(-step, chord, index),
-                (OffsetDirection::Outward, true, Some(c)) => {
-                    Level::Shapes(vec![vec![shapes::circle(c, i as f64 * step, chord)]])
-                }
-                (OffsetDirection::Outward, _, _) => level.offset(step, chord, index),
-            };
-            if level.is_empty() {
-                break;
-            }
-            let roads = match &s_area {
-                None => {
-                    let owned;
-                    let offset_shapes = match &level {
-                        Level::Shapes(s) => s,
-                        _ => {
-                            owned = level.to_shapes();
-                            &owned
-                        }
-                    };
-                    let whole = shapes::loops(offset_shapes)
-                        .map(|l| Path {
-                            points: l.clone(),
-                            closed: true,
-                        })
-                        .collect();
-                    let mut kept = shapes::keep_clear_of(whole, facing_index, clearance);
-                    kept.retain(|p| {
-                        p.points
-                            .get(p.points.len() / 2)
-                            .is_some_and(|q| facing_index.inside_odd(*q) == keep_inside_facing)
-                    });
-                    kept
-                }
-                Some(area) if clearance > 0.0 => {
-                    shapes::keep_clear_of(level.roads(area, false, eps), facing_index, clearance)
-                }
-                Some(area) => level.roads(area, false, eps),
-            };
-            offsets.push(printable(roads, opts));
-        }
-        sub_regions.push(SubRegion {
-            n,
-            d_max_mm,
-            n_max,
-            direction: opts.direction,
-            from,
-            w,
-            offsets,
-            area_mm2: area,
-            shape: s,
-        });
-    }
+    .sub_regions();
     Ok(RegionPlan {
         island,
         method: pre.method,
-        m,
+        m: pre.m,
         l_short_mm: pre.l_short_mm,
         centre: pre.centre,
         area_mm2: region.area(),
@@ -784,6 +553,449 @@ pub fn plan_region(
     })
 }
 
+/// How close two points of a road and the line it is clipped against may be and still
+/// count as one, mm: a thousand times the point tolerance, at least 1e-7 mm.
+fn clip_eps_mm(tol: &Tolerances) -> f64 {
+    (tol.point_eq_mm * 1e3).max(1e-7)
+}
+
+/// The region normalised and validated, then with the vertices that carry no shape
+/// beyond the chord tolerance dropped (dense scans and slicer output: every later
+/// offset and boolean scales with the vertex count), where the simpler region is
+/// still sound.
+fn sound_region(region: &Region, island: usize, tol: &Tolerances) -> Result<Region, PlanError> {
+    let region = region.normalised(tol);
+    region
+        .validate(tol)
+        .map_err(|problem| PlanError::Region { island, problem })?;
+    let chord = tol.chord_mm;
+    let simpler = Region::new(
+        crate::geom::simplify_loop(&region.outer, chord),
+        region
+            .holes
+            .iter()
+            .map(|h| crate::geom::simplify_loop(h, chord))
+            .collect(),
+    );
+    Ok(if simpler.validate(tol).is_ok() {
+        simpler
+    } else {
+        region
+    })
+}
+
+/// Step 1 (§3.1): the levels A_1..A_m+1 of the design's pattern.
+fn pre_subdivision(
+    region: &Region,
+    island: usize,
+    pattern: &Pattern,
+    opts: &PlanOptions,
+) -> Result<PreSubdivision, PlanError> {
+    match pattern {
+        Pattern::GrowthRings => growth_rings(region, island, opts),
+        Pattern::Crown { depth_mm } => crown(region, island, *depth_mm, opts),
+        Pattern::Fibers { angle_deg } => fibers(region, island, *angle_deg, opts),
+    }
+}
+
+/// Step 2 (§3.2): the part's boundaries offset by b into the material.
+struct BoundaryOffsets {
+    /// The outer loop shrunk by b: Cm+1 of growth rings and crown.
+    outer_in: Shapes,
+    /// The holes grown by b: C1 of growth rings.
+    holes_out: Shapes,
+    /// The region shrunk by b, the material the roads may cover: `outer_in` less
+    /// `holes_out`.
+    interior: Shapes,
+}
+
+/// The region shrunk by b is its outer loop shrunk by b less its holes grown by b, and
+/// those two offsets are also the offset Cm+1 (growth rings, crown) and C1 (growth
+/// rings): each is computed once.
+fn boundary_offsets(region: &Region, b: f64, chord_mm: f64) -> BoundaryOffsets {
+    let outer_in = shapes::offset(
+        &shapes::from_loops(std::slice::from_ref(&region.outer)),
+        -b,
+        chord_mm,
+    );
+    let holes_out = shapes::offset(&shapes::from_loops(&region.holes), b, chord_mm);
+    let interior = shapes::difference(&outer_in, &holes_out);
+    BoundaryOffsets {
+        outer_in,
+        holes_out,
+        interior,
+    }
+}
+
+/// A region with no interior: skipped with a note under `thin_regions = "fill"`, else
+/// refused.
+fn skipped_narrower_than_road(
+    region: &Region,
+    island: usize,
+    pre: &PreSubdivision,
+    opts: &PlanOptions,
+) -> Result<RegionPlan, PlanError> {
+    let b = opts.boundary_offset_mm;
+    if opts.thin_regions == ThinRegions::Fill {
+        return Ok(RegionPlan {
+            island,
+            method: pre.method,
+            m: 0,
+            l_short_mm: pre.l_short_mm,
+            centre: pre.centre,
+            area_mm2: region.area(),
+            contours: Vec::new(),
+            sub_regions: Vec::new(),
+            note: Some(format!(
+                "skipped: narrower than one road (nothing remains {b} mm inside its boundary)"
+            )),
+        });
+    }
+    Err(PlanError::NarrowerThanRoad {
+        island,
+        offset_mm: b,
+    })
+}
+
+/// Step 3: M(C_j) of every contour C1..Cm+1, eq (2) and (4).
+fn contour_compositions(design: &GradientDesign, m: u32) -> Vec<Composition> {
+    (1..=m + 1)
+        .map(|j| {
+            contour_composition(
+                &design.function,
+                contour_distance(j, m),
+                &design.inner,
+                &design.outer,
+            )
+        })
+        .collect()
+}
+
+/// Step 3: the contours C1..Cm+1 and their roads. Where C1 and Cm+1 are part surfaces
+/// their roads are `boundary_runs` (the interior's own boundary, nearer the holes and
+/// nearer the outer loop); inner contours are clipped strictly to the interior: where
+/// one would run closer to a boundary than the boundary offset it stops, rather than
+/// cross that boundary's road. Fiber lines C1 and Cm+1 lie inside the interior.
+fn contours(
+    pre: &PreSubdivision,
+    compositions: &[Composition],
+    interior_area: &ClipArea,
+    boundary_runs: (Vec<Path>, Vec<Path>),
+    eps: f64,
+    opts: &PlanOptions,
+) -> Vec<Contour> {
+    let m = pre.m;
+    let parallel = pre.method == SubdivisionMethod::Parallel;
+    let (mut hole_runs, mut outer_runs) = boundary_runs;
+    (1..=m + 1)
+        .map(|j| Contour {
+            j,
+            d: contour_distance(j, m),
+            composition: compositions[(j - 1) as usize].clone(),
+            roads: if j == m + 1 && !parallel {
+                std::mem::take(&mut outer_runs)
+            } else if j == 1 && pre.inner_is_boundary && !parallel {
+                std::mem::take(&mut hole_runs)
+            } else {
+                printable(
+                    pre.levels[(j - 1) as usize].roads(
+                        interior_area,
+                        parallel && (j == 1 || j == m + 1),
+                        eps,
+                    ),
+                    opts,
+                )
+            },
+        })
+        .collect()
+}
+
+/// Step 4: the EDO fill of every sub-region S(n,n+1) between the contour levels of a
+/// region.
+struct SubRegionFill<'a> {
+    /// The levels, their boundary offsets applied (step 2).
+    pre: &'a PreSubdivision,
+    /// Each level as shapes.
+    level_shapes: Vec<Shapes>,
+    /// The boundary index of each level, built when first needed: the contour one
+    /// sub-region's offsets face is the one the next (or previous) starts them from.
+    level_indices: Vec<std::cell::OnceCell<SegmentIndex>>,
+    interior: &'a Shapes,
+    contours: &'a [Contour],
+    compositions: &'a [Composition],
+    opts: &'a PlanOptions,
+    eps: f64,
+}
+
+impl SubRegionFill<'_> {
+    /// The crown's core (crown pattern), then S(1,2)..S(m,m+1), leaving out those with
+    /// no area.
+    fn sub_regions(&self) -> Vec<SubRegion> {
+        let m = self.pre.m;
+        let mut sub_regions = Vec::with_capacity(m as usize + 1);
+        if self.pre.method == SubdivisionMethod::Offset {
+            if let Some(core) = crown_core(
+                &self.level_shapes[0],
+                self.interior,
+                &self.compositions[0],
+                self.opts,
+                self.eps,
+            ) {
+                sub_regions.push(core);
+            }
+        }
+        sub_regions.extend((1..=m).filter_map(|n| self.sub_region(n)));
+        sub_regions
+    }
+
+    fn level_index(&self, j: u32) -> &SegmentIndex {
+        self.level_indices[j as usize]
+            .get_or_init(|| shapes::boundary_index(&self.level_shapes[j as usize]))
+    }
+
+    /// S(n,n+1): D_max, N_max (eq (5)), the composition the offsets count from and W
+    /// (eq (6), (7)), and the N_max − 1 equal distance offsets. `None` where the
+    /// sub-region has no area.
+    fn sub_region(&self, n: u32) -> Option<SubRegion> {
+        let opts = self.opts;
+        let s = self.sub_region_shape(n);
+        let area = shapes::area(&s);
+        if area <= opts.tolerances.min_loop_area_mm2 {
+            return None;
+        }
+        let d_max_mm = self.d_max_mm(n);
+        let n_max = offset_count(d_max_mm, opts.nozzle_mm);
+        let (m_n, m_n1) = (
+            &self.compositions[(n - 1) as usize],
+            &self.compositions[n as usize],
+        );
+        let from = match opts.direction {
+            OffsetDirection::Inward => m_n1.clone(),
+            OffsetDirection::Outward => m_n.clone(),
+        };
+        let w = if n_max >= 2 {
+            step_width(opts.direction, n_max, m_n, m_n1)
+        } else {
+            step_width(opts.direction, 2, m_n, m_n)
+        };
+        let offsets = self.equal_distance_offsets(n, &s, d_max_mm, n_max);
+        Some(SubRegion {
+            n,
+            d_max_mm,
+            n_max,
+            direction: opts.direction,
+            from,
+            w,
+            offsets,
+            area_mm2: area,
+            shape: s,
+        })
+    }
+
+    /// S(n,n+1) = A_n+1 less A_n. Growth-ring levels nest between the offset
+    /// boundaries, so their difference already lies in the interior; crown and fiber
+    /// levels are cut to it.
+    fn sub_region_shape(&self, n: u32) -> Shapes {
+        let (m, chord) = (self.pre.m, self.opts.tolerances.chord_mm);
+        let (lower_shape, upper_shape) = (
+            &self.level_shapes[(n - 1) as usize],
+            &self.level_shapes[n as usize],
+        );
+        match self.pre.method {
+            SubdivisionMethod::Radial | SubdivisionMethod::Distance => {
+                // Two contour levels of the subdivision (neither boundary offset) are
+                // nested and at least about L_short / m apart: far enough apart
+                // (beyond what sampling or simplifying each by the contour deviation
+                // moves them), their difference is their loops, without the overlay.
+                // Next to a boundary offset (n = 1 or m), whose arcs and the level's
+                // simplification are not so far apart, the same holds where no edge of
+                // the lower level comes within a chord tolerance of the upper one.
+                let apart = || {
+                    let upper_index = self.level_index(n);
+                    shapes::loops(lower_shape).all(|l| upper_index.clear_of_loop(l, chord))
+                };
+                let nested = !lower_shape.is_empty()
+                    && if n >= 2 && n < m {
+                        self.pre.l_short_mm / m as f64
+                            > NESTED_GAP_DEVIATIONS * self.opts.contour_deviation_mm()
+                    } else {
+                        apart()
+                    };
+                nested
+                    .then(|| shapes::nested_difference(upper_shape, lower_shape))
+                    .flatten()
+                    .unwrap_or_else(|| shapes::difference(upper_shape, lower_shape))
+            }
+            SubdivisionMethod::Offset | SubdivisionMethod::Parallel => {
+                shapes::intersection(&shapes::difference(upper_shape, lower_shape), self.interior)
+            }
+        }
+    }
+
+    /// D_max of S(n,n+1): the largest distance between C_n and C_n+1 along the
+    /// gradient.
+    fn d_max_mm(&self, n: u32) -> f64 {
+        let (lower, upper) = (
+            &self.pre.levels[(n - 1) as usize],
+            &self.pre.levels[n as usize],
+        );
+        match (lower, upper) {
+            // Parallel lines: the gap between them, as far as the part reaches (where
+            // the boundary-offset C_m+1 or C1 misses the interior near a corner, the
+            // material up to the interior's edge is still to be filled).
+            (
+                Level::HalfPlane {
+                    s: s_lower, normal, ..
+                },
+                Level::HalfPlane { s: s_upper, .. },
+            ) => {
+                let (lo, hi) = shapes::loops(self.interior)
+                    .flat_map(|l| l.iter())
+                    .map(|p| normal.dot(*p))
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+                        (a.min(x), b.max(x))
+                    });
+                (s_upper.min(hi) - s_lower.max(lo)).max(0.0)
+            }
+            _ => gap_along_gradient(
+                &self.contours[n as usize].roads,
+                self.pre.centre,
+                self.level_index(n - 1),
+                self.opts,
+            ),
+        }
+    }
+
+    /// The equal distance offsets i = 1..N_max − 1 of S(n,n+1) (eq (6)), from the
+    /// contour the direction starts them at, each one step of D_max / N_max from the
+    /// previous: eroding (or dilating) by r1 then r2 is eroding by r1 + r2, and small
+    /// steps keep the outline cheap where a contour has many vertices. They stop
+    /// `offset_end_clearance_mm` short of the contour they run towards (C_n inward,
+    /// C_n+1 outward).
+    fn equal_distance_offsets(
+        &self,
+        n: u32,
+        s: &Shapes,
+        d_max_mm: f64,
+        n_max: u32,
+    ) -> Vec<Vec<Path>> {
+        let (opts, tol) = (self.opts, &self.opts.tolerances);
+        let (lower, upper) = (
+            &self.pre.levels[(n - 1) as usize],
+            &self.pre.levels[n as usize],
+        );
+        let (lower_shape, upper_shape) = (
+            &self.level_shapes[(n - 1) as usize],
+            &self.level_shapes[n as usize],
+        );
+        let (facing_j, start_j) = match opts.direction {
+            OffsetDirection::Inward => (n - 1, n),
+            OffsetDirection::Outward => (n, n - 1),
+        };
+        let facing_index = self.level_index(facing_j);
+        let step = d_max_mm / n_max.max(1) as f64;
+        // Growth-ring offsets of one bounding contour already lie on the sub-region's
+        // side of it, so only the other contour can cut them: clip against that
+        // contour's area alone (half the edges of the sub-region).
+        let growth = matches!(
+            self.pre.method,
+            SubdivisionMethod::Radial | SubdivisionMethod::Distance
+        );
+        let clearance = opts.offset_end_clearance_mm;
+        // Trimmed to the clearance, a growth-ring offset's pieces each lie wholly on one
+        // side of the facing contour: trim the whole offset and keep the pieces on the
+        // sub-region's side, which is the clip then the trim without the clipper.
+        let trim_only = growth && clearance > 0.0;
+        let cut = OffsetCut {
+            clip_area: (!trim_only).then(|| match (growth, opts.direction) {
+                (true, OffsetDirection::Inward) => {
+                    ClipArea::outside(lower_shape, tol.clip_margin_mm)
+                }
+                (true, OffsetDirection::Outward) => {
+                    ClipArea::inside(upper_shape, tol.clip_margin_mm)
+                }
+                _ => ClipArea::inside(s, tol.clip_margin_mm),
+            }),
+            facing_index,
+            clearance,
+            keep_inside_facing: opts.direction == OffsetDirection::Outward,
+            eps: self.eps,
+        };
+        let mut level = match opts.direction {
+            OffsetDirection::Inward => upper.clone(),
+            OffsetDirection::Outward => lower.clone(),
+        };
+        let mut offsets = Vec::new();
+        for i in 1..n_max {
+            // The first offset starts from a contour level, whose index is at hand.
+            let index = (i == 1).then(|| self.level_index(start_j));
+            level = match (opts.direction, lower.is_empty(), self.pre.centre) {
+                (OffsetDirection::Inward, _, _) => level.offset(-step, tol.chord_mm, index),
+                (OffsetDirection::Outward, true, Some(c)) => {
+                    Level::Shapes(vec![vec![shapes::circle(c, i as f64 * step, tol.chord_mm)]])
+                }
+                (OffsetDirection::Outward, _, _) => level.offset(step, tol.chord_mm, index),
+            };
+            if level.is_empty() {
+                break;
+            }
+            offsets.push(printable(cut.roads(&level), opts));
+        }
+        offsets
+    }
+}
+
+/// How the equal distance offsets of one sub-region are cut to it.
+struct OffsetCut<'a> {
+    /// The area the offsets are clipped to; `None`: the whole offset is trimmed to the
+    /// clearance and the pieces on the sub-region's side of the facing contour kept.
+    clip_area: Option<ClipArea<'a>>,
+    /// The contour the offsets run towards.
+    facing_index: &'a SegmentIndex,
+    /// How far short of the facing contour they stop, mm.
+    clearance: f64,
+    /// Is the sub-region's side of the facing contour its inside (outward offsets)?
+    keep_inside_facing: bool,
+    eps: f64,
+}
+
+impl OffsetCut<'_> {
+    /// The roads of one offset level within the sub-region.
+    fn roads(&self, level: &Level) -> Vec<Path> {
+        match &self.clip_area {
+            None => {
+                let owned;
+                let offset_shapes = match level {
+                    Level::Shapes(s) => s,
+                    _ => {
+                        owned = level.to_shapes();
+                        &owned
+                    }
+                };
+                let whole = shapes::loops(offset_shapes)
+                    .map(|l| Path {
+                        points: l.clone(),
+                        closed: true,
+                    })
+                    .collect();
+                let mut kept = shapes::keep_clear_of(whole, self.facing_index, self.clearance);
+                kept.retain(|p| {
+                    p.points.get(p.points.len() / 2).is_some_and(|q| {
+                        self.facing_index.inside_odd(*q) == self.keep_inside_facing
+                    })
+                });
+                kept
+            }
+            Some(area) if self.clearance > 0.0 => shapes::keep_clear_of(
+                level.roads(area, false, self.eps),
+                self.facing_index,
+                self.clearance,
+            ),
+            Some(area) => level.roads(area, false, self.eps),
+        }
+    }
+}
+
 /// The share of the contour deviation that the straight pieces of a traced level set
 /// may stray where crossings are left out of it (see
 /// [`field::DistanceField::level_sets`]); the simplification takes the rest.
@@ -793,6 +1005,25 @@ const LEVEL_SPARSE_SHARE: f64 = 0.5;
 /// for [`plan_region`] to take their difference as nested loops: each may stray that
 /// far from its exact level set.
 const NESTED_GAP_DEVIATIONS: f64 = 4.0;
+
+/// How far the fractions `from + i · W` of a sub-region's compact form may sum from 1
+/// (the rounding of i steps of W); beyond it [`SubRegion::composition_of`] gives `from`.
+const COMPACT_COMPOSITION_SUM: f64 = 1e-6;
+
+/// The reach within which [`split_boundary_runs`] looks for each boundary: the boundary
+/// offset, relatively this much more ...
+const RUN_REACH_SLACK: f64 = 1e-6;
+/// ... and this much more again, mm, so the boundary the interior was offset from is
+/// within reach despite the offset's rounding.
+const RUN_REACH_SLACK_MM: f64 = 1e-9;
+
+/// D_max samples a road in pieces at most a nozzle long; with a nozzle under this, mm,
+/// in pieces at most this long.
+const MIN_D_MAX_SAMPLE_MM: f64 = 1e-3;
+
+/// Most concentric offsets of a crown's core (a guard: the offsets end when the core is
+/// used up, after its width over the nozzle).
+const MAX_CORE_OFFSETS: usize = 100_000;
 
 /// Split the loops of the interior (the region shrunk by the boundary offset) into
 /// runs nearer a hole and runs nearer the outer loop. A loop wholly on one side stays
@@ -819,7 +1050,7 @@ fn split_boundary_runs(
         // `dist(p, outer) <= dist(p, holes)`, measuring first the boundary the previous
         // vertex was nearer: the far one needs measuring only if it comes within that.
         let mut last = true;
-        let reach = offset_mm.abs() * (1.0 + 1e-6) + 1e-9;
+        let reach = offset_mm.abs() * (1.0 + RUN_REACH_SLACK) + RUN_REACH_SLACK_MM;
         let near_outer: Vec<bool> = l
             .iter()
             .map(|&p| {
@@ -980,7 +1211,7 @@ fn gap_along_gradient(
     index: &SegmentIndex,
     opts: &PlanOptions,
 ) -> f64 {
-    let step = opts.nozzle_mm.max(1e-3);
+    let step = opts.nozzle_mm.max(MIN_D_MAX_SAMPLE_MM);
     let mut best: f64 = 0.0;
     // The segment that last answered: the next sample, a piece further on, mostly has
     // it within `best` too.
@@ -1015,100 +1246,141 @@ fn gap_along_gradient(
     best
 }
 
+/// Growth rings (§3.1): the paper's radial lines and splines where the subdivision
+/// allows them and they apply, else iso-contours of the normalised distance (unless
+/// `subdivision = "radial"`, which refuses the region instead).
 fn growth_rings(
     region: &Region,
     island: usize,
     opts: &PlanOptions,
 ) -> Result<PreSubdivision, PlanError> {
-    let holes_shape = shapes::from_loops(&region.holes);
-    let outer_shape = shapes::from_loops(std::slice::from_ref(&region.outer));
-    let pole = || {
-        field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes)
-            .pole()
-            .map(|(p, _)| p)
-    };
-    // Radial first, where asked or allowed.
     if opts.subdivision != Subdivision::Distance {
-        let radial_err = match radial::RadialSubdivision::new(
-            &region.outer,
-            &region.holes,
-            if region.holes.is_empty() {
-                pole()
-            } else {
-                None
-            },
-            opts.radial_lines,
-        ) {
-            Ok(rs0) => {
-                let m = resolved_m(rs0.l_short_mm, island, opts)?;
-                let mut lines = rs0.lines;
-                let mut rs = rs0;
-                let mut result = None;
-                for _ in 0..3 {
-                    match rs.contours(m, &region.outer, &region.holes, opts.contour_deviation_mm())
-                    {
-                        Ok(cs) => {
-                            result = Some(cs);
-                            break;
-                        }
-                        Err(_) => {
-                            lines *= 2;
-                            match radial::RadialSubdivision::new(
-                                &region.outer,
-                                &region.holes,
-                                Some(rs.centre),
-                                lines,
-                            ) {
-                                Ok(r) => rs = r,
-                                Err(_) => break,
-                            }
-                        }
-                    }
-                }
-                match result {
-                    Some(cs) => {
-                        let mut levels = vec![Level::Shapes(holes_shape)];
-                        levels.extend(
-                            cs.into_iter()
-                                .map(|c| Level::Shapes(shapes::from_loops(&[c]))),
-                        );
-                        levels.push(Level::Shapes(outer_shape));
-                        return Ok(PreSubdivision {
-                            method: SubdivisionMethod::Radial,
-                            m,
-                            l_short_mm: rs.l_short_mm,
-                            centre: Some(rs.centre),
-                            levels,
-                            inner_is_boundary: !region.holes.is_empty(),
-                        });
-                    }
-                    None => PlanError::RadialCross { island, lines },
-                }
-            }
-            Err(radial::RadialFailure::SeveralHoles(holes)) => {
-                PlanError::SeveralHoles { island, holes }
-            }
-            Err(radial::RadialFailure::NotStarShaped { centre }) => PlanError::NotStarShaped {
+        match radial_rings(region, island, opts)? {
+            Ok(pre) => return Ok(pre),
+            Err(radial_err) if opts.subdivision == Subdivision::Radial => return Err(radial_err),
+            Err(_) => {}
+        }
+    }
+    distance_rings(region, island, opts)
+}
+
+/// The centre growth rings grow from in a region with no hole: the pole of
+/// inaccessibility of its outer loop.
+fn ring_centre(region: &Region, opts: &PlanOptions) -> Option<DVec2> {
+    field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes)
+        .pole()
+        .map(|(p, _)| p)
+}
+
+/// A_1 (the holes), the levels of the inner contours C2..Cm, and A_m+1 (the area
+/// inside Ce).
+fn ring_levels(region: &Region, inner: impl IntoIterator<Item = Shapes>) -> Vec<Level> {
+    let mut levels = vec![Level::Shapes(shapes::from_loops(&region.holes))];
+    levels.extend(inner.into_iter().map(Level::Shapes));
+    levels.push(Level::Shapes(shapes::from_loops(std::slice::from_ref(
+        &region.outer,
+    ))));
+    levels
+}
+
+/// Growth rings by radial lines from the centre of Ci at equal angular division, each
+/// divided into m segments, and splines through the division points (§3.1, eq (1)).
+/// `Ok(Err(why))` where the method does not apply to the region (the distance method
+/// may); `Err` where the region cannot be planned at all.
+fn radial_rings(
+    region: &Region,
+    island: usize,
+    opts: &PlanOptions,
+) -> Result<Result<PreSubdivision, PlanError>, PlanError> {
+    let centre = if region.holes.is_empty() {
+        ring_centre(region, opts)
+    } else {
+        None
+    };
+    let first = match radial::RadialSubdivision::new(
+        &region.outer,
+        &region.holes,
+        centre,
+        opts.radial_lines,
+    ) {
+        Ok(rs) => rs,
+        Err(radial::RadialFailure::SeveralHoles(holes)) => {
+            return Ok(Err(PlanError::SeveralHoles { island, holes }))
+        }
+        Err(radial::RadialFailure::NotStarShaped { centre }) => {
+            return Ok(Err(PlanError::NotStarShaped {
                 island,
                 x: centre.x,
                 y: centre.y,
-            },
-            Err(radial::RadialFailure::ContoursCross) => PlanError::RadialCross {
+            }))
+        }
+        Err(radial::RadialFailure::ContoursCross) => {
+            return Ok(Err(PlanError::RadialCross {
                 island,
                 lines: opts.radial_lines,
-            },
-        };
-        if opts.subdivision == Subdivision::Radial {
-            return Err(radial_err);
+            }))
+        }
+    };
+    let m = resolved_m(first.l_short_mm, island, opts)?;
+    Ok(match radial_splines(first, m, region, opts) {
+        Ok((rs, splines)) => Ok(PreSubdivision {
+            method: SubdivisionMethod::Radial,
+            m,
+            l_short_mm: rs.l_short_mm,
+            centre: Some(rs.centre),
+            levels: ring_levels(
+                region,
+                splines.into_iter().map(|c| shapes::from_loops(&[c])),
+            ),
+            inner_is_boundary: !region.holes.is_empty(),
+        }),
+        Err(lines) => Err(PlanError::RadialCross { island, lines }),
+    })
+}
+
+/// The spline contours C2..Cm of a radial subdivision, with the radial lines doubled
+/// (up to twice) while the splines cross a boundary or each other; with the
+/// subdivision they came from. `Err(lines)`: they still cross with `lines` radial
+/// lines.
+fn radial_splines(
+    first: radial::RadialSubdivision,
+    m: u32,
+    region: &Region,
+    opts: &PlanOptions,
+) -> Result<(radial::RadialSubdivision, Vec<Vec<DVec2>>), usize> {
+    let mut lines = first.lines;
+    let mut rs = first;
+    for _ in 0..3 {
+        match rs.contours(m, &region.outer, &region.holes, opts.contour_deviation_mm()) {
+            Ok(cs) => return Ok((rs, cs)),
+            Err(_) => {
+                lines *= 2;
+                match radial::RadialSubdivision::new(
+                    &region.outer,
+                    &region.holes,
+                    Some(rs.centre),
+                    lines,
+                ) {
+                    Ok(r) => rs = r,
+                    Err(_) => break,
+                }
+            }
         }
     }
-    // The general method: iso-contours of the normalised distance. Without a hole the
-    // rings grow from the pole of inaccessibility; with holes L_short is the thinnest
-    // wall, read off the same distance field.
+    Err(lines)
+}
+
+/// Growth rings by the general method: iso-contours of the normalised distance
+/// dist(p, Ci) / (dist(p, Ci) + dist(p, Ce)). Without a hole the rings grow from the
+/// pole of inaccessibility; with holes L_short is the thinnest wall, read off the same
+/// distance field.
+fn distance_rings(
+    region: &Region,
+    island: usize,
+    opts: &PlanOptions,
+) -> Result<PreSubdivision, PlanError> {
     let centre = if region.holes.is_empty() {
-        field::DistanceField::outer_only(region, opts.cell_mm(), opts.max_field_nodes)
-            .pole()
-            .map(|(p, _)| p)
+        ring_centre(region, opts)
     } else {
         None
     };
@@ -1118,26 +1390,23 @@ fn growth_rings(
         None => f.thinnest_wall().unwrap_or(0.0),
     };
     let m = resolved_m(l_short_mm, island, opts)?;
-    let mut levels = vec![Level::Shapes(holes_shape)];
     let deviation = opts.contour_deviation_mm();
-    levels.extend(
-        f.level_sets(m, deviation * LEVEL_SPARSE_SHARE)
-            .into_iter()
-            .map(|loops| {
-                let loops: Vec<Vec<DVec2>> = loops
-                    .iter()
-                    .map(|l| crate::geom::simplify_loop(l, deviation))
-                    .collect();
-                Level::Shapes(shapes::from_loops(&loops))
-            }),
-    );
-    levels.push(Level::Shapes(outer_shape));
+    let level_sets = f
+        .level_sets(m, deviation * LEVEL_SPARSE_SHARE)
+        .into_iter()
+        .map(|loops| {
+            let loops: Vec<Vec<DVec2>> = loops
+                .iter()
+                .map(|l| crate::geom::simplify_loop(l, deviation))
+                .collect();
+            shapes::from_loops(&loops)
+        });
     Ok(PreSubdivision {
         method: SubdivisionMethod::Distance,
         m,
         l_short_mm,
         centre,
-        levels,
+        levels: ring_levels(region, level_sets),
         inner_is_boundary: !region.holes.is_empty(),
     })
 }
@@ -1197,7 +1466,7 @@ fn crown_core(
         offsets.push(walls);
     }
     let mut level = core.clone();
-    for _ in 0..100_000 {
+    for _ in 0..MAX_CORE_OFFSETS {
         level = shapes::offset(&level, -opts.nozzle_mm, chord);
         if level.is_empty() {
             break;

@@ -108,6 +108,7 @@ fn check(options: &SliceOptions, height: f64) -> Result<(), SliceError> {
     Ok(())
 }
 
+/// The layer stack of `mesh` between `z0` and `z1` (steps 1–3 of the module's doc).
 pub(super) fn layer_spans(
     mesh: &Mesh,
     (z0, z1): (f64, f64),
@@ -120,50 +121,11 @@ pub(super) fn layer_spans(
     let adaptive = max > min;
 
     // Step 1.
-    let res = (min / BINS_PER_MIN_LAYER).max(height / MAX_BINS);
-    let nbins = if adaptive {
-        (height / res).ceil() as usize + 1
-    } else {
-        0
-    };
-    let mut bin_limit = vec![f64::INFINITY; nbins];
-    let mut flats: Vec<f64> = Vec::new();
-    if adaptive {
-        for t in 0..mesh.triangles.len() {
-            let [a, b, c] = mesh.corners(t);
-            let n = (b - a).cross(c - a);
-            let len = n.length();
-            if len <= 0.0 {
-                continue;
-            }
-            let lo = a.z.min(b.z).min(c.z);
-            let hi = a.z.max(b.z).max(c.z);
-            if hi - lo <= eps {
-                flats.push(lo);
-                continue;
-            }
-            let cos = (n.z / len).abs().min(1.0);
-            let sin = (1.0 - cos * cos).sqrt();
-            let limit = options
-                .criterion
-                .max_thickness_mm(options.cusp_mm, cos, sin);
-            if limit >= max {
-                continue;
-            }
-            let b0 = (((lo - z0) / res).floor().max(0.0) as usize).min(nbins - 1);
-            let b1 = (((hi - z0) / res).ceil() as usize).clamp(b0 + 1, nbins);
-            for l in &mut bin_limit[b0..b1] {
-                *l = l.min(limit);
-            }
-        }
-        flats.sort_by(f64::total_cmp);
-        flats.dedup_by(|a, b| (*a - *b).abs() <= eps);
-    }
+    let mut slopes = SlopeLimits::new(mesh, z0, height, adaptive, options);
 
     // Step 2.
     let mut spans = Vec::new();
     let mut z = z0;
-    let mut next_flat = 0;
     while z1 - z > eps {
         let mut h = max;
         if let Some(limit) = options.max_thickness_at {
@@ -174,43 +136,12 @@ pub(super) fn layer_spans(
         }
         h = h.max(min);
         if adaptive && h > min {
-            let mut b = ((z - z0) / res).floor().max(0.0) as usize;
-            while b < nbins {
-                let start = z0 + b as f64 * res;
-                if start >= z + h {
-                    break;
-                }
-                let lim = bin_limit[b];
-                if lim < h {
-                    let d = start - z;
-                    h = if d > eps && lim < d { d } else { lim };
-                }
-                b += 1;
-            }
-            h = h.max(min);
-            while next_flat < flats.len() && flats[next_flat] <= z + eps {
-                next_flat += 1;
-            }
-            if let Some(&f) = flats.get(next_flat) {
-                if f < z + h - eps && f - z >= min {
-                    h = f - z;
-                }
-            }
+            h = slopes.thickness_from(z, h, min, eps);
         }
         // Step 3.
-        let remaining = z1 - z;
-        if remaining <= h + eps {
-            if remaining < min {
-                if remaining < 0.5 * min && !spans.is_empty() {
-                    break;
-                }
-                h = min;
-            } else {
-                h = remaining;
-            }
-        } else if adaptive && remaining - h < min {
-            h = (remaining - min).max(min);
-        }
+        let Some(h) = fitted_to_top(z1 - z, h, min, eps, adaptive, spans.is_empty()) else {
+            break;
+        };
         spans.push(LayerSpan {
             z_bottom_mm: z,
             thickness_mm: h,
@@ -218,4 +149,139 @@ pub(super) fn layer_spans(
         z += h;
     }
     Ok(spans)
+}
+
+/// Step 1: the thickest layer the surface's slope allows in every bin of a fine z grid,
+/// and the heights of horizontal facets.
+struct SlopeLimits {
+    /// Bottom of the grid, mm.
+    z0: f64,
+    /// Bin height, mm.
+    res: f64,
+    /// Thickest layer allowed over each bin, mm (infinite: unlimited).
+    bin_limit: Vec<f64>,
+    /// Heights of horizontal facets, ascending, one per `z_eps_mm`.
+    flats: Vec<f64>,
+    /// The first flat above the layers walked so far.
+    next_flat: usize,
+}
+
+impl SlopeLimits {
+    /// Every sloped triangle's limit written into the bins it spans as a running
+    /// minimum; horizontal triangles collected as flats. Empty unless `adaptive`.
+    fn new(
+        mesh: &Mesh,
+        z0: f64,
+        height: f64,
+        adaptive: bool,
+        options: &SliceOptions,
+    ) -> SlopeLimits {
+        let (min, max) = (options.layer_min_mm, options.layer_max_mm);
+        let eps = options.tolerances.z_eps_mm;
+        let res = (min / BINS_PER_MIN_LAYER).max(height / MAX_BINS);
+        let nbins = if adaptive {
+            (height / res).ceil() as usize + 1
+        } else {
+            0
+        };
+        let mut bin_limit = vec![f64::INFINITY; nbins];
+        let mut flats: Vec<f64> = Vec::new();
+        if adaptive {
+            for t in 0..mesh.triangles.len() {
+                let [a, b, c] = mesh.corners(t);
+                let n = (b - a).cross(c - a);
+                let len = n.length();
+                if len <= 0.0 {
+                    continue;
+                }
+                let lo = a.z.min(b.z).min(c.z);
+                let hi = a.z.max(b.z).max(c.z);
+                if hi - lo <= eps {
+                    flats.push(lo);
+                    continue;
+                }
+                let cos = (n.z / len).abs().min(1.0);
+                let sin = (1.0 - cos * cos).sqrt();
+                let limit = options
+                    .criterion
+                    .max_thickness_mm(options.cusp_mm, cos, sin);
+                if limit >= max {
+                    continue;
+                }
+                let b0 = (((lo - z0) / res).floor().max(0.0) as usize).min(nbins - 1);
+                let b1 = (((hi - z0) / res).ceil() as usize).clamp(b0 + 1, nbins);
+                for l in &mut bin_limit[b0..b1] {
+                    *l = l.min(limit);
+                }
+            }
+            flats.sort_by(f64::total_cmp);
+            flats.dedup_by(|a, b| (*a - *b).abs() <= eps);
+        }
+        SlopeLimits {
+            z0,
+            res,
+            bin_limit,
+            flats,
+            next_flat: 0,
+        }
+    }
+
+    /// Step 2: a layer from `z` of at most `h`, shrunk to the limit of every bin it
+    /// overlaps, or ended where a steeper surface begins; at least `min`; ended at a
+    /// horizontal facet at least `min` above `z`. Layers are asked for bottom-up.
+    fn thickness_from(&mut self, z: f64, mut h: f64, min: f64, eps: f64) -> f64 {
+        let (z0, res) = (self.z0, self.res);
+        let mut b = ((z - z0) / res).floor().max(0.0) as usize;
+        while b < self.bin_limit.len() {
+            let start = z0 + b as f64 * res;
+            if start >= z + h {
+                break;
+            }
+            let lim = self.bin_limit[b];
+            if lim < h {
+                let d = start - z;
+                h = if d > eps && lim < d { d } else { lim };
+            }
+            b += 1;
+        }
+        h = h.max(min);
+        let flats = &self.flats;
+        while self.next_flat < flats.len() && flats[self.next_flat] <= z + eps {
+            self.next_flat += 1;
+        }
+        if let Some(&f) = flats.get(self.next_flat) {
+            if f < z + h - eps && f - z >= min {
+                h = f - z;
+            }
+        }
+        h
+    }
+}
+
+/// Step 3: a layer of `h` with `remaining` mm of the part above its bottom. The last
+/// layer ends at the part's top; a last piece thinner than `min / 2` is dropped
+/// (`None`, unless it is the only layer) and a thicker one printed at `min`. An adaptive
+/// layer that would leave less than `min` above it leaves `min`.
+fn fitted_to_top(
+    remaining: f64,
+    h: f64,
+    min: f64,
+    eps: f64,
+    adaptive: bool,
+    first: bool,
+) -> Option<f64> {
+    if remaining <= h + eps {
+        if remaining < min {
+            if remaining < 0.5 * min && !first {
+                return None;
+            }
+            Some(min)
+        } else {
+            Some(remaining)
+        }
+    } else if adaptive && remaining - h < min {
+        Some((remaining - min).max(min))
+    } else {
+        Some(h)
+    }
 }
