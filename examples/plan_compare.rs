@@ -14,7 +14,7 @@
 //!   is the distance to the level set where the wall's two sides face each other.
 
 use edo::geom::SegmentIndex;
-use edo::plan::shapes::Path as RoadPath;
+use edo::geom::Path as RoadPath;
 use edo::plan::{plan_layers, plan_region, LayerPlan, PlanOptions, RegionPlan};
 use glam::DVec2;
 use std::path::Path;

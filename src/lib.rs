@@ -45,6 +45,7 @@ pub mod material;
 pub mod mesh;
 pub mod pipeline;
 pub mod plan;
+pub mod proto;
 pub mod report;
 pub mod slice;
 pub mod svg;

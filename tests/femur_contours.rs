@@ -2,7 +2,7 @@
 //! (`config/examples/femur-graded.toml`), loaded as `edoctl plan` loads it: its contour
 //! roads are clean loops. Needs the `daemon` feature for the command line's job loader.
 
-use edo::plan::shapes::Path;
+use edo::geom::Path;
 use edo::plan::{plan_layers, SubdivisionMethod};
 use glam::DVec2;
 

@@ -6,6 +6,8 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand};
+use edo::cli::client::{self, Answer, Client};
+use edo::proto::{method, Job, JobIdParams, JobState, NoParams, SubmitParams};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -63,27 +65,27 @@ enum Commands {
     /// Follow a job with a progress bar (layer, moves, composition, ETA).
     Watch {
         /// Job id.
-        id: u64,
+        id: u32,
     },
     /// Hold a printing job at the next move boundary.
     Pause {
         /// Job id.
-        id: u64,
+        id: u32,
     },
     /// Continue a paused or interrupted job.
     Resume {
         /// Job id.
-        id: u64,
+        id: u32,
     },
     /// Cancel a job; a printing one stops, retracts and parks (this waits until it has).
     Cancel {
         /// Job id.
-        id: u64,
+        id: u32,
     },
     /// Delete a finished (done, failed or cancelled) job and its mesh from edod's store.
     Delete {
         /// Job id.
-        id: u64,
+        id: u32,
     },
     /// Emergency stop: goes out ahead of everything queued.
     Estop,
@@ -91,115 +93,131 @@ enum Commands {
     Refill,
 }
 
-fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
-    use edo::cli::client::{job_line, submit_params, watch, Client};
-    use serde_json::json;
-    let mut c = Client::connect(&cli.socket)?;
-    let print = |v: &serde_json::Value, human: String| {
-        if cli.json {
-            println!("{v}");
+/// How a daemon subcommand prints: the daemon's JSON (`--json`) or a line for people.
+struct Output {
+    json: bool,
+}
+
+impl Output {
+    fn print<T>(&self, answer: &Answer<T>, human: impl FnOnce(&T) -> String) {
+        if self.json {
+            println!("{}", answer.json);
         } else {
-            println!("{human}");
+            println!("{}", human(&answer.result));
         }
-    };
-    let ended_well = |j: &serde_json::Value| j["state"] == json!("done");
+    }
+}
+
+/// Success if the job ended done.
+fn ended_well(job: &Job) -> ExitCode {
+    if job.state == JobState::Done {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    }
+}
+
+fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
+    let mut c = Client::connect(&cli.socket)?;
+    let out = Output { json: cli.json };
+    let c = &mut c;
     match &cli.command {
         Commands::Submit {
             job,
             dry_run_moves,
-            watch: w,
-        } => {
-            let params = match (job, dry_run_moves) {
-                (Some(job), _) => submit_params(job)?,
-                (None, n) => json!({"dry_run_moves": n}),
-            };
-            let r = c.call("job.submit", params)?;
-            let id = r["id"].as_u64().unwrap_or(0);
-            if *w {
-                let j = watch(&mut c, id, cli.json)?;
-                print(&j, job_line(&j));
-                return Ok(if ended_well(&j) {
-                    ExitCode::SUCCESS
-                } else {
-                    ExitCode::FAILURE
-                });
-            }
-            print(&r, format!("job {id} queued"));
-        }
-        Commands::Jobs => {
-            let r = c.call("job.list", json!({}))?;
-            let lines: Vec<String> = r
-                .as_array()
-                .map(|a| a.iter().map(job_line).collect())
-                .unwrap_or_default();
-            print(&r, lines.join("\n"));
-        }
-        Commands::Status => {
-            let m = c.call("machine.status", json!({}))?;
-            let mut human = format!(
-                "machine on {}: {}, {}",
-                m["port"].as_str().unwrap_or("?"),
-                if m["connected"] == json!(true) {
-                    "connected"
-                } else {
-                    "not connected"
-                },
-                m["state"].as_str().unwrap_or("unknown state")
-            );
-            if let Some(p) = m.get("progress").filter(|p| p.is_object()) {
-                human.push_str(&format!("\n{}", edo::cli::client::progress_line(p)));
-            }
-            print(&m, human);
-        }
+            watch,
+        } => return submit(c, &out, job.as_deref(), *dry_run_moves, *watch),
+        Commands::Jobs => out.print(&c.request::<method::JobList>(&NoParams {})?, |jobs| {
+            let lines: Vec<String> = jobs.iter().map(client::job_line).collect();
+            lines.join("\n")
+        }),
+        Commands::Status => status(c, &out)?,
         Commands::Watch { id } => {
-            let j = watch(&mut c, *id, cli.json)?;
-            print(&j, job_line(&j));
-            return Ok(if ended_well(&j) {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::FAILURE
-            });
+            let j = client::watch(c, *id, cli.json)?;
+            out.print(&j, client::job_line);
+            return Ok(ended_well(&j.result));
         }
-        Commands::Pause { id } => {
-            let r = c.call("job.pause", json!({"id": id}))?;
-            print(&r, format!("job {id} paused"));
-        }
-        Commands::Resume { id } => {
-            let r = c.call("job.resume", json!({"id": id}))?;
-            print(&r, format!("job {id} resumed"));
-        }
+        Commands::Pause { id } => out.print(
+            &c.request::<method::JobPause>(&JobIdParams { id: *id })?,
+            |_| format!("job {id} paused"),
+        ),
+        Commands::Resume { id } => out.print(
+            &c.request::<method::JobResume>(&JobIdParams { id: *id })?,
+            |_| format!("job {id} resumed"),
+        ),
         Commands::Cancel { id } => {
-            let j = edo::cli::client::cancel(&mut c, *id, edo::cli::client::CANCEL_WAIT)?;
-            print(&j, edo::cli::client::cancelled_line(&j));
-            if j["state"] != json!("cancelled") {
+            let j = client::cancel(c, *id, client::CANCEL_WAIT)?;
+            out.print(&j, client::cancelled_line);
+            if j.result.state != JobState::Cancelled {
                 // It ended some other way (done or failed) before the cancel took.
                 return Ok(ExitCode::FAILURE);
             }
         }
-        Commands::Delete { id } => {
-            let r = c.call("job.delete", json!({"id": id}))?;
-            print(&r, format!("job {id} deleted"));
-        }
-        Commands::Estop => {
-            let r = c.call("machine.estop", json!({}))?;
-            print(
-                &r,
-                format!(
-                    "e-stop sent after {} µs, acknowledged after {}",
-                    r["written_after_us"],
-                    r["acked_after_us"]
-                        .as_u64()
-                        .map_or("(no ack within 1 s)".to_string(), |a| format!("{a} µs"))
-                ),
-            );
-        }
-        Commands::Refill => {
-            let r = c.call("machine.refill", json!({}))?;
-            print(&r, "refill noted; the paused job continues".to_string());
-        }
+        Commands::Delete { id } => out.print(
+            &c.request::<method::JobDelete>(&JobIdParams { id: *id })?,
+            |_| format!("job {id} deleted"),
+        ),
+        Commands::Estop => out.print(&c.request::<method::MachineEstop>(&NoParams {})?, |r| {
+            let acked = r
+                .acked_after_us
+                .map_or("(no ack within 1 s)".to_string(), |a| format!("{a} µs"));
+            format!(
+                "e-stop sent after {} µs, acknowledged after {acked}",
+                r.written_after_us
+            )
+        }),
+        Commands::Refill => out.print(&c.request::<method::MachineRefill>(&NoParams {})?, |_| {
+            "refill noted; the paused job continues".to_string()
+        }),
         Commands::Plan(_) | Commands::LinkTest { .. } | Commands::Demo(_) => {}
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// `edoctl submit`: a job file or a dry run; with `--watch`, follow it to the end.
+fn submit(
+    c: &mut Client,
+    out: &Output,
+    job: Option<&std::path::Path>,
+    dry_run_moves: Option<u32>,
+    watch: bool,
+) -> anyhow::Result<ExitCode> {
+    let params = match (job, dry_run_moves) {
+        (Some(job), _) => client::submit_params(job)?,
+        (None, Some(n)) => SubmitParams::dry_run(n),
+        (None, None) => anyhow::bail!("give a job file or --dry-run-moves N"),
+    };
+    let r = c.request::<method::JobSubmit>(&params)?;
+    if watch {
+        let j = client::watch(c, r.result.id, out.json)?;
+        out.print(&j, client::job_line);
+        return Ok(ended_well(&j.result));
+    }
+    out.print(&r, |r| format!("job {} queued", r.id));
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `edoctl status`: the machine, and the active job's progress.
+fn status(c: &mut Client, out: &Output) -> anyhow::Result<()> {
+    let m = c.request::<method::MachineStatus>(&NoParams {})?;
+    out.print(&m, |m| {
+        let s = &m.machine;
+        let mut human = format!(
+            "machine on {}: {}, {}",
+            s.port,
+            if s.connected {
+                "connected"
+            } else {
+                "not connected"
+            },
+            s.state.map_or("unknown state", client::machine_state_name)
+        );
+        if let Some(p) = &m.progress {
+            human.push_str(&format!("\n{}", client::progress_line(p)));
+        }
+        human
+    });
+    Ok(())
 }
 
 fn link_test(port: PathBuf, moves: u32, baud: u32, json: bool) -> anyhow::Result<ExitCode> {

@@ -1,6 +1,7 @@
 //! edoctl's daemon subcommands (`submit`, `jobs`, `status`, `watch`, `pause`, `resume`,
 //! `cancel`, `delete`, `estop`, `refill`): a blocking JSON-RPC client of edod's socket
-//! (`docs/api.md`). Output is a short human line, or the daemon's JSON with `--json`.
+//! (`docs/api.md`) that reads each result into its type from [`crate::proto`]. Output is a
+//! short human line, or the daemon's JSON with `--json`.
 
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
@@ -8,7 +9,14 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use serde_json::{json, Value};
+use serde::Deserialize;
+use serde_json::Value;
+
+use crate::link::MachineState;
+use crate::proto::{
+    method, ApiError, Event, Id, Job, JobIdParams, JobState, JobStateChanged, Method, NoParams,
+    Notification, Progress, Request, Response, SubmitParams,
+};
 
 /// Default socket of an installed edod.
 pub const DEFAULT_SOCKET: &str = "/run/edo/edod.sock";
@@ -31,6 +39,33 @@ pub struct DaemonError {
     pub message: String,
 }
 
+impl From<ApiError> for DaemonError {
+    fn from(e: ApiError) -> DaemonError {
+        DaemonError {
+            code: e.code,
+            message: e.message,
+        }
+    }
+}
+
+/// A method's result read into its type, and as the daemon sent it (what `--json`
+/// prints, keys a newer daemon adds included).
+#[derive(Debug, Clone)]
+pub struct Answer<T> {
+    /// The result.
+    pub result: T,
+    /// The result's JSON.
+    pub json: Value,
+}
+
+/// A line from the daemon.
+enum Incoming {
+    /// The answer to a request.
+    Response(Response<Value>),
+    /// A notification (`None`: one edoctl does not know).
+    Notification(Option<Event>),
+}
+
 impl Client {
     /// Connect to `socket`.
     pub fn connect(socket: &Path) -> Result<Client> {
@@ -50,51 +85,75 @@ impl Client {
     }
 
     /// Next line from the daemon.
-    pub fn read_line(&mut self) -> Result<Value> {
+    fn read_incoming(&mut self) -> Result<Incoming> {
         let mut l = String::new();
         if self.reader.read_line(&mut l)? == 0 {
             bail!("edod at {} closed the connection", self.socket.display());
         }
-        serde_json::from_str(&l).with_context(|| format!("edod sent a line that is not JSON: {l}"))
+        let line = l.trim_end();
+        let v: Value = serde_json::from_str(line)
+            .with_context(|| format!("edod sent a line that is not JSON: {line}"))?;
+        if v.get("id").is_some() {
+            let r = Response::deserialize(&v).with_context(|| {
+                format!("edod sent a response that is not JSON-RPC 2.0: {line}")
+            })?;
+            return Ok(Incoming::Response(r));
+        }
+        let method = v.get("method").and_then(Value::as_str);
+        if !method.is_some_and(|m| Event::METHODS.contains(&m)) {
+            return Ok(Incoming::Notification(None));
+        }
+        let n = Notification::deserialize(&v).with_context(|| {
+            format!("edod sent a notification that is not what docs/api.md says: {line}")
+        })?;
+        Ok(Incoming::Notification(Some(n.event)))
     }
 
-    /// Call `method`; notifications arriving meanwhile go to `on_note`.
-    pub fn call_with(
-        &mut self,
-        method: &str,
-        params: Value,
-        on_note: &mut dyn FnMut(&Value),
-    ) -> Result<Value> {
-        let id = self.next_id;
-        self.next_id += 1;
-        let line = json!({"jsonrpc": "2.0", "id": id, "method": method, "params": params});
-        self.writer.write_all(format!("{line}\n").as_bytes())?;
+    /// The next notification edoctl knows (after `subscribe`), skipping other lines.
+    pub fn next_event(&mut self) -> Result<Event> {
         loop {
-            let v = self.read_line()?;
-            if v.get("id").is_none() {
-                on_note(&v);
-                continue;
+            if let Incoming::Notification(Some(e)) = self.read_incoming()? {
+                return Ok(e);
             }
-            if let Some(e) = v.get("error") {
-                return Err(DaemonError {
-                    code: e["code"].as_i64().unwrap_or(0),
-                    message: e["message"].as_str().unwrap_or("unknown error").to_string(),
-                }
-                .into());
-            }
-            return Ok(v["result"].clone());
         }
     }
 
-    /// Call `method`.
+    /// Call `method` with `params` as they are; the result as sent. Notifications
+    /// arriving meanwhile are skipped.
     pub fn call(&mut self, method: &str, params: Value) -> Result<Value> {
-        self.call_with(method, params, &mut |_| {})
+        let id = self.next_id;
+        self.next_id += 1;
+        let request = Request::new(Some(Id::from(id)), method, Some(params));
+        let line = serde_json::to_string(&request)?;
+        self.writer.write_all(format!("{line}\n").as_bytes())?;
+        loop {
+            if let Incoming::Response(r) = self.read_incoming()? {
+                return r.into_result().map_err(|e| DaemonError::from(e).into());
+            }
+        }
+    }
+
+    /// Call method `M`; its result read into its type.
+    pub fn request<M: Method>(&mut self, params: &M::Params) -> Result<Answer<M::Result>> {
+        let json = self.call(M::NAME, serde_json::to_value(params)?)?;
+        let result = M::Result::deserialize(&json).with_context(|| {
+            format!(
+                "edod's result of {} is not what docs/api.md says: {json}",
+                M::NAME
+            )
+        })?;
+        Ok(Answer { result, json })
+    }
+
+    /// `job.get`.
+    pub fn job(&mut self, id: u32) -> Result<Answer<Job>> {
+        self.request::<method::JobGet>(&JobIdParams { id })
     }
 }
 
 /// The params of `job.submit` for a job file: its text, and its mesh (`[geometry] mesh`,
 /// relative to the job file) as base64.
-pub fn submit_params(job: &Path) -> Result<Value> {
+pub fn submit_params(job: &Path) -> Result<SubmitParams> {
     let meta = std::fs::metadata(job)
         .with_context(|| format!("cannot read job file {}", job.display()))?;
     if meta.len() > super::plan::MAX_JOB_BYTES {
@@ -106,9 +165,9 @@ pub fn submit_params(job: &Path) -> Result<Value> {
     }
     let text = std::fs::read_to_string(job)
         .with_context(|| format!("cannot read job file {}", job.display()))?;
-    let mut params = json!({"job": text});
     let parsed: toml::Table =
         toml::from_str(&text).with_context(|| format!("{} is not TOML", job.display()))?;
+    let mut mesh_base64 = None;
     if let Some(mesh) = parsed
         .get("geometry")
         .and_then(|g| g.get("mesh"))
@@ -117,35 +176,42 @@ pub fn submit_params(job: &Path) -> Result<Value> {
         let path = job.parent().unwrap_or(Path::new(".")).join(mesh);
         let bytes =
             std::fs::read(&path).with_context(|| format!("cannot read mesh {}", path.display()))?;
-        params["mesh_base64"] = json!(crate::daemon::api::base64_encode(&bytes));
+        mesh_base64 = Some(crate::daemon::api::base64_encode(&bytes));
     }
-    Ok(params)
+    Ok(SubmitParams::file(text, mesh_base64))
 }
 
 /// One line about a job.
-pub fn job_line(j: &Value) -> String {
-    let total = j["total_moves"]
-        .as_u64()
-        .map_or("?".to_string(), |t| t.to_string());
-    // Numbers as strings: a JSON value's Display ignores width and alignment.
-    let number = |v: &Value| v.as_u64().map_or("?".to_string(), |n| n.to_string());
+pub fn job_line(j: &Job) -> String {
+    let total = j.total_moves.map_or("?".to_string(), |t| t.to_string());
     let mut s = format!(
         "{:>4}  {:<11}  {:>7}/{:<7}  {}",
-        number(&j["id"]),
-        j["state"].as_str().unwrap_or("?"),
-        number(&j["checkpoint"]["next_index"]),
+        j.id,
+        j.state.as_str(),
+        j.checkpoint.next_index,
         total,
-        j["name"].as_str().unwrap_or("")
+        j.name
     );
-    if let Some(r) = j["reason"].as_str() {
+    if let Some(r) = &j.reason {
         s.push_str(&format!("  ({r})"));
     }
     s
 }
 
+/// The machine's state as `machine.status` names it.
+pub fn machine_state_name(s: MachineState) -> &'static str {
+    match s {
+        MachineState::Idle => "Idle",
+        MachineState::Running => "Running",
+        MachineState::Held => "Held",
+        MachineState::EStopped => "EStopped",
+        MachineState::Faulted => "Faulted",
+    }
+}
+
 /// A layer number for people: layer `l` (0-based) of `count` is `l + 1` of them.
-fn layer_of(layer: Option<u64>, count: Option<u64>) -> Option<String> {
-    let l = layer? + 1;
+fn layer_of(layer: Option<u32>, count: Option<u32>) -> Option<String> {
+    let l = u64::from(layer?) + 1;
     Some(match count {
         Some(n) => format!("layer {l} of {n}"),
         None => format!("layer {l}"),
@@ -167,19 +233,18 @@ fn eta_text(s: f64) -> String {
 
 /// One line about the active job's progress (`machine.status` / `job.get` `progress`):
 /// moves executed (of how many, once every move is planned), layer of layers, ETA.
-pub fn progress_line(p: &Value) -> String {
-    let executed = p["executed"].as_u64().unwrap_or(0);
-    let mut s = match p["total"].as_u64() {
-        Some(t) => format!("job {}: {executed} of {t} moves executed", p["job_id"]),
-        None => format!(
-            "job {}: {executed} moves executed (total known once every layer is planned)",
-            p["job_id"]
-        ),
+pub fn progress_line(p: &Progress) -> String {
+    let (id, executed) = (p.job_id, p.executed);
+    let mut s = match p.total {
+        Some(t) => format!("job {id}: {executed} of {t} moves executed"),
+        None => {
+            format!("job {id}: {executed} moves executed (total known once every layer is planned)")
+        }
     };
-    if let Some(l) = layer_of(p["layer"].as_u64(), p["layers"].as_u64()) {
+    if let Some(l) = layer_of(p.layer, p.layers) {
         s.push_str(&format!(", {l}"));
     }
-    if let Some(e) = p["eta_s"].as_f64() {
+    if let Some(e) = p.eta_s {
         s.push_str(&format!(", about {} left", eta_text(e)));
     }
     s
@@ -191,194 +256,289 @@ pub const CANCEL_WAIT: Duration = Duration::from_secs(30);
 /// Cancel job `id` and wait (up to `wait`) until it is cancelled: a printing job stays
 /// `printing` while the machine stops, retracts and parks (about a second). Returns the
 /// job; an error if it has not ended by then.
-pub fn cancel(client: &mut Client, id: u64, wait: Duration) -> Result<Value> {
-    let r = client.call("job.cancel", json!({"id": id}))?;
+pub fn cancel(client: &mut Client, id: u32, wait: Duration) -> Result<Answer<Job>> {
+    let mut state = client
+        .request::<method::JobCancel>(&JobIdParams { id })?
+        .result
+        .state;
     let started = std::time::Instant::now();
-    let mut job = if r["state"] == json!("cancelled") {
-        client.call("job.get", json!({"id": id}))?
-    } else {
-        r
-    };
-    while !matches!(job["state"].as_str(), Some("done" | "failed" | "cancelled")) {
-        if started.elapsed() >= wait {
-            bail!(
-                "job {id} is still {} {} s after the cancel (the machine has not confirmed \
-                 the stop); 'edoctl watch {id}' follows it",
-                job["state"].as_str().unwrap_or("in an unknown state"),
-                wait.as_secs()
-            );
+    loop {
+        if !state.is_final() {
+            if started.elapsed() >= wait {
+                bail!(
+                    "job {id} is still {} {} s after the cancel (the machine has not confirmed \
+                     the stop); 'edoctl watch {id}' follows it",
+                    state.as_str(),
+                    wait.as_secs()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(100));
         }
-        std::thread::sleep(Duration::from_millis(100));
-        job = client.call("job.get", json!({"id": id}))?;
+        let job = client.job(id)?;
+        if job.result.state.is_final() {
+            return Ok(job);
+        }
+        state = job.result.state;
     }
-    Ok(job)
 }
 
 /// The line `edoctl cancel` prints for the job it cancelled.
-pub fn cancelled_line(j: &Value) -> String {
-    let id = j["id"].as_u64().map_or("?".to_string(), |i| i.to_string());
-    let state = j["state"].as_str().unwrap_or("?");
-    let mut line = format!("job {id} {state}");
-    if let Some(n) = j["checkpoint"]["next_index"].as_u64().filter(|&n| n > 0) {
-        line.push_str(&format!(" after {n} moves"));
+pub fn cancelled_line(j: &Job) -> String {
+    let mut line = format!("job {} {}", j.id, j.state.as_str());
+    let executed = j.checkpoint.next_index;
+    if executed > 0 {
+        line.push_str(&format!(" after {executed} moves"));
     }
-    if let Some(r) = j["reason"].as_str().filter(|_| state == "cancelled") {
-        if let Some(extra) = r.strip_prefix("cancelled by an operator; ") {
-            line.push_str(&format!("; {extra}"));
-        }
+    let extra = j
+        .reason
+        .as_deref()
+        .filter(|_| j.state == JobState::Cancelled)
+        .and_then(|r| r.strip_prefix("cancelled by an operator; "));
+    if let Some(extra) = extra {
+        line.push_str(&format!("; {extra}"));
     }
     line
 }
 
 /// Watch job `id` with a progress bar until it is done, failed or cancelled; returns its
 /// final state.
-pub fn watch(client: &mut Client, id: u64, json_out: bool) -> Result<Value> {
-    use indicatif::{ProgressBar, ProgressStyle};
-    let mut job = client.call("job.get", json!({"id": id}))?;
-    client.call("subscribe", json!({}))?;
-    // A bar once the move total is known; until then a count (a bar of unknown length
-    // would show full, or empty, whatever the progress).
-    let with_bar = || {
-        ProgressStyle::with_template("{spinner} job {prefix} [{bar:30}] {pos}/{len} moves {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> ")
-    };
-    let counting = || {
-        ProgressStyle::with_template("{spinner} job {prefix} {pos} moves {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_spinner())
-    };
-    let bar = match job["total_moves"].as_u64() {
-        Some(t) => {
-            let bar = ProgressBar::new(t);
-            bar.set_style(with_bar());
-            bar
-        }
-        None => {
-            let bar = ProgressBar::no_length();
-            bar.set_style(counting());
-            bar
-        }
-    };
-    if json_out {
-        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
-    }
-    bar.set_prefix(id.to_string());
-    bar.set_position(job["checkpoint"]["next_index"].as_u64().unwrap_or(0));
-    let done = |s: &Value| matches!(s.as_str(), Some("done" | "failed" | "cancelled"));
-    while !done(&job["state"]) {
-        let v = client.read_line()?;
-        let p = &v["params"];
-        if p["job_id"].as_u64() != Some(id) {
-            continue;
-        }
-        match v["method"].as_str() {
-            Some("notify_job_progress") => {
-                if let Some(t) = p["total"].as_u64() {
-                    if bar.length() != Some(t) {
-                        bar.set_length(t);
-                        bar.set_style(with_bar());
-                    }
-                }
-                bar.set_position(p["executed"].as_u64().unwrap_or(0));
-                let comp = p["composition"]
-                    .as_array()
-                    .map(|c| {
-                        c.iter()
-                            .map(|x| format!("{:.2}", x.as_f64().unwrap_or(0.0)))
-                            .collect::<Vec<_>>()
-                            .join("/")
-                    })
-                    .unwrap_or_default();
-                let eta = p["eta_s"]
-                    .as_f64()
-                    .map_or(String::new(), |e| format!(", about {} left", eta_text(e)));
-                let layer = layer_of(p["layer"].as_u64(), p["layers"].as_u64())
-                    .map_or(String::new(), |l| format!("{l}, "));
-                bar.set_message(format!("{layer}composition {comp}{eta}"));
-            }
-            Some("notify_job_state") => {
-                job["state"] = p["state"].clone();
-                if !done(&job["state"]) {
-                    bar.println(format!(
-                        "job {id}: {}{}",
-                        p["state"].as_str().unwrap_or("?"),
-                        p["reason"]
-                            .as_str()
-                            .map_or(String::new(), |r| format!(" ({r})"))
-                    ));
+pub fn watch(client: &mut Client, id: u32, json_out: bool) -> Result<Answer<Job>> {
+    // Subscribed before the job is read, so no state change falls between the two.
+    client.request::<method::Subscribe>(&NoParams {})?;
+    let job = client.job(id)?.result;
+    let bar = JobBar::new(&job, json_out);
+    let mut state = job.state;
+    while !state.is_final() {
+        match client.next_event()? {
+            Event::JobProgress(p) if p.job_id == id => bar.show(&p),
+            Event::JobState(s) if s.job_id == id => {
+                state = s.state;
+                if !state.is_final() {
+                    bar.bar.println(state_change_line(&s));
                 }
             }
             _ => {}
         }
     }
-    bar.finish_and_clear();
-    client.call("job.get", json!({"id": id}))
+    bar.bar.finish_and_clear();
+    client.job(id)
+}
+
+/// A line about a job's state change (`notify_job_state`) while it is watched.
+fn state_change_line(s: &JobStateChanged) -> String {
+    let reason = s
+        .reason
+        .as_ref()
+        .map_or(String::new(), |r| format!(" ({r})"));
+    format!("job {}: {}{reason}", s.job_id, s.state.as_str())
+}
+
+/// The progress bar of `edoctl watch`: a bar once the move total is known; until then a
+/// count (a bar of unknown length would show full, or empty, whatever the progress).
+struct JobBar {
+    bar: indicatif::ProgressBar,
+}
+
+impl JobBar {
+    fn with_length() -> indicatif::ProgressStyle {
+        indicatif::ProgressStyle::with_template(
+            "{spinner} job {prefix} [{bar:30}] {pos}/{len} moves {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+        .progress_chars("=> ")
+    }
+
+    fn counting() -> indicatif::ProgressStyle {
+        indicatif::ProgressStyle::with_template("{spinner} job {prefix} {pos} moves {msg}")
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner())
+    }
+
+    /// A bar for `job` where it stands now; drawn nowhere with `--json`.
+    fn new(job: &Job, json_out: bool) -> JobBar {
+        use indicatif::ProgressBar;
+        let bar = match job.total_moves {
+            Some(t) => ProgressBar::new(u64::from(t)).with_style(Self::with_length()),
+            None => ProgressBar::no_length().with_style(Self::counting()),
+        };
+        if json_out {
+            bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+        }
+        bar.set_prefix(job.id.to_string());
+        bar.set_position(u64::from(job.checkpoint.next_index));
+        JobBar { bar }
+    }
+
+    /// Moves executed, and layer, composition and time left as the message.
+    fn show(&self, p: &Progress) {
+        if let Some(t) = p.total.map(u64::from) {
+            if self.bar.length() != Some(t) {
+                self.bar.set_length(t);
+                self.bar.set_style(Self::with_length());
+            }
+        }
+        self.bar.set_position(u64::from(p.executed));
+        let comp = p
+            .composition
+            .as_ref()
+            .map(|c| {
+                c.iter()
+                    .map(|x| format!("{x:.2}"))
+                    .collect::<Vec<_>>()
+                    .join("/")
+            })
+            .unwrap_or_default();
+        let eta = p
+            .eta_s
+            .map_or(String::new(), |e| format!(", about {} left", eta_text(e)));
+        let layer = layer_of(p.layer, p.layers).map_or(String::new(), |l| format!("{l}, "));
+        self.bar
+            .set_message(format!("{layer}composition {comp}{eta}"));
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::proto::Checkpoint;
+
+    fn job(id: u32, state: JobState, reason: Option<&str>, next_index: u32) -> Job {
+        Job {
+            id,
+            name: "tooth-crown".into(),
+            state,
+            reason: reason.map(str::to_string),
+            total_moves: None,
+            checkpoint: Checkpoint {
+                next_index,
+                ..Checkpoint::default()
+            },
+            submitted_ms: 0,
+            updated_ms: 0,
+            progress: None,
+        }
+    }
 
     #[test]
     fn cancelled_line_says_where_the_job_stopped_and_what_was_left_undone() {
-        let parked = json!({"id": 4, "state": "cancelled", "reason": "cancelled by an operator",
-            "checkpoint": {"next_index": 1201}});
+        let cancelled = JobState::Cancelled;
+        let parked = job(4, cancelled, Some("cancelled by an operator"), 1201);
         assert_eq!(cancelled_line(&parked), "job 4 cancelled after 1201 moves");
-        let lost = json!({"id": 4, "state": "cancelled",
-            "reason": "cancelled by an operator; not parked: link to the machine lost",
-            "checkpoint": {"next_index": 1201}});
+        let lost = job(
+            4,
+            cancelled,
+            Some("cancelled by an operator; not parked: link to the machine lost"),
+            1201,
+        );
         assert_eq!(
             cancelled_line(&lost),
             "job 4 cancelled after 1201 moves; not parked: link to the machine lost"
         );
-        let queued = json!({"id": 5, "state": "cancelled", "reason": "cancelled by an operator",
-            "checkpoint": {"next_index": 0}});
+        let queued = job(5, cancelled, Some("cancelled by an operator"), 0);
         assert_eq!(cancelled_line(&queued), "job 5 cancelled");
         // It finished before the cancel took.
-        let done = json!({"id": 6, "state": "done", "checkpoint": {"next_index": 300}});
+        let done = job(6, JobState::Done, None, 300);
         assert_eq!(cancelled_line(&done), "job 6 done after 300 moves");
     }
 
     #[test]
     fn progress_reads_as_people_count() {
-        let planning = json!({"job_id": 1, "executed": 891, "total": null, "layers": 2,
-            "layer": 0, "eta_s": null});
+        let progress = |job_id, executed, total, layers, layer, eta_s| Progress {
+            job_id,
+            executed,
+            total,
+            layers,
+            layer,
+            eta_s,
+            ..Progress::default()
+        };
         assert_eq!(
-            progress_line(&planning),
+            progress_line(&progress(1, 891, None, Some(2), Some(0), None)),
             "job 1: 891 moves executed (total known once every layer is planned), layer 1 of 2"
         );
-        let planned = json!({"job_id": 3, "executed": 1201, "total": 48210, "layers": 12,
-            "layer": 3, "eta_s": 412.5});
         assert_eq!(
-            progress_line(&planned),
+            progress_line(&progress(
+                3,
+                1201,
+                Some(48210),
+                Some(12),
+                Some(3),
+                Some(412.5)
+            )),
             "job 3: 1201 of 48210 moves executed, layer 4 of 12, about 7 min left"
         );
         // A mesh job before its mesh is sliced: no layer count, no layer yet.
-        let early = json!({"job_id": 4, "executed": 0, "total": null, "layers": null,
-            "layer": null, "eta_s": null});
         assert_eq!(
-            progress_line(&early),
+            progress_line(&progress(4, 0, None, None, None, None)),
             "job 4: 0 moves executed (total known once every layer is planned)"
         );
-        // Fields of the wrong type (an older or broken daemon) read as unknown.
-        let odd = json!({"job_id": 5, "executed": "many", "total": -1, "layers": "x",
-            "layer": 2.5, "eta_s": "soon"});
-        assert_eq!(
-            progress_line(&odd),
-            "job 5: 0 moves executed (total known once every layer is planned)"
+    }
+
+    /// A daemon on a socket in `dir` that answers one request with `lines`.
+    fn fake_daemon(dir: &Path, lines: &'static [&'static str]) -> std::thread::JoinHandle<()> {
+        let listener = std::os::unix::net::UnixListener::bind(dir.join("edod.sock")).unwrap();
+        std::thread::spawn(move || {
+            let (mut s, _) = listener.accept().unwrap();
+            let mut request = String::new();
+            BufReader::new(s.try_clone().unwrap())
+                .read_line(&mut request)
+                .unwrap();
+            for l in lines {
+                s.write_all(format!("{l}\n").as_bytes()).unwrap();
+            }
+        })
+    }
+
+    #[test]
+    fn results_are_read_into_their_types_past_notifications() {
+        let dir = tempfile::tempdir().unwrap();
+        let daemon = fake_daemon(
+            dir.path(),
+            &[
+                r#"{"jsonrpc":"2.0","method":"notify_something_new","params":[1]}"#,
+                r#"{"jsonrpc":"2.0","method":"notify_job_state","params":{"job_id":1,"state":"done","reason":null}}"#,
+                r#"{"jsonrpc":"2.0","id":1,"result":{"id":1,"state":"paused","stored":true}}"#,
+            ],
         );
+        let mut c = Client::connect(&dir.path().join("edod.sock")).unwrap();
+        let r = c
+            .request::<method::JobPause>(&JobIdParams { id: 1 })
+            .unwrap();
+        assert_eq!(r.result.state, JobState::Paused);
+        // `--json` shows what the daemon sent, keys edoctl does not know included.
+        assert_eq!(r.json["stored"], serde_json::json!(true));
+        daemon.join().unwrap();
+    }
+
+    #[test]
+    fn a_result_not_as_documented_is_an_error_naming_the_method() {
+        let dir = tempfile::tempdir().unwrap();
+        let daemon = fake_daemon(
+            dir.path(),
+            &[r#"{"jsonrpc":"2.0","id":1,"result":{"job_id":5,"executed":"many"}}"#],
+        );
+        let mut c = Client::connect(&dir.path().join("edod.sock")).unwrap();
+        let e = c
+            .request::<method::MachineStatus>(&NoParams {})
+            .unwrap_err();
+        let e = format!("{e:#}");
+        assert!(
+            e.starts_with("edod's result of machine.status is not what docs/api.md says"),
+            "{e}"
+        );
+        daemon.join().unwrap();
     }
 
     #[test]
     fn job_lines_line_up() {
-        let a = job_line(
-            &json!({"id": 1, "state": "done", "checkpoint": {"next_index": 7721},
-            "total_moves": 7721, "name": "tooth-crown", "reason": null}),
-        );
-        let b = job_line(
-            &json!({"id": 12, "state": "failed", "checkpoint": {"next_index": 0},
-            "total_moves": null, "name": "bunny", "reason": "the mesh is open"}),
-        );
+        let a = Job {
+            total_moves: Some(7721),
+            ..job(1, JobState::Done, None, 7721)
+        };
+        let b = Job {
+            name: "bunny".into(),
+            ..job(12, JobState::Failed, Some("the mesh is open"), 0)
+        };
+        let (a, b) = (job_line(&a), job_line(&b));
         assert_eq!(a, "   1  done            7721/7721     tooth-crown");
         assert_eq!(
             b,

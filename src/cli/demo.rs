@@ -297,14 +297,17 @@ fn submit_and_watch(
         "job.submit",
         json!({"job": DEMO_JOB, "name": format!("{} (demo)", job.name)}),
     )?;
-    let id = r["id"].as_u64().context("edod returned no job id")?;
+    let id = r["id"]
+        .as_u64()
+        .and_then(|i| u32::try_from(i).ok())
+        .context("edod returned no job id")?;
     if !json_out {
         eprintln!(
             "edoctl demo: printing {:?} on the simulated machine ({}x speed)",
             job.name, args.speed
         );
     }
-    let j = watch(&mut c, id, json_out)?;
+    let j = watch(&mut c, id, json_out)?.json;
     Ok((j, submitted.elapsed().as_secs_f64()))
 }
 

@@ -1,5 +1,7 @@
 //! The API: a Unix socket speaking newline-delimited JSON-RPC 2.0 (`docs/api.md`).
 //!
+//! A request line is read into a [`Call`] (the types of [`crate::proto`]), answered by
+//! one function per method, and the typed result written back as its response line.
 //! Each client gets a reader task and a writer task joined by a bounded queue of reply
 //! lines; notifications come from a broadcast channel. A client that does not read its
 //! replies fills its queue and is disconnected: the daemon never waits for a client.
@@ -8,16 +10,18 @@
 
 use std::sync::Arc;
 
-use serde::de::DeserializeOwned;
-use serde::Deserialize;
-use serde_json::{json, Value};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{UnixListener, UnixStream};
 use tokio::sync::{mpsc, oneshot, Semaphore};
 use tracing::{debug, info, warn};
 
-use super::store::JobSpec;
+use super::store::{JobRecord, JobSpec};
 use super::{ApiError, Control, Shared};
+use crate::proto::{
+    Call, Deleted, EStopTiming, Event, Id, Job, JobIdParams, JobSource, JobState, JobStateChanged,
+    MachineStatus, MethodResult, Progress, Refilled, Refusal, Request, Response, ServerInfo,
+    StateChange, Submission, SubmitParams, Submitted, Subscribed,
+};
 
 /// Accept clients until the listener fails.
 pub async fn serve(listener: UnixListener, shared: Arc<Shared>) {
@@ -44,8 +48,20 @@ pub async fn serve(listener: UnixListener, shared: Arc<Shared>) {
     }
 }
 
-fn error_line(id: Value, e: &ApiError) -> String {
-    json!({"jsonrpc": "2.0", "id": id, "error": {"code": e.code, "message": e.message}}).to_string()
+/// The response line to request `id`.
+fn response_line(id: Id, outcome: Result<MethodResult, ApiError>) -> String {
+    serde_json::to_string(&Response::new(id.clone(), outcome)).unwrap_or_else(|e| {
+        let e = ApiError::new(ApiError::INTERNAL, format!("cannot write the result: {e}"));
+        error_line(id, e)
+    })
+}
+
+/// An error response line.
+fn error_line(id: Id, e: ApiError) -> String {
+    serde_json::to_string(&Response::<MethodResult>::new(id, Err(e))).unwrap_or_else(|_| {
+        r#"{"jsonrpc":"2.0","id":null,"error":{"code":-32603,"message":"cannot write an error"}}"#
+            .to_string()
+    })
 }
 
 async fn client(stream: UnixStream, shared: Arc<Shared>) {
@@ -70,7 +86,7 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
                     Ok(LineRead::TooLong) => {
                         let e = ApiError::new(ApiError::INVALID_REQUEST,
                             format!("request over {max} bytes (api.max_request_bytes)"));
-                        if tx.try_send(Arc::from(error_line(Value::Null, &e))).is_err() { break; }
+                        if tx.try_send(Arc::from(error_line(Id::Null, e))).is_err() { break; }
                     }
                     Ok(LineRead::Line) => {
                         if line.iter().all(u8::is_ascii_whitespace) { continue; }
@@ -156,38 +172,6 @@ async fn read_line<R: tokio::io::AsyncBufRead + Unpin>(
     }
 }
 
-fn params<T: DeserializeOwned>(p: Value) -> Result<T, ApiError> {
-    let p = if p.is_null() { json!({}) } else { p };
-    serde_json::from_value(p).map_err(|e| ApiError::new(ApiError::INVALID_PARAMS, e.to_string()))
-}
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Empty {}
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct JobId {
-    id: u32,
-}
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Submit {
-    /// Job file text.
-    #[serde(default)]
-    job: Option<String>,
-    /// Mesh bytes, base64.
-    #[serde(default)]
-    mesh_base64: Option<String>,
-    /// A dry-run job of N moves instead of a job file.
-    #[serde(default)]
-    dry_run_moves: Option<u32>,
-    /// Name shown in listings.
-    #[serde(default)]
-    name: Option<String>,
-}
-
 /// A mesh job needs its mesh, and the mesh must load and stack into layers; the part
 /// must fit the machine's build volume where `geometry.placement` puts it. Checked here
 /// (a mesh on a blocking worker) so a bad part is refused at submission, naming the
@@ -241,47 +225,16 @@ async fn check_part(
 /// Handle one request line: the reply line (none for a notification) and whether the
 /// client subscribed.
 pub async fn handle(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, bool) {
-    let v: Value = match serde_json::from_slice(line) {
-        Ok(v) => v,
-        Err(e) => {
-            let e = ApiError::new(ApiError::PARSE, format!("not JSON: {e}"));
-            return (Some(error_line(Value::Null, &e)), false);
-        }
+    let request = match Request::from_line(line) {
+        Ok(r) => r,
+        Err(Refusal { id, error }) => return (Some(error_line(id, error)), false),
     };
-    let id = v.get("id").cloned();
-    let bad = |m: &str| {
-        let e = ApiError::new(ApiError::INVALID_REQUEST, m);
-        (
-            Some(error_line(id.clone().unwrap_or(Value::Null), &e)),
-            false,
-        )
+    let result = match Call::new(&request.method, request.params) {
+        Ok(call) => dispatch(call, shared).await,
+        Err(e) => Err(e),
     };
-    let Some(obj) = v.as_object() else {
-        return bad("a request is a JSON object");
-    };
-    if obj.get("jsonrpc").and_then(Value::as_str) != Some("2.0") {
-        return bad("\"jsonrpc\" must be \"2.0\"");
-    }
-    if id
-        .as_ref()
-        .is_some_and(|i| !(i.is_string() || i.is_number() || i.is_null()))
-    {
-        return bad("\"id\" must be a string, a number or null");
-    }
-    let Some(method) = obj.get("method").and_then(Value::as_str) else {
-        return bad("\"method\" must be a string");
-    };
-    let p = obj.get("params").cloned().unwrap_or(Value::Null);
-    let subscribe = method == "subscribe";
-    let result = dispatch(method, p, shared).await;
-    let Some(id) = id else {
-        return (None, subscribe && result.is_ok());
-    };
-    let line = match &result {
-        Ok(r) => json!({"jsonrpc": "2.0", "id": id, "result": r}).to_string(),
-        Err(e) => error_line(id, e),
-    };
-    (Some(line), subscribe && result.is_ok())
+    let subscribed = matches!(result, Ok(MethodResult::Subscribed(_)));
+    (request.id.map(|id| response_line(id, result)), subscribed)
 }
 
 async fn ask<T>(
@@ -298,182 +251,225 @@ async fn ask<T>(
         .map_err(|_| ApiError::new(ApiError::INTERNAL, "the streamer has stopped"))?
 }
 
-fn job_view(shared: &Shared, j: &super::store::JobRecord) -> Value {
-    let mut v = serde_json::to_value(j).unwrap_or(Value::Null);
-    let live = shared.progress.borrow().clone();
-    if let (Some(p), Some(o)) = (live.filter(|p| p.job_id == j.id), v.as_object_mut()) {
-        o.insert(
-            "progress".into(),
-            serde_json::to_value(p).unwrap_or(Value::Null),
-        );
-    }
-    v
-}
-
 /// Finished jobs deleted at most per submission (beyond `state.keep_finished_jobs`): a
 /// store grown large before a lower setting shrinks over a few submissions instead of
 /// holding the store (and the streamer's checkpoints) during one long delete.
 const PRUNE_AT_MOST: usize = 20;
 
-async fn dispatch(method: &str, p: Value, shared: &Arc<Shared>) -> Result<Value, ApiError> {
-    match method {
-        "server.info" => {
-            params::<Empty>(p)?;
-            Ok(json!({
-                "name": "edod",
-                "version": env!("CARGO_PKG_VERSION"),
-                "api_version": 1,
-                "protocol_version": crate::link::PROTOCOL_VERSION,
-                "port": shared.port.display().to_string(),
-                "machine": shared.config.machine,
-            }))
-        }
-        "subscribe" => {
-            params::<Empty>(p)?;
-            Ok(
-                json!({"subscribed": ["notify_job_progress", "notify_job_state", "notify_machine_state"]}),
-            )
-        }
-        "job.submit" => {
-            let s: Submit = params(p)?;
-            if let Some(name) = &s.name {
-                crate::job::check_name(name)
-                    .map_err(|m| ApiError::new(ApiError::INVALID_PARAMS, format!("name: {m}")))?;
-            }
-            let (spec, name) = match (s.job, s.dry_run_moves) {
-                (Some(toml), None) => {
-                    let job = crate::job::Job::from_toml(&toml, "submitted job")
-                        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
-                    let mesh = s
-                        .mesh_base64
-                        .as_deref()
-                        .map(|b| {
-                            base64_decode(b).map_err(|e| {
-                                ApiError::new(
-                                    ApiError::INVALID_PARAMS,
-                                    format!("mesh_base64: not base64: {e}"),
-                                )
-                            })
-                        })
-                        .transpose()?;
-                    let mesh = check_part(&job, mesh, &shared.config.machine).await?;
-                    (JobSpec::Toml { toml, mesh }, s.name.unwrap_or(job.name))
-                }
-                (None, Some(moves)) if moves > 0 => (
-                    JobSpec::DryRun { moves },
-                    s.name
-                        .unwrap_or_else(|| format!("dry run of {moves} moves")),
-                ),
-                (None, Some(_)) => {
-                    return Err(ApiError::new(
-                        ApiError::INVALID_PARAMS,
-                        "dry_run_moves must be at least 1",
-                    ))
-                }
-                _ => {
-                    return Err(ApiError::new(
-                        ApiError::INVALID_PARAMS,
-                        "give either \"job\" (the job file text) or \"dry_run_moves\"",
-                    ))
-                }
-            };
-            let keep = shared.config.state.keep_finished_jobs;
-            let stored_name = name.clone();
-            let (id, pruned) = shared
-                .api_store(true, move |st| {
-                    let id = st.insert(&stored_name, &spec)?;
-                    Ok((id, st.prune_finished(keep, PRUNE_AT_MOST)?))
-                })
-                .await?;
-            info!(job = id, name = %name, "job accepted");
-            if !pruned.is_empty() {
-                info!(jobs = ?pruned, keep, "deleted the oldest finished jobs");
-            }
-            shared.notify(
-                "notify_job_state",
-                json!({"job_id": id, "state": "queued", "reason": null}),
-            );
-            let _ = shared.control.send(Control::Submitted).await;
-            Ok(json!({"id": id, "state": "queued"}))
-        }
-        "job.list" => {
-            params::<Empty>(p)?;
-            let jobs = shared.api_store(false, |s| s.list()).await?;
-            Ok(Value::Array(
-                jobs.iter().map(|j| job_view(shared, j)).collect(),
+/// Answer one call (`docs/api.md`, Methods).
+async fn dispatch(call: Call, shared: &Arc<Shared>) -> Result<MethodResult, ApiError> {
+    Ok(match call {
+        Call::ServerInfo => server_info(shared)?.into(),
+        Call::Subscribe => Subscribed::all().into(),
+        Call::JobSubmit(p) => job_submit(p, shared).await?.into(),
+        Call::JobList => job_list(shared).await?.into(),
+        Call::JobGet(JobIdParams { id }) => job_get(id, shared).await?.into(),
+        Call::JobPause(JobIdParams { id }) => job_pause(id, shared).await?.into(),
+        Call::JobResume(JobIdParams { id }) => job_resume(id, shared).await?.into(),
+        Call::JobCancel(JobIdParams { id }) => job_cancel(id, shared).await?.into(),
+        Call::JobDelete(JobIdParams { id }) => job_delete(id, shared).await?.into(),
+        Call::MachineStatus => machine_status(shared).into(),
+        Call::MachineEstop => machine_estop(shared).await?.into(),
+        Call::MachineRefill => machine_refill(shared).await?.into(),
+    })
+}
+
+fn server_info(shared: &Shared) -> Result<ServerInfo, ApiError> {
+    let machine = match serde_json::to_value(&shared.config.machine) {
+        Ok(serde_json::Value::Object(table)) => table,
+        _ => {
+            return Err(ApiError::new(
+                ApiError::INTERNAL,
+                "cannot show the [machine] table",
             ))
         }
-        "job.get" => {
-            let JobId { id } = params(p)?;
-            let j = shared.api_store(false, move |s| s.get(id)).await?;
-            Ok(job_view(shared, &j))
+    };
+    Ok(ServerInfo {
+        name: "edod".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        api_version: crate::proto::API_VERSION,
+        protocol_version: crate::link::PROTOCOL_VERSION,
+        port: shared.port.display().to_string(),
+        machine,
+    })
+}
+
+/// `job.submit`: check the params, the job file and its part, store the job (on disk
+/// before the reply), tell subscribers and the streamer.
+async fn job_submit(p: SubmitParams, shared: &Arc<Shared>) -> Result<Submitted, ApiError> {
+    if let Some(name) = &p.name {
+        crate::job::check_name(name)
+            .map_err(|m| ApiError::new(ApiError::INVALID_PARAMS, format!("name: {m}")))?;
+    }
+    let Submission { source, name } = p.submission()?;
+    let (spec, name) = match source {
+        JobSource::File { job, mesh_base64 } => {
+            let (spec, job_name) = file_job(job, mesh_base64.as_deref(), shared).await?;
+            (spec, name.unwrap_or(job_name))
         }
-        "job.pause" => {
-            let JobId { id } = params(p)?;
-            ask(shared, |r| Control::Pause(id, r)).await?;
-            Ok(json!({"id": id, "state": "paused"}))
+        JobSource::DryRun { moves } => (
+            JobSpec::DryRun { moves },
+            name.unwrap_or_else(|| format!("dry run of {moves} moves")),
+        ),
+    };
+    let id = store_submission(shared, &name, spec).await?;
+    info!(job = id, name = %name, "job accepted");
+    shared.notify(Event::JobState(JobStateChanged {
+        job_id: id,
+        state: JobState::Queued,
+        reason: None,
+    }));
+    let _ = shared.control.send(Control::Submitted).await;
+    Ok(Submitted {
+        id,
+        state: JobState::Queued,
+    })
+}
+
+/// A job file's spec and name: the file parsed (-32003), its mesh decoded (-32602) and
+/// the part checked against the machine ([`check_part`]).
+async fn file_job(
+    toml: String,
+    mesh_base64: Option<&str>,
+    shared: &Shared,
+) -> Result<(JobSpec, String), ApiError> {
+    let job = crate::job::Job::from_toml(&toml, "submitted job")
+        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
+    let mesh = mesh_base64
+        .map(|b| {
+            base64_decode(b).map_err(|e| {
+                ApiError::new(
+                    ApiError::INVALID_PARAMS,
+                    format!("mesh_base64: not base64: {e}"),
+                )
+            })
+        })
+        .transpose()?;
+    let mesh = check_part(&job, mesh, &shared.config.machine).await?;
+    Ok((JobSpec::Toml { toml, mesh }, job.name))
+}
+
+/// Store a new job, and delete the oldest finished jobs beyond
+/// `state.keep_finished_jobs` (at most [`PRUNE_AT_MOST`]); the job's id.
+async fn store_submission(
+    shared: &Arc<Shared>,
+    name: &str,
+    spec: JobSpec,
+) -> Result<u32, ApiError> {
+    let keep = shared.config.state.keep_finished_jobs;
+    let stored_name = name.to_string();
+    let (id, pruned) = shared
+        .api_store(true, move |st| {
+            let id = st.insert(&stored_name, &spec)?;
+            Ok((id, st.prune_finished(keep, PRUNE_AT_MOST)?))
+        })
+        .await?;
+    if !pruned.is_empty() {
+        info!(jobs = ?pruned, keep, "deleted the oldest finished jobs");
+    }
+    Ok(id)
+}
+
+/// Every stored job, oldest first.
+async fn stored_jobs(shared: &Arc<Shared>) -> Result<Vec<JobRecord>, ApiError> {
+    shared.api_store(false, |s| s.list()).await
+}
+
+/// Stored job `id` (-32001 if there is none).
+async fn stored_job(shared: &Arc<Shared>, id: u32) -> Result<JobRecord, ApiError> {
+    shared.api_store(false, move |s| s.get(id)).await
+}
+
+/// Delete finished job `id` from the store; the state it is in if it is not finished.
+async fn delete_stored(shared: &Arc<Shared>, id: u32) -> Result<Result<(), JobState>, ApiError> {
+    shared.api_store(true, move |s| s.delete_finished(id)).await
+}
+
+/// A stored job as the API shows it, with `live` progress if it is the active job.
+fn job_view(j: JobRecord, live: Option<&Progress>) -> Job {
+    Job {
+        progress: live.filter(|p| p.job_id == j.id).cloned(),
+        id: j.id,
+        name: j.name,
+        state: j.state,
+        reason: j.reason,
+        total_moves: j.total_moves,
+        checkpoint: j.checkpoint,
+        submitted_ms: j.submitted_ms,
+        updated_ms: j.updated_ms,
+    }
+}
+
+async fn job_list(shared: &Arc<Shared>) -> Result<Vec<Job>, ApiError> {
+    let jobs = stored_jobs(shared).await?;
+    let live = shared.progress.borrow().clone();
+    Ok(jobs
+        .into_iter()
+        .map(|j| job_view(j, live.as_ref()))
+        .collect())
+}
+
+async fn job_get(id: u32, shared: &Arc<Shared>) -> Result<Job, ApiError> {
+    let j = stored_job(shared, id).await?;
+    let live = shared.progress.borrow().clone();
+    Ok(job_view(j, live.as_ref()))
+}
+
+async fn job_pause(id: u32, shared: &Arc<Shared>) -> Result<StateChange, ApiError> {
+    ask(shared, |r| Control::Pause(id, r)).await?;
+    Ok(StateChange {
+        id,
+        state: JobState::Paused,
+    })
+}
+
+async fn job_resume(id: u32, shared: &Arc<Shared>) -> Result<StateChange, ApiError> {
+    ask(shared, |r| Control::Resume(id, r)).await?;
+    Ok(StateChange {
+        id,
+        state: JobState::Printing,
+    })
+}
+
+/// `job.cancel`: `cancelled`, or still `printing` while the machine stops and parks.
+async fn job_cancel(id: u32, shared: &Arc<Shared>) -> Result<StateChange, ApiError> {
+    ask(shared, |r| Control::Cancel(id, r)).await?;
+    let j = stored_job(shared, id).await?;
+    Ok(StateChange { id, state: j.state })
+}
+
+async fn job_delete(id: u32, shared: &Arc<Shared>) -> Result<Deleted, ApiError> {
+    match delete_stored(shared, id).await? {
+        Ok(()) => {
+            info!(job = id, "job deleted");
+            Ok(Deleted { id, deleted: true })
         }
-        "job.resume" => {
-            let JobId { id } = params(p)?;
-            ask(shared, |r| Control::Resume(id, r)).await?;
-            Ok(json!({"id": id, "state": "printing"}))
-        }
-        "job.cancel" => {
-            let JobId { id } = params(p)?;
-            ask(shared, |r| Control::Cancel(id, r)).await?;
-            // `cancelled`, or still `printing` while the machine stops and parks.
-            let j = shared.api_store(false, move |s| s.get(id)).await?;
-            Ok(json!({"id": id, "state": j.state}))
-        }
-        "job.delete" => {
-            let JobId { id } = params(p)?;
-            match shared
-                .api_store(true, move |s| s.delete_finished(id))
-                .await?
-            {
-                Ok(()) => {
-                    info!(job = id, "job deleted");
-                    Ok(json!({"id": id, "deleted": true}))
-                }
-                Err(state) => Err(ApiError::new(
-                    ApiError::BAD_STATE,
-                    format!(
-                        "job {id} is {}: only a done, failed or cancelled job can be deleted \
-                         (cancel it first)",
-                        state.as_str()
-                    ),
-                )),
-            }
-        }
-        "machine.status" => {
-            params::<Empty>(p)?;
-            let m = shared.machine.borrow().clone();
-            let progress = shared.progress.borrow().clone();
-            let mut v = serde_json::to_value(m).unwrap_or(Value::Null);
-            if let Some(o) = v.as_object_mut() {
-                o.insert(
-                    "progress".into(),
-                    serde_json::to_value(progress).unwrap_or(Value::Null),
-                );
-            }
-            Ok(v)
-        }
-        "machine.estop" => {
-            params::<Empty>(p)?;
-            let t = std::time::Instant::now();
-            let timing = ask(shared, |r| Control::EStop(t, r)).await?;
-            Ok(serde_json::to_value(timing).unwrap_or(Value::Null))
-        }
-        "machine.refill" => {
-            params::<Empty>(p)?;
-            ask(shared, Control::Refill).await?;
-            Ok(json!({"refilled": true}))
-        }
-        other => Err(ApiError::new(
-            ApiError::METHOD_NOT_FOUND,
-            format!("no method {other:?}; see docs/api.md"),
+        Err(state) => Err(ApiError::new(
+            ApiError::BAD_STATE,
+            format!(
+                "job {id} is {}: only a done, failed or cancelled job can be deleted \
+                 (cancel it first)",
+                state.as_str()
+            ),
         )),
     }
+}
+
+fn machine_status(shared: &Shared) -> MachineStatus {
+    MachineStatus {
+        machine: shared.machine.borrow().clone(),
+        progress: shared.progress.borrow().clone(),
+    }
+}
+
+async fn machine_estop(shared: &Shared) -> Result<EStopTiming, ApiError> {
+    let t = std::time::Instant::now();
+    ask(shared, |r| Control::EStop(t, r)).await
+}
+
+async fn machine_refill(shared: &Shared) -> Result<Refilled, ApiError> {
+    ask(shared, Control::Refill).await?;
+    Ok(Refilled { refilled: true })
 }
 
 /// Decode standard base64 (RFC 4648, padding optional).

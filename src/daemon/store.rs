@@ -17,43 +17,10 @@ use serde::{Deserialize, Serialize};
 /// Wire job id reserved for the daemon's own service moves (home, prime, park).
 pub const SERVICE_JOB_ID: u32 = 0;
 
-/// Where a job is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum JobState {
-    /// Accepted, waiting for the machine.
-    Queued,
-    /// Its first layer is being planned.
-    Planning,
-    /// Moves are streaming.
-    Printing,
-    /// Held at a move boundary (by an operator or a syringe running empty).
-    Paused,
-    /// Stopped by a fault (reset, lost link, e-stop, edod restart); resumable.
-    Interrupted,
-    /// Every move executed.
-    Done,
-    /// Cannot be planned or streamed.
-    Failed,
-    /// Cancelled by an operator.
-    Cancelled,
-}
+pub use crate::proto::{Checkpoint, JobState};
 
+/// Reading a stored state name (an unknown one reads as `failed`).
 impl JobState {
-    /// Name as stored and shown.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            JobState::Queued => "queued",
-            JobState::Planning => "planning",
-            JobState::Printing => "printing",
-            JobState::Paused => "paused",
-            JobState::Interrupted => "interrupted",
-            JobState::Done => "done",
-            JobState::Failed => "failed",
-            JobState::Cancelled => "cancelled",
-        }
-    }
-
     fn parse(s: &str) -> JobState {
         match s {
             "queued" => JobState::Queued,
@@ -66,27 +33,6 @@ impl JobState {
             _ => JobState::Failed,
         }
     }
-
-    /// Done, failed or cancelled: nothing more will happen.
-    pub fn is_final(self) -> bool {
-        matches!(
-            self,
-            JobState::Done | JobState::Failed | JobState::Cancelled
-        )
-    }
-}
-
-/// Where to continue a job: the first move not executed and the state there.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-pub struct Checkpoint {
-    /// Index of the first move the machine has not executed.
-    pub next_index: u32,
-    /// Layer of the last executed layer mark.
-    pub layer: Option<u32>,
-    /// Composition of the last executed extrusion (fractions per syringe).
-    pub composition: Option<Vec<f64>>,
-    /// Syringe volumes left after the last executed move (nl).
-    pub remaining_nl: Vec<u32>,
 }
 
 /// How a job's moves are produced.

@@ -34,6 +34,7 @@ use crate::link::{
     PriorityCmd, Status,
 };
 use crate::machine::{composition_of, Move, MoveKind, PositionUm};
+use crate::proto::{Event, JobStateChanged};
 
 /// Checkpoints are written at most this often while printing (and at every state change).
 const CHECKPOINT_EVERY: Duration = Duration::from_millis(100);
@@ -1162,10 +1163,11 @@ impl Streamer {
         if let Err(e) = self.shared.with_store(|s| s.set_state(id, state, reason)) {
             warn!(job = id, error = %e, "cannot record job state");
         }
-        self.shared.notify(
-            "notify_job_state",
-            serde_json::json!({"job_id": id, "state": state, "reason": reason}),
-        );
+        self.shared.notify(Event::JobState(JobStateChanged {
+            job_id: id,
+            state,
+            reason: reason.map(str::to_string),
+        }));
         self.publish();
     }
 
@@ -1224,7 +1226,7 @@ impl Streamer {
             first_move_after_ms: a.first_move_after_ms,
         };
         if self.shared.progress.borrow().as_ref() != Some(&p) {
-            self.shared.notify("notify_job_progress", &p);
+            self.shared.notify(Event::JobProgress(p.clone()));
             self.shared.progress.send_replace(Some(p));
         }
     }
@@ -1256,7 +1258,7 @@ impl Streamer {
                 || old.active_job != snap.active_job
         };
         if changed {
-            self.shared.notify("notify_machine_state", &snap);
+            self.shared.notify(Event::MachineState(snap.clone()));
         }
         self.shared.machine.send_replace(snap);
         if self.active.is_none() {
