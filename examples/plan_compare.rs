@@ -13,8 +13,8 @@
 //!   every 0.02 mm along their roads: `|d(p) − d_j| · (dist(p, Ci) + dist(p, Ce))`, which
 //!   is the distance to the level set where the wall's two sides face each other.
 
-use edo::geom::SegmentIndex;
 use edo::geom::Path as RoadPath;
+use edo::geom::SegmentIndex;
 use edo::plan::{plan_layers, plan_region, LayerPlan, PlanOptions, RegionPlan};
 use glam::DVec2;
 use std::path::Path;

@@ -23,6 +23,7 @@
 //! - [`machine`]: the move stream in fixed point (µm, nl, ratios of 65535), the one move
 //!   type host, link and simulator share.
 //! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
+//! - [`proto`]: the typed JSON-RPC API (`docs/api.md`) edod, edoctl and clients share.
 //!
 //! Around the core, behind the cargo feature `daemon` (on by default): `cli` and
 //! `linktest` do the command-line tools' I/O, and `daemon` is edod's tokio shell (socket
