@@ -30,6 +30,7 @@
 
 pub mod cli;
 pub mod daemon;
+pub mod gcode_link;
 pub mod geom;
 pub mod job;
 pub mod link;
