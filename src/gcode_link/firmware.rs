@@ -20,7 +20,8 @@
 //!   `M112` at a line start is seen as it arrives. No busy protocol, no boot banner on USB.
 //! - **Klipper** (`klippy/gcode.py`): `N<n>` skipped, `*` never checked, one `ok` per line
 //!   (after `!! <error>` if it failed); `M112` is acted on as it is read while fewer than
-//!   20 lines are pending; `// Klipper state: Ready|Shutdown` lines.
+//!   20 lines are pending; `// Klipper state: Ready|Shutdown|Disconnect` lines; while it
+//!   restarts, every line is answered `!! Printer is not ready`, `ok` and not run.
 //!
 //! Planner model: `G0`–`G3` take a planner block until the caller reports the move done
 //! ([`Firmware::moves_done`]); `M400` waits for an empty planner; other commands pass.
@@ -74,6 +75,9 @@ pub struct FirmwareConfig {
     pub max_line_bytes: usize,
     /// RRF: the USB channel starts in Marlin compatibility (answers `ok`).
     pub rrf_marlin_mode: bool,
+    /// Klipper: time a `FIRMWARE_RESTART` takes, µs; lines meanwhile are answered
+    /// `!! Printer is not ready` and `ok`, and not run.
+    pub restart_us: u64,
     /// The `M115` firmware name.
     pub firmware_name: String,
 }
@@ -95,6 +99,7 @@ impl FirmwareConfig {
                 loop_period_us: 500,
                 max_line_bytes: 95,
                 rrf_marlin_mode: false,
+                restart_us: 2_000_000,
                 firmware_name: "Marlin 2.1.2.5 (edo model)".into(),
             },
             Dialect::Rrf => Self {
@@ -110,6 +115,7 @@ impl FirmwareConfig {
                 loop_period_us: 0,
                 max_line_bytes: 255,
                 rrf_marlin_mode: false,
+                restart_us: 2_000_000,
                 firmware_name: "RepRapFirmware for Duet 3 MB6HC".into(),
             },
             Dialect::Klipper => Self {
@@ -125,6 +131,7 @@ impl FirmwareConfig {
                 loop_period_us: 0,
                 max_line_bytes: 4095,
                 rrf_marlin_mode: false,
+                restart_us: 2_000_000,
                 firmware_name: "Klipper".into(),
             },
         }
@@ -212,6 +219,8 @@ pub struct Firmware {
     stall_until: Micros,
     keepalive_at: Option<Micros>,
     halted: bool,
+    /// Klipper restarting: not ready until then.
+    ready_at: Option<Micros>,
     reject_next: bool,
     rrf_marlin_mode: bool,
     stats: FirmwareStats,
@@ -237,6 +246,7 @@ impl Firmware {
             stall_until: now,
             keepalive_at: None,
             halted: false,
+            ready_at: None,
             reject_next: false,
             rrf_marlin_mode: cfg.rrf_marlin_mode,
             stats: FirmwareStats::default(),
@@ -269,6 +279,7 @@ impl Firmware {
         self.stall_until = now;
         self.keepalive_at = None;
         self.halted = false;
+        self.ready_at = None;
         self.reject_next = false;
         self.rrf_marlin_mode = self.cfg.rrf_marlin_mode;
         match self.cfg.dialect {
@@ -287,7 +298,11 @@ impl Firmware {
             }
             // Native USB: the port re-enumerates; nothing is printed.
             Dialect::Rrf => {}
-            Dialect::Klipper => self.say("// Klipper state: Ready"),
+            Dialect::Klipper if reason == "PowerUp" => self.say("// Klipper state: Ready"),
+            Dialect::Klipper => {
+                self.say("// Klipper state: Disconnect");
+                self.ready_at = Some(now.plus_us(self.cfg.restart_us));
+            }
         }
     }
 
@@ -358,14 +373,17 @@ impl Firmware {
     /// When [`Firmware::handle_timeout`] must run next.
     pub fn next_timeout(&self) -> Option<Micros> {
         let read = self.read_at.filter(|_| !self.rx.is_empty());
+        let read = [read, self.ready_at].into_iter().flatten().min();
         if self.halted || self.queue.is_empty() {
             return read;
         }
-        let mut t = self.next_process_at.max(self.stall_until);
-        for other in [self.keepalive_at, read].into_iter().flatten() {
-            t = t.min(other);
-        }
-        Some(t)
+        // A head waiting for planner space waits for `moves_done`, not for a timer.
+        let waits_for_moves = self.planner_blocked() && self.ready_at.is_none();
+        let process = (!waits_for_moves).then(|| self.next_process_at.max(self.stall_until));
+        [process, self.keepalive_at, read]
+            .into_iter()
+            .flatten()
+            .min()
     }
 
     /// Run the timers (processing pace, stalls, keepalives).
@@ -411,9 +429,15 @@ impl Firmware {
 
     /// The firmware's main loop until nothing more happens at `now`.
     fn run(&mut self, now: Micros) {
+        if self.ready_at.is_some_and(|t| now >= t) {
+            self.ready_at = None;
+            self.say("// Klipper state: Ready");
+        }
         loop {
             self.fill_from_backlog();
-            if !self.head_blocked(now) && self.read_due(now) {
+            // Marlin reads serial only from its main loop, not while a handler blocks.
+            let may_read = self.cfg.dialect != Dialect::Marlin || !self.head_blocked(now);
+            if may_read && self.read_due(now) {
                 self.read_lines();
                 self.read_at = None;
             }
@@ -421,10 +445,11 @@ impl Firmware {
                 break;
             }
         }
-        if self.read_at.is_some_and(|t| t <= now) {
-            self.read_at = None; // a pass that could not read (handler blocked)
+        let marlin_blocked = self.cfg.dialect == Dialect::Marlin && self.head_blocked(now);
+        if marlin_blocked || self.read_at.is_some_and(|t| t <= now) {
+            self.read_at = None; // reading resumes when the handler returns
         }
-        if !self.rx.is_empty() && self.read_at.is_none() {
+        if !self.rx.is_empty() && self.read_at.is_none() && !marlin_blocked {
             self.read_at = Some(self.next_loop_pass(now));
         }
         self.update_keepalive(now);
@@ -691,18 +716,19 @@ impl Firmware {
     // ---- processing ----------------------------------------------------------------
 
     fn head_blocked(&self, now: Micros) -> bool {
-        let Some(head) = self.queue.front() else {
-            return false;
-        };
-        if self.halted {
-            return false;
+        !self.halted
+            && self.ready_at.is_none()
+            && !self.queue.is_empty()
+            && (now < self.stall_until || self.planner_blocked())
+    }
+
+    /// The head of the queue waits for planner space (a move) or an empty planner (M400).
+    fn planner_blocked(&self) -> bool {
+        match self.queue.front().map(|c| c.kind) {
+            Some(CommandKind::Move) => self.planner_used >= self.cfg.planner_blocks,
+            Some(CommandKind::WaitMoves) => self.planner_used > 0,
+            _ => false,
         }
-        now < self.stall_until
-            || match head.kind {
-                CommandKind::Move => self.planner_used >= self.cfg.planner_blocks,
-                CommandKind::WaitMoves => self.planner_used > 0,
-                CommandKind::Other => false,
-            }
     }
 
     fn update_keepalive(&mut self, now: Micros) {
@@ -727,9 +753,13 @@ impl Firmware {
             return false;
         };
         self.next_process_at = now.plus_us(self.cfg.line_processing_us);
-        if self.halted {
-            // Klipper keeps answering while shut down.
-            self.say("!! Shutdown due to M112 command");
+        if self.halted || self.ready_at.is_some() {
+            // Klipper keeps answering while shut down or restarting, and runs nothing.
+            self.say(if self.halted {
+                "!! Shutdown due to M112 command"
+            } else {
+                "!! Printer is not ready"
+            });
             self.say("ok");
             return true;
         }
@@ -751,7 +781,10 @@ impl Firmware {
     fn run_builtin(&mut self, word: &str, text: &str) -> Vec<String> {
         match word {
             "M110" => {
-                if let Some(n) = text.split_ascii_whitespace().find_map(|w| w.strip_prefix('N')) {
+                if let Some(n) = text
+                    .split_ascii_whitespace()
+                    .find_map(|w| w.strip_prefix('N'))
+                {
                     if self.cfg.dialect != Dialect::Klipper {
                         self.last_n = strtol(n.as_bytes());
                     }
@@ -759,7 +792,10 @@ impl Firmware {
                 Vec::new()
             }
             "M113" => {
-                if let Some(s) = text.split_ascii_whitespace().find_map(|w| w.strip_prefix('S')) {
+                if let Some(s) = text
+                    .split_ascii_whitespace()
+                    .find_map(|w| w.strip_prefix('S'))
+                {
                     let s = strtol(s.as_bytes()).max(0) as u64;
                     self.cfg.keepalive_interval_us = (s > 0).then_some(s * 1_000_000);
                 }

@@ -609,7 +609,9 @@ impl LineHost {
     /// Run the timers.
     pub fn handle_timeout(&mut self, now: Micros) {
         match self.state {
-            LinkState::Connecting if now >= self.handshake.deadline => self.handshake_timed_out(now),
+            LinkState::Connecting if now >= self.handshake.deadline => {
+                self.handshake_timed_out(now)
+            }
             LinkState::Streaming => {
                 if self.ok_deadline().is_some_and(|d| now >= d) {
                     self.on_ok_timeout(now);
@@ -751,7 +753,11 @@ impl LineHost {
     }
 
     fn connected(&mut self, now: Micros) {
-        let first = if self.cfg.dialect.numbers_lines() { 2 } else { 1 };
+        let first = if self.cfg.dialect.numbers_lines() {
+            2
+        } else {
+            1
+        };
         self.hist_start = first;
         self.top = first;
         self.next_send = first;
@@ -760,7 +766,8 @@ impl LineHost {
         self.last_progress = now;
         self.timeouts_in_row = 0;
         self.state = LinkState::Streaming;
-        self.events.push_back(LineEvent::Connected(self.info.clone()));
+        self.events
+            .push_back(LineEvent::Connected(self.info.clone()));
     }
 
     fn on_line_handshake(&mut self, line: &str, reply: Reply<'_>, now: Micros) {
@@ -779,7 +786,8 @@ impl LineHost {
             } => {}
             Reply::Error { text, .. } | Reply::KlipperError(text) => {
                 self.handshake.failed = true;
-                self.events.push_back(LineEvent::Error { text: text.into() });
+                self.events
+                    .push_back(LineEvent::Error { text: text.into() });
             }
             Reply::Start => {
                 self.note_banner(line);
@@ -797,8 +805,12 @@ impl LineHost {
             Reply::Busy(_) => {
                 self.handshake.deadline = now.plus_us(self.cfg.handshake_timeout_us);
             }
-            Reply::Action(text) => self.events.push_back(LineEvent::Action { text: text.into() }),
-            Reply::BadResend(text) => self.protocol_error(format!("malformed resend request {text:?}")),
+            Reply::Action(text) => self
+                .events
+                .push_back(LineEvent::Action { text: text.into() }),
+            Reply::BadResend(text) => {
+                self.protocol_error(format!("malformed resend request {text:?}"))
+            }
             Reply::Empty | Reply::Wait => {}
             Reply::Echo(text) => {
                 if !self.note_m115(line.trim()) {
@@ -1009,15 +1021,21 @@ impl LineHost {
                 last_line: Some(l), ..
             } if self.cfg.dialect != Dialect::Klipper => self.pending_error = Some(l),
             Reply::Error { text, .. } => self.on_firmware_error(text),
-            Reply::KlipperError(text) => self.events.push_back(LineEvent::Error { text: text.into() }),
+            Reply::KlipperError(text) => self
+                .events
+                .push_back(LineEvent::Error { text: text.into() }),
             Reply::KlipperState(state) => self.on_klipper_state(state, line),
             Reply::Busy(text) => self.on_busy(text, now),
             Reply::Wait => self.on_wait(now),
             Reply::Start | Reply::ResetReason(_) if self.cfg.dialect == Dialect::Marlin => {
                 self.reset(line.trim())
             }
-            Reply::Action(text) => self.events.push_back(LineEvent::Action { text: text.into() }),
-            Reply::BadResend(text) => self.protocol_error(format!("malformed resend request {text:?}")),
+            Reply::Action(text) => self
+                .events
+                .push_back(LineEvent::Action { text: text.into() }),
+            Reply::BadResend(text) => {
+                self.protocol_error(format!("malformed resend request {text:?}"))
+            }
             Reply::Empty => {}
             Reply::Echo(text) => self.events.push_back(LineEvent::Echo { text: text.into() }),
             Reply::Json(_) | Reply::Start | Reply::ResetReason(_) => {
@@ -1142,7 +1160,9 @@ impl LineHost {
     fn on_resend(&mut self, j: u32, error_last_line: Option<u32>, now: Micros) {
         self.stats.resend_requests += 1;
         if self.cfg.dialect == Dialect::Klipper {
-            self.protocol_error(format!("Klipper does not request resends: `Resend: {j}` ignored"));
+            self.protocol_error(format!(
+                "Klipper does not request resends: `Resend: {j}` ignored"
+            ));
             return;
         }
         self.swallow_oks += 1; // Marlin follows every resend request with an `ok`
@@ -1206,12 +1226,15 @@ impl LineHost {
             _ => 1,
         };
         if count > self.cfg.max_consecutive_resends {
-            return self.stop(format!("the firmware asked for line {j} {count} times in a row"));
+            return self.stop(format!(
+                "the firmware asked for line {j} {count} times in a row"
+            ));
         }
+        // Each line in flight answers at most once; the one refused has answered.
         let removed = self.drop_flights_from(j);
         self.rewind = Some(Rewind {
             line: j,
-            stale_budget: removed,
+            stale_budget: removed.saturating_sub(1),
             count,
         });
         self.next_send = j;
@@ -1236,7 +1259,8 @@ impl LineHost {
         if lower.contains("halted") || lower.contains("kill") || lower.contains("m999") {
             self.halt(text);
         } else {
-            self.events.push_back(LineEvent::Error { text: text.into() });
+            self.events
+                .push_back(LineEvent::Error { text: text.into() });
         }
     }
 
@@ -1496,10 +1520,12 @@ impl LineHost {
             return;
         }
         match reply {
-            Reply::Error { text, .. } | Reply::KlipperError(text) => {
-                self.events.push_back(LineEvent::Error { text: text.into() })
-            }
-            Reply::Action(text) => self.events.push_back(LineEvent::Action { text: text.into() }),
+            Reply::Error { text, .. } | Reply::KlipperError(text) => self
+                .events
+                .push_back(LineEvent::Error { text: text.into() }),
+            Reply::Action(text) => self
+                .events
+                .push_back(LineEvent::Action { text: text.into() }),
             Reply::Echo(text) => self.events.push_back(LineEvent::Echo { text: text.into() }),
             Reply::Json(_) | Reply::KlipperState(_) | Reply::Start | Reply::ResetReason(_) => {
                 self.events.push_back(LineEvent::Echo {
@@ -1599,7 +1625,12 @@ fn rrf_input_line_number(json: &str, input: &str) -> Result<Option<u64>, String>
 }
 
 fn validate_line(text: &str) -> Result<(), SendError> {
-    let refuse = |why: &str| Err(SendError::Invalid(format!("{why}: {:?}", truncate(text, 60))));
+    let refuse = |why: &str| {
+        Err(SendError::Invalid(format!(
+            "{why}: {:?}",
+            truncate(text, 60)
+        )))
+    };
     if text.trim().is_empty() {
         return refuse("empty line");
     }
@@ -1618,8 +1649,11 @@ fn validate_line(text: &str) -> Result<(), SendError> {
     if text.contains('\\') || text.contains('(') {
         return refuse("`\\` and `(` are removed by Marlin before the checksum");
     }
+    let mut first = text.chars();
+    if matches!(first.next(), Some('N' | 'n')) && first.next().is_some_and(|c| c.is_ascii_digit()) {
+        return refuse("the link numbers lines itself");
+    }
     match command_word(text).as_deref() {
-        Some(w) if w.starts_with('N') => refuse("the link numbers lines itself"),
         Some("M110") => refuse("M110: the link owns line numbers"),
         Some("M112") => refuse("M112 goes through emergency_stop()"),
         _ => Ok(()),

@@ -160,8 +160,8 @@ impl LineLinkConfig {
             busy_timeout_us: 5_000_000,
             slow_command_timeout_us: 900_000_000,
             slow_commands: [
-                "G28", "G29", "G30", "G32", "G34", "G4", "M109", "M190", "M191", "M116",
-                "M303", "M400", "M600",
+                "G28", "G29", "G30", "G32", "G34", "G4", "M109", "M190", "M191", "M116", "M303",
+                "M400", "M600",
             ]
             .iter()
             .map(|s| s.to_string())
@@ -225,9 +225,7 @@ pub fn command_word(text: &str) -> Option<String> {
 
 fn is_line_number_word(word: &str) -> bool {
     let mut chars = word.chars();
-    matches!(chars.next(), Some('N' | 'n'))
-        && word.len() > 1
-        && chars.all(|c| c.is_ascii_digit())
+    matches!(chars.next(), Some('N' | 'n')) && word.len() > 1 && chars.all(|c| c.is_ascii_digit())
 }
 
 #[cfg(test)]

@@ -279,7 +279,10 @@ mod tests {
                 ReadItem::Line(b"Resend: 4".to_vec())
             ]
         );
-        assert_eq!(lines(&mut r, b"ho:x\n"), vec![ReadItem::Line(b"echo:x".to_vec())]);
+        assert_eq!(
+            lines(&mut r, b"ho:x\n"),
+            vec![ReadItem::Line(b"echo:x".to_vec())]
+        );
     }
 
     #[test]
@@ -317,7 +320,14 @@ mod tests {
 
     #[test]
     fn resend_forms() {
-        for s in ["Resend: 42", "Resend:42", "resend: N42", "rs 42", "rs N:42", "Resend: 42 "] {
+        for s in [
+            "Resend: 42",
+            "Resend:42",
+            "resend: N42",
+            "rs 42",
+            "rs N:42",
+            "Resend: 42 ",
+        ] {
             assert_eq!(parse(s), Reply::Resend(42), "{s}");
         }
         assert_eq!(parse("Resend: 4x2"), Reply::BadResend("Resend: 4x2"));
@@ -349,16 +359,34 @@ mod tests {
             }
         );
         assert_eq!(parse("echo:busy: processing"), Reply::Busy("processing"));
-        assert_eq!(parse("busy: paused for user"), Reply::Busy("paused for user"));
+        assert_eq!(
+            parse("busy: paused for user"),
+            Reply::Busy("paused for user")
+        );
         assert_eq!(parse("wait"), Reply::Wait);
         assert_eq!(parse("start"), Reply::Start);
-        assert_eq!(parse(" External Reset"), Reply::ResetReason("External Reset"));
-        assert_eq!(parse("!! Move out of range"), Reply::KlipperError("Move out of range"));
-        assert_eq!(parse("// Klipper state: Ready"), Reply::KlipperState("Ready"));
+        assert_eq!(
+            parse(" External Reset"),
+            Reply::ResetReason("External Reset")
+        );
+        assert_eq!(
+            parse("!! Move out of range"),
+            Reply::KlipperError("Move out of range")
+        );
+        assert_eq!(
+            parse("// Klipper state: Ready"),
+            Reply::KlipperState("Ready")
+        );
         assert_eq!(parse("//action:pause"), Reply::Action("pause"));
-        assert_eq!(parse("echo:Unknown command: \"G999\""), Reply::Echo("Unknown command: \"G999\""));
+        assert_eq!(
+            parse("echo:Unknown command: \"G999\""),
+            Reply::Echo("Unknown command: \"G999\"")
+        );
         assert_eq!(parse("// probe at 1,2"), Reply::Echo("probe at 1,2"));
-        assert_eq!(parse("{\"key\":\"inputs\"}"), Reply::Json("{\"key\":\"inputs\"}"));
+        assert_eq!(
+            parse("{\"key\":\"inputs\"}"),
+            Reply::Json("{\"key\":\"inputs\"}")
+        );
         assert_eq!(parse("T:20.0 /0.0"), Reply::Echo("T:20.0 /0.0"));
         assert_eq!(parse("  "), Reply::Empty);
     }
@@ -366,9 +394,13 @@ mod tests {
     #[test]
     fn m115_fields_marlin_rrf_klipper() {
         let f = m115_fields("FIRMWARE_NAME:Marlin 2.1.2.1 (Jun 1 2023) SOURCE_CODE_URL:github.com/MarlinFirmware/Marlin PROTOCOL_VERSION:1.0");
-        assert_eq!(f[0], ("FIRMWARE_NAME".into(), "Marlin 2.1.2.1 (Jun 1 2023)".into()));
+        assert_eq!(
+            f[0],
+            ("FIRMWARE_NAME".into(), "Marlin 2.1.2.1 (Jun 1 2023)".into())
+        );
         assert_eq!(f[2], ("PROTOCOL_VERSION".into(), "1.0".into()));
-        let f = m115_fields("FIRMWARE_NAME: RepRapFirmware for Duet 3 MB6HC FIRMWARE_VERSION: 3.5.1");
+        let f =
+            m115_fields("FIRMWARE_NAME: RepRapFirmware for Duet 3 MB6HC FIRMWARE_VERSION: 3.5.1");
         assert_eq!(f[0].1, "RepRapFirmware for Duet 3 MB6HC");
         assert_eq!(f[1], ("FIRMWARE_VERSION".into(), "3.5.1".into()));
     }

@@ -1,14 +1,19 @@
-//! Soak tests: thousands of lines through the fault wire for each firmware.
+//! Soak tests: 10,000 lines per run through the seeded fault wire, for each firmware, with
+//! the guarantees `docs/firmware.md` states ("What is promised").
 
 use super::testkit::{GcodeFaults, GcodeHarness, GcodeHarnessConfig, GcodeReport};
 use super::*;
 
-fn run(cfg: GcodeHarnessConfig, lines: u32) -> GcodeReport {
-    let mut h = GcodeHarness::new(cfg);
-    h.run(lines, 36_000_000_000)
+const LINES: u32 = 10_000;
+
+fn run(cfg: GcodeHarnessConfig) -> GcodeReport {
+    GcodeHarness::new(cfg).run(LINES, 100_000_000_000)
 }
 
-fn faults() -> GcodeFaults {
+/// Every fault at once: 2 % of lines corrupted each way, 1 % of `ok`s lost, 1 % spurious
+/// resend requests, busy periods of 3 s, an unplug of 60 s after 3,000 lines and a
+/// firmware reset after 6,000.
+fn every_fault() -> GcodeFaults {
     GcodeFaults {
         corrupt_to_firmware: 0.02,
         corrupt_to_host: 0.02,
@@ -16,77 +21,196 @@ fn faults() -> GcodeFaults {
         spurious_resend: 0.01,
         busy_chance: 0.002,
         busy_us: 3_000_000,
-        reset_after_lines: Some(6000),
-        unplug_after_lines: Some(3000),
+        reset_after_lines: Some(6_000),
+        unplug_after_lines: Some(3_000),
         unplug_us: 60_000_000,
     }
 }
 
-fn show(name: &str, r: &GcodeReport) {
-    eprintln!(
-        "{name}: completed {} lost {} dup {} adj {} reord {} foreign {} unnumbered_rep {} acc_ooo {} maybe_rep {} inexact {} resets {} lost_ev {} stopped {} halted {} recov {} perr {} t {:.1}s timeouts {} probes {} resent {}",
-        r.completed, r.lost, r.duplicates, r.adjacent_duplicates, r.reordered, r.foreign_lines_run,
-        r.unnumbered_reported, r.accepted_out_of_order, r.maybe_repeated, r.inexact_recoveries, r.resets, r.link_lost, r.stopped, r.halted,
-        r.recoveries, r.protocol_errors, r.elapsed_us as f64 / 1e6, r.host_stats.timeouts, r.host_stats.probes, r.host_stats.lines_resent
+fn config(dialect: Dialect, seed: u64) -> GcodeHarnessConfig {
+    let mut cfg = GcodeHarnessConfig::new(dialect);
+    cfg.seed = seed;
+    cfg.faults = every_fault();
+    cfg.exec_us_per_move = 2_000;
+    cfg
+}
+
+fn summary(r: &GcodeReport) -> String {
+    format!(
+        "completed {} lost {} dup {} (adjacent {}) reordered {} foreign {} fragment repeats {} \
+         maybe-repeated {} inexact {} resets {} link lost {} stopped {} halted {} recoveries {} \
+         accepted out of order {} timeouts {} resent {}",
+        r.completed,
+        r.lost,
+        r.duplicates,
+        r.adjacent_duplicates,
+        r.reordered,
+        r.foreign_lines_run,
+        r.fragment_repeats,
+        r.maybe_repeated,
+        r.inexact_recoveries,
+        r.resets,
+        r.link_lost,
+        r.stopped,
+        r.halted,
+        r.recoveries,
+        r.accepted_out_of_order,
+        r.host_stats.timeouts,
+        r.host_stats.lines_resent
+    )
+}
+
+fn assert_every_line_once_in_order(r: &GcodeReport) {
+    let s = summary(r);
+    assert!(r.completed, "{s}");
+    assert_eq!((r.lost, r.duplicates, r.reordered), (0, 0, 0), "{s}");
+    assert_eq!(r.executed, (0..LINES).collect::<Vec<_>>(), "{s}");
+    assert_eq!(
+        (r.stopped, r.halted, r.accepted_out_of_order),
+        (0, 0, 0),
+        "{s}"
     );
 }
 
 #[test]
-fn explore() {
-    for seed in 1..4 {
-        for d in [Dialect::Marlin, Dialect::Rrf, Dialect::Klipper] {
-            let mut cfg = GcodeHarnessConfig::new(d);
-            cfg.seed = seed;
-            cfg.faults = faults();
-            cfg.exec_us_per_move = 2000;
-            if d == Dialect::Klipper {
-                cfg.faults.corrupt_to_firmware = 0.0;
-                cfg.faults.corrupt_to_host = 0.0;
-                cfg.faults.drop_ok = 0.0;
-                cfg.faults.unplug_after_lines = None;
+fn marlin_one_line_in_flight_runs_every_line_exactly_once_through_every_fault() {
+    for seed in 1..=3 {
+        let r = run(config(Dialect::Marlin, seed));
+        assert_every_line_once_in_order(&r);
+        assert_eq!(
+            (r.foreign_lines_run, r.fragment_repeats),
+            (0, 0),
+            "{}",
+            summary(&r)
+        );
+        assert_eq!(r.resets, 1);
+        assert!(r.recoveries >= 1, "the unplug was recovered by the probe");
+        assert!(r.host_stats.lines_resent > 100, "faults were exercised");
+    }
+}
+
+#[test]
+fn marlin_advanced_ok_window_runs_every_numbered_line_exactly_once_through_every_fault() {
+    for seed in 1..=3 {
+        let mut cfg = config(Dialect::Marlin, seed);
+        cfg.firmware.advanced_ok = true;
+        let r = run(cfg);
+        assert_every_line_once_in_order(&r);
+        // The window's price: a line error drains Marlin's buffer and the tail of the line
+        // arriving behind it runs unnumbered (docs/firmware.md, "Windows on Marlin").
+        let unnumbered = r.firmware_stats.lines_unnumbered;
+        assert_eq!(r.foreign_lines_run + r.fragment_repeats, unnumbered);
+        assert!(r.unnumbered_reported <= unnumbered, "{}", summary(&r));
+    }
+}
+
+#[test]
+fn marlin_advanced_ok_reports_every_fragment_when_replies_arrive_intact() {
+    let mut total = 0;
+    for seed in 1..=3 {
+        let mut cfg = config(Dialect::Marlin, seed);
+        cfg.firmware.advanced_ok = true;
+        cfg.faults.corrupt_to_host = 0.0;
+        cfg.faults.drop_ok = 0.0;
+        let r = run(cfg);
+        assert_every_line_once_in_order(&r);
+        assert_eq!(r.unnumbered_reported, r.firmware_stats.lines_unnumbered);
+        total += r.unnumbered_reported;
+    }
+    assert!(total > 0, "fragments happened and were reported");
+}
+
+#[test]
+fn rrf_one_line_in_flight_loses_and_reorders_nothing_and_reports_every_repeat() {
+    for seed in 1..=3 {
+        let r = run(config(Dialect::Rrf, seed));
+        let s = summary(&r);
+        assert!(r.completed, "{s}");
+        assert_eq!((r.lost, r.reordered, r.foreign_lines_run), (0, 0, 0), "{s}");
+        // A line runs twice only right after itself, and only where the host said it may.
+        assert_eq!(r.duplicates, r.adjacent_duplicates, "{s}");
+        assert!(
+            r.duplicates <= r.maybe_repeated + r.inexact_recoveries,
+            "{s}"
+        );
+        assert_eq!(
+            (r.stopped, r.halted, r.accepted_out_of_order),
+            (0, 0, 0),
+            "{s}"
+        );
+        assert_eq!(r.resets, 1, "{s}");
+    }
+}
+
+#[test]
+fn klipper_runs_every_line_once_through_busy_periods_and_a_restart() {
+    for seed in 1..=3 {
+        let mut cfg = config(Dialect::Klipper, seed);
+        // A pty: nothing is corrupted, lost or unplugged.
+        cfg.faults.corrupt_to_firmware = 0.0;
+        cfg.faults.corrupt_to_host = 0.0;
+        cfg.faults.drop_ok = 0.0;
+        cfg.faults.unplug_after_lines = None;
+        cfg.latency_us = 100;
+        cfg.baud = 2_000_000;
+        let r = run(cfg);
+        let s = summary(&r);
+        assert!(r.completed, "{s}");
+        assert_eq!((r.lost, r.duplicates, r.reordered), (0, 0, 0), "{s}");
+        assert_eq!(r.executed, (0..LINES).collect::<Vec<_>>(), "{s}");
+        // The restart: `Disconnect` halts the stream, `Ready` is the reset.
+        assert_eq!((r.halted, r.resets, r.stopped), (1, 1, 0), "{s}");
+    }
+}
+
+#[test]
+fn a_run_is_a_function_of_its_seed() {
+    let mut cfg = config(Dialect::Marlin, 7);
+    cfg.firmware.advanced_ok = true;
+    let a = run(cfg.clone());
+    let b = run(cfg.clone());
+    assert_eq!(a.executed, b.executed);
+    assert_eq!(a.host_stats, b.host_stats);
+    assert_eq!(a.firmware_stats, b.firmware_stats);
+    assert_eq!(a.elapsed_us, b.elapsed_us);
+    cfg.seed = 8;
+    assert_ne!(run(cfg).host_stats, a.host_stats);
+}
+
+#[test]
+fn estop_overtakes_queued_lines_on_every_firmware() {
+    use crate::link::Micros;
+    for dialect in [Dialect::Marlin, Dialect::Rrf, Dialect::Klipper] {
+        let mut fcfg = FirmwareConfig::for_dialect(dialect);
+        fcfg.planner_blocks = 0; // every move blocks: the queue stays full
+        fcfg.emergency_parser = true;
+        let mut fw = Firmware::new(fcfg, Micros(0));
+        let mut host = LineHost::new(LineLinkConfig::for_dialect(dialect));
+        host.connect(Micros(0));
+        let mut now = Micros(0);
+        for step in 0..200u64 {
+            now = Micros(step * 1_000);
+            while let Some(b) = host.poll_transmit(now) {
+                fw.handle_bytes(&b, now);
             }
-            show(&format!("{d:?} seed {seed}"), &run(cfg.clone(), 10_000));
-            if d == Dialect::Marlin {
-                cfg.firmware.advanced_ok = true;
-                show(&format!("{d:?}+AOK seed {seed}"), &run(cfg, 10_000));
+            fw.handle_timeout(now);
+            while let Some(b) = fw.poll_transmit() {
+                host.handle_bytes(&b, now);
+            }
+            while host.poll_event().is_some() {}
+            if host.state() == LinkState::Streaming && host.queued_len() < 4 {
+                let _ = host.send_line(&testkit::test_line(step as u32), step);
             }
         }
-    }
-}
-
-#[test]
-fn explore_rrf() {
-    let none = GcodeFaults::default();
-    let cases: Vec<(&str, GcodeFaults)> = vec![
-        ("corrupt_fw", GcodeFaults { corrupt_to_firmware: 0.02, ..none.clone() }),
-        ("corrupt_host", GcodeFaults { corrupt_to_host: 0.02, ..none.clone() }),
-        ("drop_ok", GcodeFaults { drop_ok: 0.02, ..none.clone() }),
-        ("busy", GcodeFaults { busy_chance: 0.002, busy_us: 3_000_000, ..none.clone() }),
-        ("reset", GcodeFaults { reset_after_lines: Some(600), ..none.clone() }),
-        ("unplug", GcodeFaults { unplug_after_lines: Some(600), unplug_us: 60_000_000, ..none.clone() }),
-    ];
-    for (name, f) in cases {
-        let mut cfg = GcodeHarnessConfig::new(Dialect::Rrf);
-        cfg.faults = f;
-        cfg.exec_us_per_move = 2000;
-        show(name, &run(cfg, 2000));
-    }
-}
-
-#[test]
-fn explore_rrf2() {
-    let all = faults();
-    let cases: Vec<(&str, GcodeFaults)> = vec![
-        ("all", all.clone()),
-        ("no_reset", GcodeFaults { reset_after_lines: None, ..all.clone() }),
-        ("no_unplug", GcodeFaults { unplug_after_lines: None, ..all.clone() }),
-        ("no_busy", GcodeFaults { busy_chance: 0.0, ..all.clone() }),
-        ("no_corrupt", GcodeFaults { corrupt_to_firmware: 0.0, corrupt_to_host: 0.0, ..all.clone() }),
-    ];
-    for (name, f) in cases {
-        let mut cfg = GcodeHarnessConfig::new(Dialect::Rrf);
-        cfg.faults = f;
-        cfg.exec_us_per_move = 2000;
-        show(name, &run(cfg, 10000));
+        assert!(host.in_flight_len() > 0, "{dialect:?}: lines are waiting");
+        assert!(!fw.is_halted());
+        assert!(!host.emergency_stop().is_empty());
+        while let Some(b) = host.poll_transmit(now) {
+            fw.handle_bytes(&b, now);
+        }
+        assert!(
+            fw.is_halted(),
+            "{dialect:?}: M112 acted on behind a full queue"
+        );
     }
 }

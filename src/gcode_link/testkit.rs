@@ -53,7 +53,13 @@ pub struct SerialWire {
 
 impl SerialWire {
     /// A wire at `baud` (10 bits a byte) with `latency_us` added to every delivery.
-    pub fn new(baud: u32, latency_us: u64, piece_bytes: usize, faults: WireFaults, seed: u64) -> Self {
+    pub fn new(
+        baud: u32,
+        latency_us: u64,
+        piece_bytes: usize,
+        faults: WireFaults,
+        seed: u64,
+    ) -> Self {
         Self {
             byte_time_ns: 10_000_000_000 / u64::from(baud.max(1)),
             latency_us,
@@ -216,7 +222,8 @@ impl GcodeHarnessConfig {
 pub struct GcodeReport {
     /// Job lines asked for.
     pub lines: u32,
-    /// Job lines the firmware ran (repeats included), in order of running.
+    /// Job lines the firmware ran as sent (numbered and checked where the firmware checks),
+    /// repeats included, in order of running.
     pub executed: Vec<u32>,
     /// Runs of a line already run.
     pub duplicates: u64,
@@ -228,6 +235,9 @@ pub struct GcodeReport {
     pub lost: u64,
     /// Lines the firmware ran that the host never sent as such (fragments, garbage).
     pub foreign_lines_run: u64,
+    /// Whole job lines the firmware ran again unchecked (a Marlin drain fragment that
+    /// began at the command).
+    pub fragment_repeats: u64,
     /// [`LineEvent::Accepted`] events.
     pub accepted_events: u64,
     /// Accepted events not for the tag after the previous one (within a session).
@@ -415,7 +425,11 @@ impl GcodeHarness {
             return;
         }
         while self.next_tag < lines && self.host.queued_len() < self.cfg.backlog {
-            if self.host.send_line(&test_line(self.next_tag), u64::from(self.next_tag)).is_err() {
+            if self
+                .host
+                .send_line(&test_line(self.next_tag), u64::from(self.next_tag))
+                .is_err()
+            {
                 break;
             }
             self.next_tag += 1;
@@ -449,8 +463,16 @@ impl GcodeHarness {
 
     fn execute(&mut self, now: Micros) {
         while let Some(line) = self.firmware.poll_line() {
-            match self.index_of.get(&line.text) {
-                Some(&i) => self.ran_line(i),
+            // Klipper checks nothing: every line it runs counts as sent.
+            let checked =
+                line.line_number.is_some() || self.cfg.firmware.dialect == Dialect::Klipper;
+            let command = line
+                .text
+                .rsplit_once('*')
+                .map_or(line.text.as_str(), |(c, _)| c);
+            match self.index_of.get(command.trim()) {
+                Some(&i) if checked => self.ran_line(i),
+                Some(_) => self.report.fragment_repeats += 1,
                 None if is_link_line(&line.text) => {}
                 None => self.report.foreign_lines_run += 1,
             }
@@ -465,7 +487,8 @@ impl GcodeHarness {
             self.planned.pop_front();
             done += 1;
             if self.rng.chance(self.cfg.faults.busy_chance) {
-                self.firmware.stall(now.plus_us(self.cfg.faults.busy_us), now);
+                self.firmware
+                    .stall(now.plus_us(self.cfg.faults.busy_us), now);
             }
         }
         if done > 0 {
