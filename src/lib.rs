@@ -36,6 +36,7 @@
 pub mod cli;
 #[cfg(feature = "daemon")]
 pub mod daemon;
+pub mod gcode_link;
 pub mod geom;
 pub mod job;
 pub mod link;

@@ -1,0 +1,889 @@
+//! Unit tests of the host end against scripted firmware replies.
+
+use super::*;
+use crate::gcode_link::{checksum, numbered_line};
+
+const MARLIN_ID: &str = "FIRMWARE_NAME:Marlin 2.1.2.5 (test) PROTOCOL_VERSION:1.0";
+
+fn t(ms: u64) -> Micros {
+    Micros(ms * 1000)
+}
+
+fn cfg(dialect: Dialect) -> LineLinkConfig {
+    LineLinkConfig::for_dialect(dialect)
+}
+
+/// Everything the host wants to write at `now`, as text.
+fn tx(h: &mut LineHost, now: Micros) -> Vec<String> {
+    let mut out = Vec::new();
+    while let Some(b) = h.poll_transmit(now) {
+        out.push(String::from_utf8_lossy(&b).into_owned());
+    }
+    out
+}
+
+fn events(h: &mut LineHost) -> Vec<LineEvent> {
+    std::iter::from_fn(|| h.poll_event()).collect()
+}
+
+fn feed(h: &mut LineHost, text: &str, now: Micros) {
+    h.handle_bytes(text.as_bytes(), now);
+}
+
+fn accepted(ev: &[LineEvent]) -> Vec<u64> {
+    ev.iter()
+        .filter_map(|e| match e {
+            LineEvent::Accepted { tag, .. } => Some(*tag),
+            _ => None,
+        })
+        .collect()
+}
+
+fn line(n: u32, text: &str) -> String {
+    String::from_utf8_lossy(&numbered_line(n, text)).into_owned()
+}
+
+/// A host through the handshake with `first_ok` as the answer to `M110`.
+fn connected_with(mut c: LineLinkConfig, first_ok: &str) -> LineHost {
+    let dialect = c.dialect;
+    c.history_lines = c.history_lines.max(8);
+    let mut h = LineHost::new(c);
+    h.connect(t(0));
+    match dialect {
+        Dialect::Marlin => {
+            assert_eq!(tx(&mut h, t(0)), vec!["N0 M110 N0*125\n"]);
+            feed(&mut h, first_ok, t(1));
+            assert_eq!(tx(&mut h, t(1)), vec!["N1 M115*39\n"]);
+            feed(
+                &mut h,
+                &format!("{MARLIN_ID}\nCap:EMERGENCY_PARSER:1\n{first_ok}"),
+                t(2),
+            );
+        }
+        Dialect::Rrf => {
+            assert_eq!(tx(&mut h, t(0)), vec!["M555 P2\n"]);
+            feed(&mut h, "\n", t(1));
+            assert_eq!(tx(&mut h, t(1)), vec!["N0 M110 N0*125\n"]);
+            feed(&mut h, "ok\n", t(1));
+            assert_eq!(tx(&mut h, t(1)), vec!["N1 M115*39\n"]);
+            feed(
+                &mut h,
+                "FIRMWARE_NAME: RepRapFirmware for Duet 3 MB6HC FIRMWARE_VERSION: 3.5.1\nok\n",
+                t(2),
+            );
+        }
+        Dialect::Klipper => {
+            assert_eq!(tx(&mut h, t(0)), vec!["M115\n"]);
+            feed(
+                &mut h,
+                "ok FIRMWARE_NAME:Klipper FIRMWARE_VERSION:v0.12.0\n",
+                t(2),
+            );
+        }
+    }
+    assert_eq!(h.state(), LinkState::Streaming);
+    let ev = events(&mut h);
+    assert!(matches!(ev.last(), Some(LineEvent::Connected(_))), "{ev:?}");
+    h
+}
+
+fn connected(dialect: Dialect) -> LineHost {
+    connected_with(cfg(dialect), "ok\n")
+}
+
+fn windowed(lines: u16) -> LineHost {
+    let mut c = cfg(Dialect::Marlin);
+    c.window = Window::Lines(lines);
+    c.rx_buffer_bytes = 4096;
+    connected_with(c, "ok\n")
+}
+
+fn send(h: &mut LineHost, tags: std::ops::Range<u64>) {
+    for tag in tags {
+        h.send_line(&format!("G1 X{tag}"), tag).unwrap();
+    }
+}
+
+#[test]
+fn marlin_handshake_reports_the_firmware_and_numbers_lines_from_2() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.connect(t(0));
+    assert_eq!(tx(&mut h, t(0)), vec!["N0 M110 N0*125\n"]);
+    feed(&mut h, "ok\n", t(1));
+    assert_eq!(tx(&mut h, t(1)), vec!["N1 M115*39\n"]);
+    feed(
+        &mut h,
+        &format!("{MARLIN_ID}\nCap:EMERGENCY_PARSER:1\nCap:BUSY_PROTOCOL:1\nok\n"),
+        t(2),
+    );
+    let ev = events(&mut h);
+    let Some(LineEvent::Connected(info)) = ev.last() else {
+        panic!("{ev:?}")
+    };
+    assert_eq!(info.firmware_name.as_deref(), Some("Marlin 2.1.2.5 (test)"));
+    assert_eq!(info.capability("EMERGENCY_PARSER"), Some(true));
+    assert_eq!(info.capability("BUSY_PROTOCOL"), Some(true));
+    h.send_line("G1 X1 Y2", 7).unwrap();
+    let sent = tx(&mut h, t(3));
+    assert_eq!(sent, vec![line(2, "G1 X1 Y2")]);
+    let cs = checksum(b"N2 G1 X1 Y2");
+    assert_eq!(sent[0], format!("N2 G1 X1 Y2*{cs}\n"));
+}
+
+#[test]
+fn rrf_handshake_takes_an_empty_line_for_m555_and_sends_numbered_lines() {
+    let mut h = connected(Dialect::Rrf);
+    assert_eq!(h.firmware_info().firmware_version.as_deref(), Some("3.5.1"));
+    h.send_line("G1 X1", 1).unwrap();
+    assert_eq!(tx(&mut h, t(3)), vec![line(2, "G1 X1")]);
+}
+
+#[test]
+fn klipper_handshake_reads_m115_from_the_ok_line_and_lines_go_plain() {
+    let mut h = connected(Dialect::Klipper);
+    assert_eq!(h.firmware_info().firmware_name.as_deref(), Some("Klipper"));
+    send(&mut h, 0..3);
+    assert_eq!(tx(&mut h, t(3)), vec!["G1 X0\n", "G1 X1\n", "G1 X2\n"]);
+    feed(&mut h, "ok\nok\n", t(4));
+    assert_eq!(accepted(&events(&mut h)), vec![0, 1]);
+}
+
+#[test]
+fn a_stale_ok_does_not_complete_the_m115_step() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.connect(t(0));
+    tx(&mut h, t(0));
+    feed(&mut h, "start\n", t(1)); // the board booted: the handshake starts again
+    assert_eq!(tx(&mut h, t(1)), vec!["N0 M110 N0*125\n"]);
+    feed(&mut h, "ok\nok\n", t(2)); // both M110s answered
+    assert_eq!(tx(&mut h, t(2)), vec!["N1 M115*39\n"]);
+    assert_eq!(h.state(), LinkState::Connecting);
+    feed(&mut h, &format!("{MARLIN_ID}\nok\n"), t(3));
+    assert_eq!(h.state(), LinkState::Streaming);
+}
+
+#[test]
+fn handshake_gives_up_after_its_attempts() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.connect(t(0));
+    let mut sent = 0;
+    let mut now = t(0);
+    while h.state() == LinkState::Connecting {
+        sent += tx(&mut h, now).len();
+        now = h.next_timeout().unwrap();
+        h.handle_timeout(now);
+    }
+    assert_eq!(h.state(), LinkState::Lost);
+    assert_eq!(sent, 5);
+    assert!(matches!(events(&mut h)[..], [LineEvent::LinkLost { .. }]));
+}
+
+#[test]
+fn lines_that_would_break_the_checksum_or_numbering_are_refused() {
+    let mut h = connected(Dialect::Marlin);
+    for bad in [
+        "",
+        "G1 X1 ; go",
+        "G1 X1*12",
+        " G1",
+        "N5 G1",
+        "M110 N9",
+        "M112",
+        "G1 X\u{e9}",
+        "G1\tX1",
+        "M117 (hi)",
+        "M117 a\\b",
+    ] {
+        assert!(
+            matches!(h.send_line(bad, 0), Err(SendError::Invalid(_))),
+            "{bad:?}"
+        );
+    }
+    let long = format!("M117 {}", "x".repeat(90));
+    assert!(matches!(
+        h.send_line(&long, 0),
+        Err(SendError::TooLong { max: 95, .. })
+    ));
+    assert_eq!(h.queued_len(), 0);
+    let mut idle = LineHost::new(cfg(Dialect::Marlin));
+    assert_eq!(
+        idle.send_line("G1", 0),
+        Err(SendError::NotReady(LinkState::Idle))
+    );
+}
+
+#[test]
+fn oks_acknowledge_lines_in_order_with_their_tags() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 10..13);
+    for (i, tag) in (10..13).enumerate() {
+        assert_eq!(tx(&mut h, t(3 + i as u64)).len(), 1, "window 1");
+        assert!(tx(&mut h, t(3 + i as u64)).is_empty());
+        feed(&mut h, "ok\n", t(3 + i as u64));
+        assert_eq!(
+            events(&mut h),
+            vec![LineEvent::Accepted {
+                tag,
+                line_number: 2 + i as u32
+            }]
+        );
+    }
+}
+
+#[test]
+fn resend_goes_back_and_ignores_the_repeats_of_lines_sent_before() {
+    let mut h = windowed(4);
+    send(&mut h, 0..6);
+    let first = tx(&mut h, t(3));
+    assert_eq!(
+        first,
+        vec![
+            line(2, "G1 X0"),
+            line(3, "G1 X1"),
+            line(4, "G1 X2"),
+            line(5, "G1 X3")
+        ]
+    );
+    // Line 3 arrived corrupted: 2 accepted; 4 and 5 are drained or refused.
+    feed(
+        &mut h,
+        "ok\nError:checksum mismatch, Last Line: 2\nResend: 3\nok\n",
+        t(4),
+    );
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+    assert_eq!(
+        tx(&mut h, t(4)),
+        vec![
+            line(3, "G1 X1"),
+            line(4, "G1 X2"),
+            line(5, "G1 X3"),
+            line(6, "G1 X4")
+        ]
+    );
+    // Line 4 (old copy) was refused: a repeat of the same request, ignored with its ok.
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 2\nResend: 3\nok\n",
+        t(5),
+    );
+    assert!(tx(&mut h, t(5)).is_empty());
+    feed(&mut h, "ok\nok\nok\nok\n", t(6));
+    assert_eq!(accepted(&events(&mut h)), vec![1, 2, 3, 4]);
+    assert_eq!(h.stats().resends_duplicate, 1);
+    assert_eq!(h.stats().oks_swallowed, 2);
+    assert_eq!(tx(&mut h, t(6)), vec![line(7, "G1 X5")]);
+}
+
+#[test]
+fn a_resend_for_a_line_the_firmware_already_confirmed_is_ignored() {
+    let mut h = windowed(4);
+    send(&mut h, 0..3);
+    tx(&mut h, t(3));
+    feed(
+        &mut h,
+        "ok\nok\nError:checksum mismatch, Last Line: 3\nResend: 4\nok\n",
+        t(4),
+    );
+    assert_eq!(tx(&mut h, t(4)), vec![line(4, "G1 X2")]);
+    feed(&mut h, "Resend: 3\nok\n", t(5)); // a delayed or corrupted request: 3 is confirmed
+    assert!(tx(&mut h, t(5)).is_empty());
+    assert_eq!(h.stats().resends_stale, 1);
+    assert_eq!(h.state(), LinkState::Streaming);
+}
+
+#[test]
+fn a_resend_for_a_line_never_sent_stops_the_job() {
+    let mut h = windowed(4);
+    send(&mut h, 0..4);
+    tx(&mut h, t(3));
+    feed(&mut h, "ok\nResend: 40\nok\n", t(4));
+    let ev = events(&mut h);
+    let Some(LineEvent::Stopped {
+        reason,
+        unacknowledged,
+    }) = ev.last()
+    else {
+        panic!("{ev:?}")
+    };
+    assert!(reason.contains("never sent"), "{reason}");
+    assert_eq!(unacknowledged, &vec![1, 2, 3]);
+    assert_eq!(h.state(), LinkState::Stopped);
+    assert!(tx(&mut h, t(5)).is_empty());
+}
+
+#[test]
+fn a_resend_for_a_line_no_longer_kept_stops_the_job() {
+    let mut c = cfg(Dialect::Marlin);
+    c.window = Window::Lines(2);
+    c.history_lines = 3;
+    let mut h = connected_with(c, "ok\n");
+    send(&mut h, 0..10);
+    for i in 0..10 {
+        tx(&mut h, t(3 + i));
+        feed(&mut h, "ok\n", t(3 + i));
+    }
+    // Plain oks confirm nothing: the firmware may still ask for line 3, which is gone.
+    feed(&mut h, "Resend: 3\nok\n", t(20));
+    let ev = events(&mut h);
+    assert!(
+        matches!(ev.last(), Some(LineEvent::Stopped { reason, .. }) if reason.contains("no longer kept")),
+        "{ev:?}"
+    );
+}
+
+#[test]
+fn error_and_resend_that_disagree_are_both_ignored() {
+    let mut h = windowed(2);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    feed(
+        &mut h,
+        "Error:checksum mismatch, Last Line: 2\nResend: 7\nok\n",
+        t(4),
+    );
+    let ev = events(&mut h);
+    assert!(ev
+        .iter()
+        .any(|e| matches!(e, LineEvent::ProtocolError { what } if what.contains("both ignored"))));
+    assert!(tx(&mut h, t(4)).is_empty());
+    assert_eq!(h.stats().oks_swallowed, 1);
+    assert_eq!(h.in_flight_len(), 2);
+}
+
+#[test]
+fn an_error_whose_resend_line_was_lost_still_goes_back() {
+    let mut h = windowed(2);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    feed(&mut h, "Error:checksum mismatch, Last Line: 1\nok\n", t(4));
+    assert_eq!(tx(&mut h, t(4)), vec![line(2, "G1 X0"), line(3, "G1 X1")]);
+    assert_eq!(h.stats().oks_swallowed, 1);
+}
+
+#[test]
+fn an_ok_with_no_line_in_flight_is_reported_and_ignored() {
+    let mut h = connected(Dialect::Marlin);
+    feed(&mut h, "ok\n", t(3));
+    let ev = events(&mut h);
+    assert!(
+        matches!(&ev[..], [LineEvent::ProtocolError { what }] if what.contains("no line in flight"))
+    );
+    assert_eq!(h.stats().oks_unexpected, 1);
+}
+
+#[test]
+fn garbage_bytes_are_reported_and_the_link_goes_on() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    h.handle_bytes(b"\xff\xfe\x80garbage\n\x00\x01\nok\n", t(4));
+    let ev = events(&mut h);
+    assert!(matches!(&ev[0], LineEvent::ProtocolError { what } if what.contains("not UTF-8")));
+    assert!(matches!(&ev[1], LineEvent::Echo { .. }), "{ev:?}");
+    assert_eq!(accepted(&ev), vec![0]);
+    assert_eq!(h.stats().garbage_lines, 1);
+}
+
+#[test]
+fn an_unterminated_megabyte_line_is_bounded_and_dropped_with_one_event() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    let big = vec![b'A'; 1 << 20];
+    for chunk in big.chunks(4096) {
+        h.handle_bytes(chunk, t(4));
+    }
+    h.handle_bytes(b"\nok\n", t(5));
+    let ev = events(&mut h);
+    assert_eq!(
+        ev.iter()
+            .filter(
+                |e| matches!(e, LineEvent::ProtocolError { what } if what.contains("longer than"))
+            )
+            .count(),
+        1
+    );
+    assert_eq!(accepted(&ev), vec![0]);
+    assert_eq!(h.stats().overlong_lines, 1);
+}
+
+#[test]
+fn unknown_messages_actions_and_busy_are_reported() {
+    let mut h = connected(Dialect::Marlin);
+    feed(
+        &mut h,
+        "something odd\necho:Unknown command: \"G999\"\n//action:pause\necho:busy: processing\necho:busy: processing\n",
+        t(3),
+    );
+    assert_eq!(
+        events(&mut h),
+        vec![
+            LineEvent::Echo {
+                text: "something odd".into()
+            },
+            LineEvent::Echo {
+                text: "Unknown command: \"G999\"".into()
+            },
+            LineEvent::Action {
+                text: "pause".into()
+            },
+            LineEvent::Busy {
+                text: "processing".into()
+            },
+        ]
+    );
+}
+
+#[test]
+fn busy_keepalives_hold_off_the_timeout_and_silence_then_times_out_sooner() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    assert_eq!(h.next_timeout(), Some(t(3).plus_us(10_000_000)));
+    for s in 1..=10u64 {
+        feed(&mut h, "echo:busy: processing\n", t(3 + 2000 * s));
+        h.handle_timeout(t(3 + 2000 * s));
+        assert_eq!(h.state(), LinkState::Streaming);
+    }
+    // Keepalives are known now: 5 s of silence is a loss.
+    assert_eq!(h.next_timeout(), Some(t(20_003).plus_us(5_000_000)));
+}
+
+#[test]
+fn marlin_timeout_probes_and_resumes_after_the_last_line_accepted() {
+    let mut h = windowed(3);
+    send(&mut h, 0..3);
+    tx(&mut h, t(3));
+    feed(&mut h, "ok\n", t(4)); // line 2; the oks of 3 and 4 are lost
+    events(&mut h);
+    let deadline = h.next_timeout().unwrap();
+    let sent = tx(&mut h, deadline);
+    assert_eq!(sent, vec![format!("\n{}", line(PROBE_LINE_NUMBER, "M105"))]);
+    assert_eq!(h.state(), LinkState::Probing);
+    assert!(
+        h.send_line("G1 X9", 9).is_ok(),
+        "lines may be queued while probing"
+    );
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 3\nResend: 4\nok\n",
+        deadline,
+    );
+    assert_eq!(accepted(&events(&mut h)), vec![1]);
+    assert_eq!(h.state(), LinkState::Streaming);
+    // Line 3 is not sent again; line 4 is.
+    assert_eq!(
+        tx(&mut h, deadline),
+        vec![line(4, "G1 X2"), line(5, "G1 X9")]
+    );
+}
+
+#[test]
+fn a_probe_answer_that_goes_back_is_a_reset() {
+    let mut h = windowed(2);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    feed(&mut h, "ok N2 P15 B3\nok N3 P15 B3\n", t(4));
+    send(&mut h, 2..3);
+    tx(&mut h, t(4));
+    let deadline = h.next_timeout().unwrap();
+    tx(&mut h, deadline);
+    // A lone line going back is not trusted...
+    feed(&mut h, "Resend: 1\nok\n", deadline);
+    assert_eq!(h.state(), LinkState::Probing);
+    // ...the pair is: the firmware restarted.
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 0\nResend: 1\nok\n",
+        deadline,
+    );
+    let ev = events(&mut h);
+    assert!(
+        matches!(ev.last(), Some(LineEvent::Reset { unacknowledged, .. }) if unacknowledged == &vec![2]),
+        "{ev:?}"
+    );
+}
+
+#[test]
+fn unanswered_probes_end_in_link_lost() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    let mut probes = 0;
+    while h.state() != LinkState::Lost {
+        let now = h.next_timeout().unwrap();
+        probes += tx(&mut h, now).len();
+    }
+    assert_eq!(probes, 3);
+    let ev = events(&mut h);
+    assert!(
+        matches!(&ev[..], [LineEvent::LinkLost { unacknowledged, silent_us }] if unacknowledged == &vec![0, 1] && *silent_us > 10_000_000),
+        "{ev:?}"
+    );
+}
+
+#[test]
+fn wait_with_old_lines_in_flight_probes_at_once() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    feed(&mut h, "wait\n", t(500));
+    assert!(
+        tx(&mut h, t(500)).is_empty(),
+        "too soon: the line may still be arriving"
+    );
+    feed(&mut h, "wait\n", t(1500));
+    assert_eq!(h.state(), LinkState::Probing);
+}
+
+#[test]
+fn rrf_timeout_sends_the_line_again_and_says_so() {
+    let mut h = connected(Dialect::Rrf);
+    send(&mut h, 0..2);
+    assert_eq!(tx(&mut h, t(3)), vec![line(2, "G1 X0")]);
+    let deadline = h.next_timeout().unwrap();
+    assert_eq!(deadline, t(3).plus_us(4_000_000));
+    assert_eq!(tx(&mut h, deadline), vec![line(2, "G1 X0")]);
+    assert_eq!(
+        events(&mut h),
+        vec![LineEvent::MaybeRepeated {
+            tag: 0,
+            line_number: 2
+        }]
+    );
+    feed(&mut h, "ok\n", deadline);
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+    assert_eq!(tx(&mut h, deadline), vec![line(3, "G1 X1")]);
+}
+
+#[test]
+fn klipper_timeout_never_resends_and_ends_in_link_lost() {
+    let mut h = connected(Dialect::Klipper);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    let mut sent = 0;
+    while h.state() == LinkState::Streaming {
+        let now = h.next_timeout().unwrap();
+        sent += tx(&mut h, now).len();
+    }
+    assert_eq!(sent, 0);
+    assert_eq!(h.state(), LinkState::Lost);
+}
+
+#[test]
+fn slow_commands_get_the_long_timeout() {
+    let mut h = connected(Dialect::Marlin);
+    h.send_line("G28", 0).unwrap();
+    tx(&mut h, t(3));
+    assert_eq!(h.next_timeout(), Some(t(3).plus_us(900_000_000)));
+}
+
+#[test]
+fn marlin_start_banner_is_a_reset_and_nothing_more_is_sent() {
+    let mut h = windowed(2);
+    send(&mut h, 0..3);
+    tx(&mut h, t(3));
+    feed(&mut h, "ok\nstart\nPowerUp\n", t(4));
+    let ev = events(&mut h);
+    assert_eq!(accepted(&ev), vec![0]);
+    assert!(
+        matches!(ev.last(), Some(LineEvent::Reset { banner, unacknowledged }) if banner == "start" && unacknowledged == &vec![1, 2]),
+        "{ev:?}"
+    );
+    assert!(tx(&mut h, t(5)).is_empty());
+    assert_eq!(h.connect(t(6)), vec![1, 2]);
+    assert_eq!(tx(&mut h, t(6)), vec!["N0 M110 N0*125\n"]);
+}
+
+#[test]
+fn klipper_ready_is_a_reset_and_shutdown_a_halt() {
+    let mut h = connected(Dialect::Klipper);
+    feed(&mut h, "// Klipper state: Ready\n", t(3));
+    assert!(matches!(events(&mut h)[..], [LineEvent::Reset { .. }]));
+    let mut h = connected(Dialect::Klipper);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    feed(
+        &mut h,
+        "!! Shutdown due to M112 command\n// Klipper state: Shutdown\n",
+        t(3),
+    );
+    let ev = events(&mut h);
+    assert!(matches!(&ev[0], LineEvent::Error { .. }));
+    assert!(
+        matches!(&ev[1], LineEvent::Halted { unacknowledged, .. } if unacknowledged == &vec![0])
+    );
+    assert_eq!(h.state(), LinkState::Halted);
+}
+
+#[test]
+fn marlin_kill_halts_and_other_errors_are_reported() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    feed(&mut h, "Error:MINTEMP triggered\nok\n", t(4));
+    let ev = events(&mut h);
+    assert_eq!(
+        ev[0],
+        LineEvent::Error {
+            text: "MINTEMP triggered".into()
+        }
+    );
+    assert_eq!(accepted(&ev), vec![0]);
+    tx(&mut h, t(4));
+    feed(&mut h, "Error:Printer halted. kill() called!\n", t(5));
+    assert!(matches!(events(&mut h)[..], [LineEvent::Halted { .. }]));
+    assert!(tx(&mut h, t(6)).is_empty());
+}
+
+#[test]
+fn emergency_stop_goes_ahead_of_everything_and_ends_the_stream() {
+    let mut h = windowed(2);
+    send(&mut h, 0..5);
+    tx(&mut h, t(3));
+    assert_eq!(h.emergency_stop(), vec![0, 1, 2, 3, 4]);
+    assert_eq!(tx(&mut h, t(3)), vec!["\nM112\n"]);
+    assert_eq!(h.state(), LinkState::Halted);
+    feed(&mut h, "ok\n", t(4));
+    assert!(tx(&mut h, t(4)).is_empty());
+}
+
+#[test]
+fn advanced_ok_opens_the_window_within_the_receive_buffer() {
+    let mut c = cfg(Dialect::Marlin);
+    c.rx_buffer_bytes = 128;
+    let mut h = connected_with(c, "ok N0 P16 B3\n");
+    assert!(h.firmware_info().advanced_ok);
+    assert_eq!(h.firmware_info().command_slots, Some(4));
+    assert_eq!(h.window_lines(), 4);
+    for tag in 0..6 {
+        h.send_line(&format!("G1 X{tag}.000 Y1.000 E0.00100 F1800"), tag)
+            .unwrap();
+    }
+    // 38-byte lines: three fit in 128 − 8 bytes.
+    assert_eq!(tx(&mut h, t(3)).len(), 3);
+    feed(&mut h, "ok N2 P15 B2\n", t(4));
+    assert_eq!(
+        h.free_counts(),
+        Some(FreeCounts {
+            planner_blocks: 15,
+            command_slots: 3
+        })
+    );
+    assert_eq!(tx(&mut h, t(4)).len(), 1);
+}
+
+#[test]
+fn advanced_ok_number_ahead_is_trusted_only_when_the_next_ok_follows() {
+    let mut h = windowed(4);
+    send(&mut h, 0..4);
+    tx(&mut h, t(3));
+    // The ok of line 2 was lost: `ok N3` then `ok N4` confirm both.
+    feed(&mut h, "ok N3 P15 B2\n", t(4));
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+    feed(&mut h, "ok N4 P15 B2\n", t(4));
+    assert_eq!(accepted(&events(&mut h)), vec![1, 2]);
+    assert_eq!(h.in_flight_len(), 1);
+    // A corrupted number (`N9` for `N5`) counts for the oldest line only.
+    feed(&mut h, "ok N9 P15 B2\n", t(5));
+    assert_eq!(accepted(&events(&mut h)), vec![3]);
+    assert_eq!(h.in_flight_len(), 0);
+}
+
+#[test]
+fn an_unnumbered_ok_under_advanced_ok_is_a_line_the_firmware_ran_unchecked() {
+    let mut h = windowed(2);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    feed(&mut h, "ok P15 B3\n", t(4));
+    let ev = events(&mut h);
+    assert!(
+        matches!(&ev[..], [LineEvent::ProtocolError { what }] if what.contains("without a line number"))
+    );
+    assert_eq!(h.in_flight_len(), 2);
+    // A corrupted `N` token is not that: the ok counts for the oldest line.
+    feed(&mut h, "ok M2 P15 B3\n", t(4));
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+}
+
+#[test]
+fn marlin_recovery_after_a_host_restart_uses_the_probe() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.recover_last_accepted(t(0)).unwrap();
+    assert_eq!(h.state(), LinkState::Recovering);
+    assert_eq!(
+        tx(&mut h, t(0)),
+        vec![format!("\n{}", line(PROBE_LINE_NUMBER, "M105"))]
+    );
+    // Old lines still arriving get oks; a lone Resend is not trusted.
+    feed(&mut h, "ok\nResend: 41\nok\n", t(1));
+    assert_eq!(h.state(), LinkState::Recovering);
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 40\nResend: 41\nok\n",
+        t(2),
+    );
+    assert_eq!(
+        events(&mut h),
+        vec![LineEvent::LastAccepted(LastAccepted::Known {
+            line_number: 40,
+            tag: None,
+            resume_tag: None,
+            exact: true
+        })]
+    );
+    assert_eq!(h.state(), LinkState::Idle);
+}
+
+#[test]
+fn marlin_recovery_after_link_loss_names_the_line_to_resume_from() {
+    let mut h = windowed(3);
+    send(&mut h, 0..5);
+    tx(&mut h, t(3));
+    while h.state() != LinkState::Lost {
+        let now = h.next_timeout().unwrap();
+        tx(&mut h, now);
+    }
+    events(&mut h);
+    h.recover_last_accepted(t(100_000)).unwrap();
+    tx(&mut h, t(100_000));
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 3\nResend: 4\nok\n",
+        t(100_001),
+    );
+    assert_eq!(
+        events(&mut h),
+        vec![LineEvent::LastAccepted(LastAccepted::Known {
+            line_number: 3,
+            tag: Some(1),
+            resume_tag: Some(2),
+            exact: true
+        })]
+    );
+    assert_eq!(h.state(), LinkState::Lost);
+}
+
+#[test]
+fn rrf_recovery_reads_line_number_from_m409() {
+    let mut h = LineHost::new(cfg(Dialect::Rrf));
+    h.recover_last_accepted(t(0)).unwrap();
+    assert_eq!(tx(&mut h, t(0)), vec!["\nM409 K\"inputs\"\n"]);
+    feed(&mut h, "{\"key\":\"inputs\",\"flags\":\"\",\"result\":[{\"name\":\"HTTP\",\"lineNumber\":3},null,{\"name\":\"USB\",\"lineNumber\":57}]}\nok\n", t(1));
+    assert_eq!(
+        events(&mut h),
+        vec![LineEvent::LastAccepted(LastAccepted::Known {
+            line_number: 56,
+            tag: None,
+            resume_tag: None,
+            exact: false
+        })]
+    );
+    let mut h = LineHost::new(cfg(Dialect::Rrf));
+    h.recover_last_accepted(t(0)).unwrap();
+    tx(&mut h, t(0));
+    feed(
+        &mut h,
+        "{\"key\":\"inputs\",\"result\":[{\"name\":\"HTTP\"}]}\n",
+        t(1),
+    );
+    assert!(
+        matches!(&events(&mut h)[..], [LineEvent::ProtocolError { what }] if what.contains("no input named"))
+    );
+    while h.state() == LinkState::Recovering {
+        let now = h.next_timeout().unwrap();
+        tx(&mut h, now);
+    }
+    assert!(matches!(
+        &events(&mut h)[..],
+        [LineEvent::LastAccepted(LastAccepted::Unknown { .. })]
+    ));
+}
+
+#[test]
+fn klipper_recovery_is_unknown_and_streaming_refuses_it() {
+    let mut h = LineHost::new(cfg(Dialect::Klipper));
+    h.recover_last_accepted(t(0)).unwrap();
+    assert!(matches!(
+        &events(&mut h)[..],
+        [LineEvent::LastAccepted(LastAccepted::Unknown { .. })]
+    ));
+    let mut h = connected(Dialect::Marlin);
+    assert_eq!(
+        h.recover_last_accepted(t(3)),
+        Err(RecoverError::Busy(LinkState::Streaming))
+    );
+}
+
+#[test]
+fn port_closed_is_a_reset() {
+    let mut h = connected(Dialect::Rrf);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    h.port_closed();
+    assert!(
+        matches!(&events(&mut h)[..], [LineEvent::Reset { unacknowledged, .. }] if unacknowledged == &vec![0, 1])
+    );
+}
+
+#[test]
+fn pause_holds_new_lines_but_not_resends() {
+    let mut h = windowed(2);
+    send(&mut h, 0..4);
+    tx(&mut h, t(3));
+    h.set_paused(true);
+    feed(
+        &mut h,
+        "Error:checksum mismatch, Last Line: 2\nResend: 3\nok\n",
+        t(4),
+    );
+    assert_eq!(tx(&mut h, t(4)), vec![line(3, "G1 X1")]);
+    feed(&mut h, "ok\nok\n", t(5));
+    assert!(tx(&mut h, t(5)).is_empty());
+    assert_eq!(h.drop_queued(), vec![2, 3]);
+    h.set_paused(false);
+    assert!(tx(&mut h, t(6)).is_empty());
+}
+
+#[test]
+fn a_resend_loop_stops_the_job() {
+    let mut h = windowed(1);
+    send(&mut h, 0..1);
+    let mut stopped = false;
+    for i in 0..12 {
+        tx(&mut h, t(3 + i));
+        feed(
+            &mut h,
+            "Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n",
+            t(3 + i),
+        );
+        if h.state() == LinkState::Stopped {
+            stopped = true;
+            break;
+        }
+    }
+    assert!(stopped);
+    assert!(events(&mut h).iter().any(
+        |e| matches!(e, LineEvent::Stopped { reason, .. } if reason.contains("times in a row"))
+    ));
+}
+
+#[test]
+fn a_line_reported_accepted_from_a_plain_ok_is_sent_again_if_the_firmware_asks() {
+    let mut h = windowed(2);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    // The error's `Resend:` and `ok` were lost and their ok was read as line 2's.
+    feed(&mut h, "ok\n", t(4));
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+    feed(
+        &mut h,
+        "Error:checksum mismatch, Last Line: 1\nResend: 2\nok\n",
+        t(5),
+    );
+    let ev = events(&mut h);
+    assert!(ev
+        .iter()
+        .any(|e| matches!(e, LineEvent::ProtocolError { what } if what.contains("miscounted"))));
+    assert_eq!(tx(&mut h, t(5)), vec![line(2, "G1 X0"), line(3, "G1 X1")]);
+}
