@@ -32,6 +32,7 @@ pub mod cli;
 pub mod daemon;
 pub mod geom;
 pub mod job;
+pub mod lifecycle;
 pub mod link;
 pub mod linktest;
 pub mod machine;
