@@ -39,6 +39,7 @@ pub mod daemon;
 pub mod gcode_link;
 pub mod geom;
 pub mod job;
+pub mod lifecycle;
 pub mod link;
 #[cfg(feature = "daemon")]
 pub mod linktest;
