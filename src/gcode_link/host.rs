@@ -612,15 +612,13 @@ impl LineHost {
             LinkState::Connecting if now >= self.handshake.deadline => {
                 self.handshake_timed_out(now)
             }
-            LinkState::Streaming => {
-                if self.ok_deadline().is_some_and(|d| now >= d) {
-                    self.on_ok_timeout(now);
-                }
+            LinkState::Streaming if self.ok_deadline().is_some_and(|d| now >= d) => {
+                self.on_ok_timeout(now);
             }
-            LinkState::Probing | LinkState::Recovering => {
-                if self.probe.as_ref().is_some_and(|p| now >= p.deadline) {
-                    self.on_probe_timeout(now);
-                }
+            LinkState::Probing | LinkState::Recovering
+                if self.probe.as_ref().is_some_and(|p| now >= p.deadline) =>
+            {
+                self.on_probe_timeout(now);
             }
             _ => {}
         }
@@ -902,7 +900,7 @@ impl LineHost {
     }
 
     fn is_slow(&self, text: &str) -> bool {
-        command_word(text).is_some_and(|w| self.cfg.slow_commands.iter().any(|s| *s == w))
+        command_word(text).is_some_and(|w| self.cfg.slow_commands.contains(&w))
     }
 
     fn push_flight(&mut self, number: u32, bytes: usize, slow: bool, now: Micros) {
