@@ -629,6 +629,33 @@ fn check_config_reports_line_and_column() {
         .output()
         .unwrap();
     assert!(ok.status.success());
+    // What only the host can tell: a missing port warns (edod waits for it), a missing
+    // group refuses (edod could not give it the socket).
+    let check = |text: &str| {
+        std::fs::write(&f, text).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_edod"))
+            .arg("--check-config")
+            .arg(&f)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (ok, err) = check("[serial]\nport = \"/dev/edo-test-no-port\"\n");
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("warning") && err.contains("port /dev/edo-test-no-port: No such file"),
+        "{err}"
+    );
+    let (ok, err) = check("[api]\ngroup = \"edo-test-no-group\"\n");
+    assert!(
+        !ok && err.contains("no group \"edo-test-no-group\""),
+        "{err}"
+    );
+    let (ok, err) = check("[sim]\nfaults = \"explode=1\"\n");
+    assert!(!ok && err.contains("sim.faults"), "{err}");
 }
 
 #[test]

@@ -9,7 +9,8 @@
 //!   to run it in a thread of a test.
 //! - [`record`]: the JSON-lines recorder format and `hil-sim render` (SVG per layer).
 
-pub mod faults;
+/// The fault configuration (shared with `edod --check-config`).
+pub use edo::link::sim_faults as faults;
 pub mod model;
 pub mod record;
 pub mod sim;

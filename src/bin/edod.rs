@@ -24,7 +24,17 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Some(path) = cli.check_config {
         return match edo::daemon::Config::load(&path) {
-            Ok(_) => {
+            Ok(cfg) => {
+                let host = cfg.check_host();
+                for w in &host.warnings {
+                    eprintln!("edod: warning: {}: {w}", path.display());
+                }
+                for e in &host.errors {
+                    eprintln!("edod: {}: {e}", path.display());
+                }
+                if !host.errors.is_empty() {
+                    return ExitCode::FAILURE;
+                }
                 println!("{}: ok", path.display());
                 ExitCode::SUCCESS
             }

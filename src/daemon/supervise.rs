@@ -167,6 +167,9 @@ pub async fn run(cfg: Config) -> Result<()> {
 /// Run the daemon until SIGTERM, SIGINT or `stop` completes (`edoctl demo` runs edod in
 /// its own process and stops it this way), then stop cleanly.
 pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>) -> Result<()> {
+    for w in cfg.check_host().warnings {
+        warn!("{w}");
+    }
     std::fs::create_dir_all(&cfg.state.dir)
         .with_context(|| format!("cannot create state dir {}", cfg.state.dir.display()))?;
     let (sim, port) = if cfg.serial.port == SIM_PORT {

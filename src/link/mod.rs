@@ -25,6 +25,7 @@ pub mod frame;
 mod host;
 mod machine_end;
 pub mod msg;
+pub mod sim_faults;
 mod stream;
 pub mod testkit;
 

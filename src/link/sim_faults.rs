@@ -1,4 +1,6 @@
-//! Fault configuration: `--faults key=value,...` and the run-time command language.
+//! The simulator's fault configuration: `hil-sim --faults key=value,...` and its run-time
+//! command language. It lives in the core so that `edod --check-config` refuses an
+//! unknown `sim.faults` entry before the simulator is started.
 
 /// Every fault the simulator can inject. Rates are probabilities; `*_at` triggers fire
 /// once. All default to "off".
