@@ -478,9 +478,12 @@ impl LineHost {
         match (self.cfg.dialect, self.cfg.window) {
             (Dialect::Rrf, _) => 1,
             (Dialect::Marlin, Window::Lines(n)) => usize::from(n.max(1)),
-            (Dialect::Marlin, Window::Auto) => usize::from(self.max_free_slots.unwrap_or(1).max(1)),
+            (Dialect::Marlin, Window::Auto) => 1,
+            (Dialect::Marlin, Window::AdvancedOk) => {
+                usize::from(self.max_free_slots.unwrap_or(1).max(1))
+            }
             (Dialect::Klipper, Window::Lines(n)) => usize::from(n.clamp(1, 19)),
-            (Dialect::Klipper, Window::Auto) => 8,
+            (Dialect::Klipper, Window::Auto | Window::AdvancedOk) => 8,
         }
     }
 
@@ -886,6 +889,7 @@ impl LineHost {
         self.cfg
             .rx_buffer_bytes
             .saturating_sub(self.cfg.estop_reserve_bytes)
+            .min(self.cfg.max_bytes_in_flight)
     }
 
     fn window_open(&self, bytes: usize) -> bool {

@@ -652,6 +652,7 @@ fn emergency_stop_goes_ahead_of_everything_and_ends_the_stream() {
 fn advanced_ok_opens_the_window_within_the_receive_buffer() {
     let mut c = cfg(Dialect::Marlin);
     c.rx_buffer_bytes = 128;
+    c.window = Window::AdvancedOk;
     let mut h = connected_with(c, "ok N0 P16 B3\n");
     assert!(h.firmware_info().advanced_ok);
     assert_eq!(h.firmware_info().command_slots, Some(4));

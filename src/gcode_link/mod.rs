@@ -29,7 +29,7 @@
 //! |---|---|---|---|
 //! | line | `N<n> <text>*<xor>` | `N<n> <text>*<xor>` | `<text>` (N and `*` are ignored by Klipper) |
 //! | handshake | `N0 M110 N0*125`, `N1 M115*39` | `M555 P2`, then as Marlin | `M115` |
-//! | window | 1 line, or ADVANCED_OK's free command slots (`B`+1), or the configured number; bytes ≤ receive buffer − e-stop reserve | 1 line (a bad line is dropped silently and the lines after it would run) | 8 lines (Klipper scans for M112 only below 20 pending lines) |
+//! | window | 1 line; opt-in: the configured number or ADVANCED_OK's free command slots (`B`+1); bytes ≤ receive buffer − e-stop reserve | 1 line (a bad line is dropped silently and the lines after it would run) | 8 lines (Klipper scans for M112 only below 20 pending lines) |
 //! | lost line / `ok` | timeout → out-of-sequence probe `N2000000000 M105`: its error names the last line accepted; go back to the one after | timeout → the line is sent again, reported as [`LineEvent::MaybeRepeated`] | nothing is lost on a pty: timeout → [`LineEvent::LinkLost`] |
 //! | last accepted | the same probe | `M409 K"inputs"` → `lineNumber` (may be a dropped line: not exact) | not possible |
 //! | e-stop | `\nM112\n` (at once with EMERGENCY_PARSER) | `\nM112\n` (urgent scan at line start) | `\nM112\n` (scanned while < 20 lines pending) |
@@ -78,11 +78,16 @@ impl Dialect {
 /// How many lines may be in flight (sent, not yet acknowledged).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Window {
-    /// Per firmware: Marlin 1 until ADVANCED_OK reports free command slots, then those;
-    /// RRF 1; Klipper 8.
+    /// The window that keeps every promise on a link that corrupts bytes: Marlin 1, RRF 1,
+    /// Klipper 8 (a pty corrupts nothing).
     Auto,
-    /// At most this many (RRF stays at 1 whatever this says; Klipper at most 19).
+    /// At most this many (RRF stays at 1 whatever this says; Klipper at most 19). On
+    /// Marlin over a UART, 2 or more let a line error run a whole line twice in rare cases
+    /// (`docs/firmware.md`, "Windows on Marlin").
     Lines(u16),
+    /// Marlin: ADVANCED_OK's free command slots (1 until the firmware reports them); for
+    /// boards on native USB, where bytes are not corrupted. Other firmware: as `Auto`.
+    AdvancedOk,
 }
 
 /// The line number of the out-of-sequence probe (Marlin): never `last line + 1`, so the
@@ -103,6 +108,9 @@ pub struct LineLinkConfig {
     pub rx_buffer_bytes: usize,
     /// Room kept free in the receive buffer for the e-stop (`\nM112\n`, 6 bytes).
     pub estop_reserve_bytes: usize,
+    /// Bytes in flight at most, whatever the buffer holds: what may be ahead of the e-stop
+    /// on the wire ([`estop_bytes_for`]: 25 ms of line time, as on the edo link).
+    pub max_bytes_in_flight: usize,
     /// Longest line sent, with its line number and checksum, without the newline
     /// (Marlin `MAX_CMD_SIZE` 96 − 1).
     pub max_line_bytes: usize,
@@ -155,6 +163,7 @@ impl LineLinkConfig {
             window: Window::Auto,
             rx_buffer_bytes,
             estop_reserve_bytes: 8,
+            max_bytes_in_flight: usize::MAX,
             max_line_bytes,
             ok_timeout_us,
             busy_timeout_us: 5_000_000,
@@ -183,6 +192,16 @@ impl Default for LineLinkConfig {
     fn default() -> Self {
         Self::for_dialect(Dialect::Marlin)
     }
+}
+
+/// Bytes that take `PRIORITY_LATENCY_US` (25 ms) on a line at `baud` (10 bits a byte):
+/// the cap on bytes in flight that keeps the e-stop within the edo link's bound (625 at
+/// 250 000 baud, 288 at 115 200), never below one longest line.
+pub fn estop_bytes_for(baud: u32, max_line_bytes: usize) -> usize {
+    let bytes = u64::from(baud) / 10 * crate::link::PRIORITY_LATENCY_US / 1_000_000;
+    usize::try_from(bytes)
+        .unwrap_or(usize::MAX)
+        .max(max_line_bytes + 1)
 }
 
 /// The XOR checksum of Marlin and RepRapFirmware: every byte before the `*`, from the `N`
@@ -236,6 +255,13 @@ mod tests {
     fn handshake_line_has_the_well_known_checksum() {
         assert_eq!(numbered_line(0, "M110 N0"), b"N0 M110 N0*125\n");
         assert_eq!(numbered_line(1, "M115"), b"N1 M115*39\n");
+    }
+
+    #[test]
+    fn estop_cap_is_25_ms_of_line_time() {
+        assert_eq!(estop_bytes_for(250_000, 95), 625);
+        assert_eq!(estop_bytes_for(115_200, 95), 288);
+        assert_eq!(estop_bytes_for(9_600, 95), 96);
     }
 
     #[test]

@@ -94,6 +94,7 @@ fn marlin_advanced_ok_window_runs_every_numbered_line_exactly_once_through_every
     for seed in 1..=3 {
         let mut cfg = config(Dialect::Marlin, seed);
         cfg.firmware.advanced_ok = true;
+        cfg.host.window = Window::AdvancedOk;
         let r = run(cfg);
         assert_every_line_once_in_order(&r);
         // The window's price: a line error drains Marlin's buffer and the tail of the line
@@ -110,6 +111,7 @@ fn marlin_advanced_ok_reports_every_fragment_when_replies_arrive_intact() {
     for seed in 1..=3 {
         let mut cfg = config(Dialect::Marlin, seed);
         cfg.firmware.advanced_ok = true;
+        cfg.host.window = Window::AdvancedOk;
         cfg.faults.corrupt_to_host = 0.0;
         cfg.faults.drop_ok = 0.0;
         let r = run(cfg);
@@ -167,6 +169,7 @@ fn klipper_runs_every_line_once_through_busy_periods_and_a_restart() {
 fn a_run_is_a_function_of_its_seed() {
     let mut cfg = config(Dialect::Marlin, 7);
     cfg.firmware.advanced_ok = true;
+    cfg.host.window = Window::AdvancedOk;
     let a = run(cfg.clone());
     let b = run(cfg.clone());
     assert_eq!(a.executed, b.executed);
@@ -212,5 +215,112 @@ fn estop_overtakes_queued_lines_on_every_firmware() {
             fw.is_halted(),
             "{dialect:?}: M112 acted on behind a full queue"
         );
+    }
+}
+
+/// The figures of `docs/firmware.md` ("Windows on Marlin"): how often a line error under a
+/// window makes Marlin run a whole line unnumbered (and so twice). Run with
+/// `cargo test --lib figures_marlin_window -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn figures_marlin_window_fragments() {
+    for (name, slots, rx, window) in [
+        ("AVR advanced-ok", 4, 128, Window::AdvancedOk),
+        ("32-bit advanced-ok", 16, 1024, Window::AdvancedOk),
+        ("AVR 2", 4, 128, Window::Lines(2)),
+        ("32-bit 2", 16, 1024, Window::Lines(2)),
+        ("32-bit 3", 16, 1024, Window::Lines(3)),
+        ("32-bit 4", 16, 1024, Window::Lines(4)),
+    ] {
+        let (mut errors, mut unnumbered, mut repeats, mut foreign, mut lines) = (0, 0, 0, 0, 0);
+        for seed in 1..=10 {
+            let mut cfg = GcodeHarnessConfig::new(Dialect::Marlin);
+            cfg.seed = seed;
+            cfg.faults.corrupt_to_firmware = 0.02;
+            cfg.firmware.advanced_ok = true;
+            cfg.firmware.command_slots = slots;
+            cfg.firmware.rx_buffer_bytes = rx;
+            cfg.host.rx_buffer_bytes = rx;
+            cfg.host.window = window;
+            let r = run(cfg);
+            assert_every_line_once_in_order(&r);
+            errors += r.firmware_stats.line_errors;
+            unnumbered += r.firmware_stats.lines_unnumbered;
+            repeats += r.fragment_repeats;
+            foreign += r.foreign_lines_run;
+            lines += u64::from(LINES);
+        }
+        println!(
+            "marlin {name}: {lines} lines, 2 % corrupted: {errors} line errors, {unnumbered} \
+             unnumbered runs: {repeats} whole lines run twice, {foreign} fragments"
+        );
+    }
+}
+
+/// The figures of `benches/README.md` and `docs/firmware.md` ("Throughput"). Run with
+/// `cargo test --lib figures_throughput -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn figures_throughput() {
+    use testkit::{throughput, ThroughputCase};
+    let lines = 5_000;
+    for baud in [115_200u32, 250_000] {
+        for latency_us in [1_000u64, 4_000] {
+            let cases = [
+                (
+                    "marlin AVR rx128 bufsize4",
+                    Dialect::Marlin,
+                    128,
+                    4,
+                    Window::AdvancedOk,
+                ),
+                (
+                    "marlin rx1024 bufsize16",
+                    Dialect::Marlin,
+                    1024,
+                    16,
+                    Window::AdvancedOk,
+                ),
+                (
+                    "marlin rx1024 window 2",
+                    Dialect::Marlin,
+                    1024,
+                    16,
+                    Window::Lines(2),
+                ),
+                (
+                    "marlin rx1024 window 3",
+                    Dialect::Marlin,
+                    1024,
+                    16,
+                    Window::Lines(3),
+                ),
+                ("klipper pty", Dialect::Klipper, 4096, 20, Window::Auto),
+                ("rrf", Dialect::Rrf, 256, 1, Window::Auto),
+            ];
+            for (name, dialect, rx, slots, window) in cases {
+                let mut one = ThroughputCase::one_at_a_time(dialect, baud, latency_us);
+                one.rx_buffer_bytes = rx;
+                one.command_slots = slots;
+                let windowed = ThroughputCase {
+                    window,
+                    advanced_ok: dialect == Dialect::Marlin,
+                    ..one
+                };
+                let a = throughput(&one, lines);
+                let b = throughput(&windowed, lines);
+                assert!(a.completed && b.completed);
+                println!(
+                    "{baud} baud, {:.0} ms latency, {name}: one at a time {:.0} lines/s \
+                     ({:.1} %), windowed {:.0} lines/s ({:.1} %), {:.2}x",
+                    latency_us as f64 / 1000.0,
+                    a.moves_per_s(),
+                    a.utilisation(baud) * 100.0,
+                    b.moves_per_s(),
+                    b.utilisation(baud) * 100.0,
+                    b.moves_per_s() / a.moves_per_s()
+                );
+            }
+        }
     }
 }

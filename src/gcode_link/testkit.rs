@@ -642,3 +642,63 @@ fn is_link_line(text: &str) -> bool {
         Some("M110" | "M115" | "M105" | "M555" | "M409")
     )
 }
+
+/// One case of the throughput measurement (`benches/gcode_link.rs`, `docs/firmware.md`
+/// "Throughput"): a clean line, every move executed at once, so the link alone sets the
+/// pace.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ThroughputCase {
+    /// The firmware.
+    pub dialect: Dialect,
+    /// Line speed, both ways.
+    pub baud: u32,
+    /// Latency added to every delivery, each way, µs.
+    pub latency_us: u64,
+    /// The firmware's receive buffer (the host is told the same).
+    pub rx_buffer_bytes: usize,
+    /// The firmware's command queue (Marlin `BUFSIZE`).
+    pub command_slots: usize,
+    /// The host's window.
+    pub window: super::Window,
+    /// Marlin `ADVANCED_OK` (the free slots open the `Auto` window).
+    pub advanced_ok: bool,
+}
+
+impl ThroughputCase {
+    /// `dialect`'s defaults at `baud` and `latency_us`, one line at a time.
+    pub fn one_at_a_time(dialect: Dialect, baud: u32, latency_us: u64) -> Self {
+        let fw = FirmwareConfig::for_dialect(dialect);
+        Self {
+            dialect,
+            baud,
+            latency_us,
+            rx_buffer_bytes: fw.rx_buffer_bytes,
+            command_slots: fw.command_slots,
+            window: super::Window::Lines(1),
+            advanced_ok: false,
+        }
+    }
+
+    /// The harness configuration of this case.
+    pub fn harness_config(&self) -> GcodeHarnessConfig {
+        let mut cfg = GcodeHarnessConfig::new(self.dialect);
+        cfg.baud = self.baud;
+        cfg.latency_us = self.latency_us;
+        cfg.host.window = self.window;
+        cfg.host.rx_buffer_bytes = self.rx_buffer_bytes;
+        cfg.firmware.rx_buffer_bytes = self.rx_buffer_bytes;
+        cfg.firmware.command_slots = self.command_slots;
+        cfg.firmware.advanced_ok = self.advanced_ok;
+        cfg.backlog = 64;
+        if self.dialect == Dialect::Klipper {
+            cfg.piece_bytes = 64;
+        }
+        cfg
+    }
+}
+
+/// Stream `lines` job lines through `case`; the report's `moves_per_s` and `utilisation`
+/// are the figures.
+pub fn throughput(case: &ThroughputCase, lines: u32) -> GcodeReport {
+    GcodeHarness::new(case.harness_config()).run(lines, u64::MAX / 4)
+}
