@@ -23,12 +23,18 @@
 //! - [`machine`]: the move stream in fixed point (µm, nl, ratios of 65535), the one move
 //!   type host, link and simulator share.
 //! - [`link`]: sans-IO host/machine protocol over a serial line (`docs/protocol.md`).
+//! - [`lifecycle`]: the job lifecycle as a sans-IO state machine (queued → planning →
+//!   printing ⇄ paused, interrupted, done, failed, cancelled; resume, refill, e-stop,
+//!   reset and port-loss recovery, checkpoints): machine, operator, planner and store
+//!   events and the caller's clock in, machine commands, moves, records to persist,
+//!   replies and notifications out, of no wire protocol.
 //! - [`proto`]: the typed JSON-RPC API (`docs/api.md`) edod, edoctl and clients share.
 //!
 //! Around the core, behind the cargo feature `daemon` (on by default): `cli` and
 //! `linktest` do the command-line tools' I/O, and `daemon` is edod's tokio shell (socket
-//! API, job store, planner workers, streamer, supervision); only they and the binaries
-//! touch files, sockets and clocks. `cargo build --no-default-features` builds the core
+//! API, the job store on threads of its own, planner workers, the streamer that pumps
+//! the lifecycle and the link, supervision); only they and the binaries touch files,
+//! sockets and clocks. `cargo build --no-default-features` builds the core
 //! alone, so the compiler holds the layering: no core module can reach into the shell,
 //! and none of the shell's crates (tokio, SQLite, serial ports, clap) is linked into it.
 

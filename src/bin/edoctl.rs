@@ -139,11 +139,11 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
         }
         Commands::Pause { id } => out.print(
             &c.request::<method::JobPause>(&JobIdParams { id: *id })?,
-            |_| format!("job {id} paused"),
+            |r| client::applied_line(r, "paused"),
         ),
         Commands::Resume { id } => out.print(
             &c.request::<method::JobResume>(&JobIdParams { id: *id })?,
-            |_| format!("job {id} resumed"),
+            |r| client::applied_line(r, "resumed"),
         ),
         Commands::Cancel { id } => {
             let j = client::cancel(c, *id, client::CANCEL_WAIT)?;

@@ -6,7 +6,7 @@
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use serde::Deserialize;
@@ -15,11 +15,17 @@ use serde_json::Value;
 use crate::link::MachineState;
 use crate::proto::{
     method, ApiError, Event, Id, Job, JobIdParams, JobState, JobStateChanged, Method, NoParams,
-    Notification, Progress, Request, Response, SubmitParams,
+    Notification, Progress, Request, Response, StateChange, SubmitParams,
 };
 
 /// Default socket of an installed edod.
 pub const DEFAULT_SOCKET: &str = "/run/edo/edod.sock";
+
+/// How long a call edod answers -32005 (job store busy: another process holds its
+/// write lock) is tried again before the error is shown.
+pub const STORE_BUSY_RETRY: Duration = Duration::from_secs(30);
+/// The pause between those tries.
+const STORE_BUSY_PAUSE: Duration = Duration::from_millis(200);
 
 /// A connection to edod.
 pub struct Client {
@@ -119,8 +125,30 @@ impl Client {
     }
 
     /// Call `method` with `params` as they are; the result as sent. Notifications
-    /// arriving meanwhile are skipped.
+    /// arriving meanwhile are skipped. A call answered -32005 (job store busy, nothing
+    /// done) is tried again for up to [`STORE_BUSY_RETRY`], saying so on stderr once.
     pub fn call(&mut self, method: &str, params: Value) -> Result<Value> {
+        let started = Instant::now();
+        let mut told = false;
+        loop {
+            match self.call_once(method, params.clone()) {
+                Err(e) if is_store_busy(&e) && started.elapsed() < STORE_BUSY_RETRY => {
+                    if !told {
+                        told = true;
+                        eprintln!(
+                            "edoctl: edod's job store is busy (another process holds the write \
+                             lock of edod.db); trying again for up to {} s",
+                            STORE_BUSY_RETRY.as_secs()
+                        );
+                    }
+                    std::thread::sleep(STORE_BUSY_PAUSE);
+                }
+                r => return r,
+            }
+        }
+    }
+
+    fn call_once(&mut self, method: &str, params: Value) -> Result<Value> {
         let id = self.next_id;
         self.next_id += 1;
         let request = Request::new(Some(Id::from(id)), method, Some(params));
@@ -149,6 +177,21 @@ impl Client {
     pub fn job(&mut self, id: u32) -> Result<Answer<Job>> {
         self.request::<method::JobGet>(&JobIdParams { id })
     }
+}
+
+/// Whether `e` is edod's -32005 (job store busy, retry).
+pub fn is_store_busy(e: &anyhow::Error) -> bool {
+    e.downcast_ref::<DaemonError>()
+        .is_some_and(|d| d.code == ApiError::STORE_BUSY)
+}
+
+/// The line `edoctl pause` or `resume` prints (`done`: "paused", "resumed").
+pub fn applied_line(r: &StateChange, done: &str) -> String {
+    let mut line = format!("job {} {done}", r.id);
+    if !r.stored {
+        line.push_str(" (not on disk yet: the job store is busy; it is written once free)");
+    }
+    line
 }
 
 /// The params of `job.submit` for a job file: its text, and its mesh (`[geometry] mesh`,
@@ -507,6 +550,46 @@ mod tests {
         // `--json` shows what the daemon sent, keys edoctl does not know included.
         assert_eq!(r.json["stored"], serde_json::json!(true));
         daemon.join().unwrap();
+    }
+
+    #[test]
+    fn a_busy_store_is_tried_again_and_other_errors_are_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let listener =
+            std::os::unix::net::UnixListener::bind(dir.path().join("edod.sock")).unwrap();
+        let daemon = std::thread::spawn(move || {
+            let (s, _) = listener.accept().unwrap();
+            let mut r = BufReader::new(s.try_clone().unwrap());
+            let mut w = s;
+            let mut asked = Vec::new();
+            for reply in [
+                r#"{"jsonrpc":"2.0","id":1,"error":{"code":-32005,"message":"job store busy, retry"}}"#,
+                r#"{"jsonrpc":"2.0","id":2,"error":{"code":-32005,"message":"job store busy, retry"}}"#,
+                r#"{"jsonrpc":"2.0","id":3,"result":{"id":9,"state":"queued"}}"#,
+                r#"{"jsonrpc":"2.0","id":4,"error":{"code":-32001,"message":"no job 9"}}"#,
+            ] {
+                let mut l = String::new();
+                r.read_line(&mut l).unwrap();
+                asked.push(l);
+                w.write_all(format!("{reply}\n").as_bytes()).unwrap();
+            }
+            asked
+        });
+        let mut c = Client::connect(&dir.path().join("edod.sock")).unwrap();
+        let t = Instant::now();
+        let r = c
+            .request::<method::JobSubmit>(&SubmitParams::dry_run(5))
+            .unwrap();
+        assert_eq!(r.result.id, 9);
+        assert!(t.elapsed() >= 2 * STORE_BUSY_PAUSE, "{:?}", t.elapsed());
+        let e = c.job(9).unwrap_err();
+        assert!(!is_store_busy(&e));
+        assert_eq!(e.to_string(), "edod: no job 9");
+        let asked = daemon.join().unwrap();
+        assert!(
+            asked[..3].iter().all(|l| l.contains("job.submit")),
+            "{asked:?}"
+        );
     }
 
     #[test]

@@ -16,7 +16,7 @@ use tokio::sync::{mpsc, oneshot, Semaphore};
 use tracing::{debug, info, warn};
 
 use super::store::{JobRecord, JobSpec};
-use super::{ApiError, Control, Shared};
+use super::{api_error, ApiError, Control, Shared};
 use crate::proto::{
     Call, Deleted, EStopTiming, Event, Id, Job, JobIdParams, JobSource, JobState, JobStateChanged,
     MachineStatus, MethodResult, Progress, Refilled, Refusal, Request, Response, ServerInfo,
@@ -253,8 +253,13 @@ async fn ask<T>(
 
 /// Finished jobs deleted at most per submission (beyond `state.keep_finished_jobs`): a
 /// store grown large before a lower setting shrinks over a few submissions instead of
-/// holding the store (and the streamer's checkpoints) during one long delete.
+/// holding the store (and the lifecycle's checkpoints) during one long delete.
 const PRUNE_AT_MOST: usize = 20;
+
+/// How long a submission or a deletion waits for another process's hold on the job
+/// store's write lock before it is answered -32005 (store busy, retry), so that every
+/// call is answered within 100 ms.
+const STORE_WAIT: std::time::Duration = std::time::Duration::from_millis(60);
 
 /// Answer one call (`docs/api.md`, Methods).
 async fn dispatch(call: Call, shared: &Arc<Shared>) -> Result<MethodResult, ApiError> {
@@ -296,7 +301,7 @@ fn server_info(shared: &Shared) -> Result<ServerInfo, ApiError> {
 
 /// `job.submit`: check the params, the job file and its part, store the job (on disk
 /// before the reply), tell subscribers and the streamer.
-async fn job_submit(p: SubmitParams, shared: &Arc<Shared>) -> Result<Submitted, ApiError> {
+async fn job_submit(p: SubmitParams, shared: &Shared) -> Result<Submitted, ApiError> {
     if let Some(name) = &p.name {
         crate::job::check_name(name)
             .map_err(|m| ApiError::new(ApiError::INVALID_PARAMS, format!("name: {m}")))?;
@@ -350,20 +355,16 @@ async fn file_job(
 }
 
 /// Store a new job, and delete the oldest finished jobs beyond
-/// `state.keep_finished_jobs` (at most [`PRUNE_AT_MOST`]); the job's id.
-async fn store_submission(
-    shared: &Arc<Shared>,
-    name: &str,
-    spec: JobSpec,
-) -> Result<u32, ApiError> {
+/// `state.keep_finished_jobs` (at most [`PRUNE_AT_MOST`]); the job's id. Done by the
+/// store's writer thread, waiting for the write lock at most [`STORE_WAIT`].
+async fn store_submission(shared: &Shared, name: &str, spec: JobSpec) -> Result<u32, ApiError> {
     let keep = shared.config.state.keep_finished_jobs;
-    let stored_name = name.to_string();
     let (id, pruned) = shared
-        .api_store(true, move |st| {
-            let id = st.insert(&stored_name, &spec)?;
-            Ok((id, st.prune_finished(keep, PRUNE_AT_MOST)?))
-        })
-        .await?;
+        .store
+        .writer
+        .submit(name.to_string(), spec, keep, PRUNE_AT_MOST, STORE_WAIT)
+        .await
+        .map_err(api_error)?;
     if !pruned.is_empty() {
         info!(jobs = ?pruned, keep, "deleted the oldest finished jobs");
     }
@@ -371,18 +372,23 @@ async fn store_submission(
 }
 
 /// Every stored job, oldest first.
-async fn stored_jobs(shared: &Arc<Shared>) -> Result<Vec<JobRecord>, ApiError> {
-    shared.api_store(false, |s| s.list()).await
+async fn stored_jobs(shared: &Shared) -> Result<Vec<JobRecord>, ApiError> {
+    shared.store.reader.list().await.map_err(api_error)
 }
 
 /// Stored job `id` (-32001 if there is none).
-async fn stored_job(shared: &Arc<Shared>, id: u32) -> Result<JobRecord, ApiError> {
-    shared.api_store(false, move |s| s.get(id)).await
+async fn stored_job(shared: &Shared, id: u32) -> Result<JobRecord, ApiError> {
+    shared.store.reader.get(id).await.map_err(api_error)
 }
 
 /// Delete finished job `id` from the store; the state it is in if it is not finished.
-async fn delete_stored(shared: &Arc<Shared>, id: u32) -> Result<Result<(), JobState>, ApiError> {
-    shared.api_store(true, move |s| s.delete_finished(id)).await
+async fn delete_stored(shared: &Shared, id: u32) -> Result<Result<(), JobState>, ApiError> {
+    shared
+        .store
+        .writer
+        .delete(id, STORE_WAIT)
+        .await
+        .map_err(api_error)
 }
 
 /// A stored job as the API shows it, with `live` progress if it is the active job.
@@ -400,7 +406,7 @@ fn job_view(j: JobRecord, live: Option<&Progress>) -> Job {
     }
 }
 
-async fn job_list(shared: &Arc<Shared>) -> Result<Vec<Job>, ApiError> {
+async fn job_list(shared: &Shared) -> Result<Vec<Job>, ApiError> {
     let jobs = stored_jobs(shared).await?;
     let live = shared.progress.borrow().clone();
     Ok(jobs
@@ -409,36 +415,28 @@ async fn job_list(shared: &Arc<Shared>) -> Result<Vec<Job>, ApiError> {
         .collect())
 }
 
-async fn job_get(id: u32, shared: &Arc<Shared>) -> Result<Job, ApiError> {
+async fn job_get(id: u32, shared: &Shared) -> Result<Job, ApiError> {
     let j = stored_job(shared, id).await?;
     let live = shared.progress.borrow().clone();
     Ok(job_view(j, live.as_ref()))
 }
 
-async fn job_pause(id: u32, shared: &Arc<Shared>) -> Result<StateChange, ApiError> {
-    ask(shared, |r| Control::Pause(id, r)).await?;
-    Ok(StateChange {
-        id,
-        state: JobState::Paused,
-    })
+/// `job.pause`: `paused`, once stored (or `stored: false` after 75 ms).
+async fn job_pause(id: u32, shared: &Shared) -> Result<StateChange, ApiError> {
+    ask(shared, |r| Control::Pause(id, r)).await
 }
 
-async fn job_resume(id: u32, shared: &Arc<Shared>) -> Result<StateChange, ApiError> {
-    ask(shared, |r| Control::Resume(id, r)).await?;
-    Ok(StateChange {
-        id,
-        state: JobState::Printing,
-    })
+/// `job.resume`: `printing`, once stored (or `stored: false` after 75 ms).
+async fn job_resume(id: u32, shared: &Shared) -> Result<StateChange, ApiError> {
+    ask(shared, |r| Control::Resume(id, r)).await
 }
 
 /// `job.cancel`: `cancelled`, or still `printing` while the machine stops and parks.
-async fn job_cancel(id: u32, shared: &Arc<Shared>) -> Result<StateChange, ApiError> {
-    ask(shared, |r| Control::Cancel(id, r)).await?;
-    let j = stored_job(shared, id).await?;
-    Ok(StateChange { id, state: j.state })
+async fn job_cancel(id: u32, shared: &Shared) -> Result<StateChange, ApiError> {
+    ask(shared, |r| Control::Cancel(id, r)).await
 }
 
-async fn job_delete(id: u32, shared: &Arc<Shared>) -> Result<Deleted, ApiError> {
+async fn job_delete(id: u32, shared: &Shared) -> Result<Deleted, ApiError> {
     match delete_stored(shared, id).await? {
         Ok(()) => {
             info!(job = id, "job deleted");

@@ -5,21 +5,27 @@
 //! shared state as snapshots (a watch channel), never a lock held across an await.
 //!
 //! - [`config`]: `edod.toml` (unknown keys refused, line/column errors).
-//! - [`store`]: jobs, states, checkpoints in SQLite (WAL); nothing accepted is lost.
+//! - [`store`]: jobs, states, checkpoints in SQLite (WAL); nothing accepted is lost. It
+//!   has two threads of its own (a writer, a reader) reached over channels: no SQLite
+//!   call and no wait for one runs on a runtime worker.
 //! - [`api`]: the Unix socket, newline-delimited JSON-RPC 2.0 (`docs/api.md`),
 //!   requests and notifications typed by [`crate::proto`]; slow clients are cut off,
 //!   never waited for.
 //! - [`planner`]: blocking workers that turn a job into moves layer by layer, ahead of
 //!   the streamer through a bounded channel.
-//! - [`streamer`]: the one task that owns the serial port and pumps the sans-IO
-//!   [`crate::link::Host`]; it runs the job lifecycle (start, pause, resume, cancel,
-//!   e-stop, faults, checkpoints). Progress is what the machine reports executed.
+//! - [`streamer`]: the pump: the one task that owns the serial port; it feeds the
+//!   sans-IO job lifecycle ([`crate::lifecycle::Lifecycle`]) the machine's events, the
+//!   operators' commands, the planner's output, the store's answers and the clock, and
+//!   carries out its actions. Progress is what the machine reports executed.
+//! - [`edo_link`]: the adapter between the lifecycle and the edo link
+//!   ([`crate::link::Host`]): link events to lifecycle events, machine commands to link
+//!   calls. A G-code firmware link will be a second adapter beside it.
 //! - [`supervise`]: signals, systemd notify (READY, STATUS, WATCHDOG), the simulated
 //!   machine child, graceful stop.
 
 pub mod api;
-pub mod checkpoints;
 pub mod config;
+pub mod edo_link;
 pub mod planner;
 pub mod store;
 pub mod streamer;
@@ -33,7 +39,7 @@ pub use config::Config;
 pub use supervise::{run, run_until};
 
 // The API's vocabulary lives in `proto` (shared with edoctl); the daemon speaks it.
-pub use crate::proto::{ApiError, EStopTiming, MachineSnapshot, Progress};
+pub use crate::proto::{ApiError, EStopTiming, MachineSnapshot, Progress, StateChange};
 
 /// A reply channel for control requests.
 pub type Reply<T> = oneshot::Sender<Result<T, ApiError>>;
@@ -44,11 +50,11 @@ pub enum Control {
     /// A job was queued: start it when the machine is free.
     Submitted,
     /// Hold the job at a move boundary.
-    Pause(u32, Reply<()>),
+    Pause(u32, Reply<StateChange>),
     /// Continue a paused or interrupted job.
-    Resume(u32, Reply<()>),
+    Resume(u32, Reply<StateChange>),
     /// Cancel a job (stop, retract, park if it is printing).
-    Cancel(u32, Reply<()>),
+    Cancel(u32, Reply<StateChange>),
     /// Emergency stop now.
     EStop(std::time::Instant, Reply<EStopTiming>),
     /// The syringes were refilled: clear the fault and continue.
@@ -61,13 +67,8 @@ pub enum Control {
 pub struct Shared {
     /// Configuration.
     pub config: Config,
-    /// The job store (short statements only).
-    pub store: std::sync::Mutex<store::Store>,
-    /// A connection of its own for the API's writes (`job.submit`, `job.delete`): one
-    /// that waits for the database's write lock (another process holding it, up to the
-    /// busy timeout) holds neither `store`, which the streamer reads, nor a runtime
-    /// worker (they run on tokio's blocking threads, see [`Shared::api_store`]).
-    pub api_writes: std::sync::Mutex<store::Store>,
+    /// The job store's threads.
+    pub store: store::Stores,
     /// Notification lines for subscribers (serialised once).
     pub notify: broadcast::Sender<Arc<str>>,
     /// Machine snapshot.
@@ -82,55 +83,22 @@ pub struct Shared {
     pub alive: std::sync::atomic::AtomicU64,
 }
 
-/// Run `f` on the store behind `store`, its errors as the API's.
-fn run_on<T>(
-    store: &std::sync::Mutex<store::Store>,
-    f: impl FnOnce(&store::Store) -> Result<T, store::StoreError>,
-) -> Result<T, ApiError> {
-    let guard = store
-        .lock()
-        .map_err(|_| ApiError::new(ApiError::INTERNAL, "job store lock poisoned"))?;
-    f(&guard).map_err(|e| match e {
+/// A store error as the API's: -32001 for a job not there, -32005 when another process
+/// holds the store's lock, -32603 otherwise.
+pub fn api_error(e: store::StoreError) -> ApiError {
+    match e {
         store::StoreError::NotFound(id) => {
             ApiError::new(ApiError::NO_SUCH_JOB, format!("no job {id}"))
         }
+        store::StoreError::Busy => ApiError::new(
+            ApiError::STORE_BUSY,
+            "job store busy, retry: another process holds the write lock of edod.db",
+        ),
         e => ApiError::new(ApiError::INTERNAL, e.to_string()),
-    })
+    }
 }
 
 impl Shared {
-    /// Run `f` on the store.
-    pub fn with_store<T>(
-        &self,
-        f: impl FnOnce(&store::Store) -> Result<T, store::StoreError>,
-    ) -> Result<T, ApiError> {
-        run_on(&self.store, f)
-    }
-
-    /// Run `f` for an API request on a blocking thread, never on a runtime worker:
-    /// on the API's own connection for a write (`write`), on `store` for a read (in WAL
-    /// mode a read does not wait for another connection's write lock, but `store` can
-    /// be held by the streamer while its state change waits for one).
-    pub async fn api_store<T: Send + 'static>(
-        self: &Arc<Self>,
-        write: bool,
-        f: impl FnOnce(&store::Store) -> Result<T, store::StoreError> + Send + 'static,
-    ) -> Result<T, ApiError> {
-        let shared = Arc::clone(self);
-        tokio::task::spawn_blocking(move || {
-            run_on(
-                if write {
-                    &shared.api_writes
-                } else {
-                    &shared.store
-                },
-                f,
-            )
-        })
-        .await
-        .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("job store call failed: {e}")))?
-    }
-
     /// Send a notification to every subscriber (never blocks).
     pub fn notify(&self, event: crate::proto::Event) {
         match serde_json::to_string(&crate::proto::Notification::new(event)) {

@@ -9,6 +9,7 @@
 
 use tokio::sync::mpsc;
 
+use crate::lifecycle::{PlannerOutput, ResumePoint};
 use crate::machine::placement::{BuildVolume, Placement};
 // Placing a part is planning, shared with `edoctl plan` and `edoctl demo`; the daemon
 // uses the core's (and keeps the old path for its API).
@@ -27,118 +28,139 @@ pub trait LayerSource: Send {
     }
 }
 
-/// What the planner worker sends the streamer.
-#[derive(Debug)]
-pub enum PlannerMsg {
-    /// Where the job stands at the resume index: the last position, layer mark and
-    /// extrusion volumes among the skipped moves (sent once, first, when resuming).
-    ResumeAt {
-        /// End position of the last skipped move that moves the nozzle.
-        position: Option<PositionUm>,
-        /// Last skipped layer mark.
-        layer_mark: Option<(u32, i32)>,
-        /// Volumes of the last skipped extrusion.
-        volumes_nl: Option<Vec<u32>>,
-    },
-    /// The job has this many layers (sent once, as soon as it is known, before the
-    /// moves of the layer that made it known).
-    Layers {
-        /// Layers in the job.
-        count: u32,
-    },
-    /// Moves to stream (in order).
-    Moves(Vec<Move>),
-    /// Planning finished: the job has this many moves.
-    Done {
-        /// Total moves.
-        total: u32,
-    },
-    /// Planning failed.
-    Failed(String),
-}
-
-/// Start a planner worker for job `job_id` that skips moves before `start_index`.
-/// Dropping the receiver stops the worker at its next layer.
+/// Start a planner worker for job `job_id` that skips moves before `start_index`: on a
+/// blocking thread, `source` makes the job's [`LayerSource`] (reading the store there,
+/// never on a task), then the moves go out as the lifecycle's [`PlannerOutput`]: first
+/// the layer count once known, where the job stands at the resume index (when
+/// resuming), the moves layer by layer, then `Done` (or `Failed`). Dropping the
+/// receiver stops the worker at its next layer.
 pub fn spawn(
-    mut source: Box<dyn LayerSource>,
+    source: impl FnOnce() -> Result<Box<dyn LayerSource>, String> + Send + 'static,
     job_id: u32,
     start_index: u32,
     layers_ahead: usize,
-) -> mpsc::Receiver<PlannerMsg> {
+) -> mpsc::Receiver<PlannerOutput> {
     let (tx, rx) = mpsc::channel(layers_ahead.max(1));
-    tokio::task::spawn_blocking(move || {
-        let mut expected: u32 = 0;
-        let mut position = None;
-        let mut layer_mark = None;
-        let mut volumes = None;
-        let mut resume_sent = start_index == 0;
-        let mut count_sent = false;
-        while let Some(layer) = source.next_layer() {
-            if !count_sent {
-                if let Some(count) = source.layer_count() {
-                    count_sent = true;
-                    if tx.blocking_send(PlannerMsg::Layers { count }).is_err() {
-                        return;
-                    }
-                }
-            }
-            let moves = match layer {
-                Ok(m) => m,
-                Err(e) => {
-                    let _ = tx.blocking_send(PlannerMsg::Failed(e));
-                    return;
-                }
-            };
-            let mut out = Vec::new();
-            for mut mv in moves {
-                if mv.index != expected {
-                    let _ = tx.blocking_send(PlannerMsg::Failed(format!(
-                        "planner produced move index {} where {expected} was due",
-                        mv.index
-                    )));
-                    return;
-                }
-                expected += 1;
-                mv.job_id = job_id;
-                if mv.index < start_index {
-                    match &mv.kind {
-                        MoveKind::Travel { to, .. } => position = Some(*to),
-                        MoveKind::Extrude { to, volumes_nl, .. } => {
-                            position = Some(*to);
-                            volumes = Some(volumes_nl.clone());
-                        }
-                        MoveKind::LayerMark { layer, z_um } => layer_mark = Some((*layer, *z_um)),
-                        _ => {}
-                    }
-                    continue;
-                }
-                if !resume_sent {
-                    resume_sent = true;
-                    let msg = PlannerMsg::ResumeAt {
-                        position,
-                        layer_mark,
-                        volumes_nl: volumes.clone(),
-                    };
-                    if tx.blocking_send(msg).is_err() {
-                        return;
-                    }
-                }
-                out.push(mv);
-            }
-            if !out.is_empty() && tx.blocking_send(PlannerMsg::Moves(out)).is_err() {
-                return;
-            }
+    tokio::task::spawn_blocking(move || match source() {
+        Ok(source) => plan(source, job_id, start_index, &tx),
+        Err(e) => {
+            let _ = tx.blocking_send(PlannerOutput::Failed(e));
         }
-        if !resume_sent {
-            let _ = tx.blocking_send(PlannerMsg::ResumeAt {
-                position,
-                layer_mark,
-                volumes_nl: volumes,
-            });
-        }
-        let _ = tx.blocking_send(PlannerMsg::Done { total: expected });
     });
     rx
+}
+
+/// What the moves before the resume index left behind.
+#[derive(Default)]
+struct Skipped {
+    position: Option<PositionUm>,
+    layer_mark: Option<(u32, i32)>,
+    volumes_nl: Option<Vec<u32>>,
+}
+
+impl Skipped {
+    fn skip(&mut self, mv: &Move) {
+        match &mv.kind {
+            MoveKind::Travel { to, .. } => self.position = Some(*to),
+            MoveKind::Extrude { to, volumes_nl, .. } => {
+                self.position = Some(*to);
+                self.volumes_nl = Some(volumes_nl.clone());
+            }
+            MoveKind::LayerMark { layer, z_um } => self.layer_mark = Some((*layer, *z_um)),
+            _ => {}
+        }
+    }
+
+    fn resume_point(&self) -> PlannerOutput {
+        PlannerOutput::ResumeAt(ResumePoint {
+            position: self.position,
+            layer_mark: self.layer_mark,
+            volumes_nl: self.volumes_nl.clone(),
+        })
+    }
+}
+
+/// The worker: `source`'s layers to `tx`, until the receiver is gone.
+fn plan(
+    mut source: Box<dyn LayerSource>,
+    job_id: u32,
+    start_index: u32,
+    tx: &mpsc::Sender<PlannerOutput>,
+) {
+    let send = |out: PlannerOutput| tx.blocking_send(out).is_ok();
+    let mut expected: u32 = 0;
+    let mut skipped = Skipped::default();
+    let mut resume_sent = start_index == 0;
+    let mut count_sent = false;
+    while let Some(layer) = source.next_layer() {
+        if !count_sent {
+            if let Some(count) = source.layer_count() {
+                count_sent = true;
+                if !send(PlannerOutput::Layers(count)) {
+                    return;
+                }
+            }
+        }
+        let moves = match layer {
+            Ok(m) => m,
+            Err(e) => {
+                send(PlannerOutput::Failed(e));
+                return;
+            }
+        };
+        let mut out = Vec::new();
+        for mut mv in moves {
+            if mv.index != expected {
+                send(PlannerOutput::Failed(format!(
+                    "planner produced move index {} where {expected} was due",
+                    mv.index
+                )));
+                return;
+            }
+            expected += 1;
+            mv.job_id = job_id;
+            if mv.index < start_index {
+                skipped.skip(&mv);
+                continue;
+            }
+            if !resume_sent {
+                resume_sent = true;
+                if !send(skipped.resume_point()) {
+                    return;
+                }
+            }
+            out.push(mv);
+        }
+        if !out.is_empty() && !send(PlannerOutput::Moves(out)) {
+            return;
+        }
+    }
+    if !resume_sent {
+        send(skipped.resume_point());
+    }
+    send(PlannerOutput::Done { total: expected });
+}
+
+/// What produces stored job `job`'s moves (`mesh`: a mesh job's mesh) on a machine of
+/// `syringes` syringes configured by `config`.
+pub fn source_of(
+    job: &super::store::JobRecord,
+    mesh: Option<&[u8]>,
+    syringes: usize,
+    config: &super::Config,
+) -> Result<Box<dyn LayerSource>, String> {
+    match &job.spec {
+        super::store::JobSpec::DryRun { moves } => Ok(Box::new(DryRunSource::new(
+            *moves,
+            config.planner.dry_run_moves_per_layer,
+            syringes,
+            (config.machine.build_volume_mm[2] * 1000.0).round() as i32,
+        ))),
+        super::store::JobSpec::Toml { toml, .. } => {
+            JobSource::new(toml, mesh, &format!("job {}", job.id), &config.machine)
+                .map(|s| Box::new(s) as Box<dyn LayerSource>)
+        }
+    }
 }
 
 /// A dry-run job: `moves` zero-volume extrusion moves zig-zagging 1 mm along X at
@@ -583,28 +605,26 @@ mod tests {
 
     #[tokio::test]
     async fn resume_skips_executed_moves_and_reports_where_it_stands() {
-        let mut rx = spawn(Box::new(DryRunSource::new(25, 10, 2, 150_000)), 7, 13, 2);
+        let source = || Ok(Box::new(DryRunSource::new(25, 10, 2, 150_000)) as Box<dyn LayerSource>);
+        let mut rx = spawn(source, 7, 13, 2);
         let mut got = Vec::new();
         let mut resume = None;
         let mut total = None;
         let mut layers = None;
         while let Some(m) = rx.recv().await {
             match m {
-                PlannerMsg::Layers { count } => {
+                PlannerOutput::Layers(count) => {
                     assert!(
                         layers.is_none() && got.is_empty(),
                         "the count comes once, first"
                     );
                     layers = Some(count);
                 }
-                PlannerMsg::ResumeAt {
-                    position,
-                    layer_mark,
-                    ..
-                } => resume = Some((position, layer_mark)),
-                PlannerMsg::Moves(v) => got.extend(v),
-                PlannerMsg::Done { total: t } => total = Some(t),
-                PlannerMsg::Failed(e) => panic!("{e}"),
+                PlannerOutput::ResumeAt(r) => resume = Some((r.position, r.layer_mark)),
+                PlannerOutput::Moves(v) => got.extend(v),
+                PlannerOutput::Done { total: t } => total = Some(t),
+                PlannerOutput::Failed(e) => panic!("{e}"),
+                PlannerOutput::Ended => panic!("not sent by the worker"),
             }
         }
         assert_eq!(total, Some(25));
@@ -614,5 +634,15 @@ mod tests {
         let (pos, mark) = resume.unwrap();
         assert_eq!(mark, Some((1, 400)));
         assert_eq!(pos.map(|p| p.x_um), Some(0));
+    }
+
+    #[tokio::test]
+    async fn a_source_that_cannot_be_made_fails_the_run() {
+        let mut rx = spawn(|| Err("no job 3".to_string()), 3, 0, 2);
+        assert_eq!(
+            rx.recv().await,
+            Some(PlannerOutput::Failed("no job 3".into()))
+        );
+        assert_eq!(rx.recv().await, None);
     }
 }

@@ -16,9 +16,8 @@ use tokio::sync::{broadcast, mpsc, oneshot, watch};
 use tracing::{info, warn};
 
 use super::config::{Config, SIM_PORT};
-use super::store::Store;
 use super::streamer::Streamer;
-use super::{api, checkpoints, Control, Shared};
+use super::{api, store, Control, Shared};
 
 fn hil_sim_binary(cfg: &Config) -> PathBuf {
     if let Some(b) = &cfg.sim.binary {
@@ -178,16 +177,18 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     } else {
         (None, PathBuf::from(&cfg.serial.port))
     };
-    let store = Store::open(&cfg.state.dir)?;
-    let interrupted = store.interrupt_unfinished("edod restarted")?;
-    if !interrupted.is_empty() {
-        warn!(jobs = ?interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
+    // The store's threads: no SQLite on this thread either (it runs the runtime).
+    let (events_tx, events_rx) = mpsc::unbounded_channel();
+    let dir = cfg.state.dir.clone();
+    let block = crate::lifecycle::Options::default().service_index_block;
+    let opened = store::start(dir, block, events_tx).await?;
+    if !opened.interrupted.is_empty() {
+        warn!(jobs = ?opened.interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
     }
     let listener = bind(&cfg)?;
     let (control_tx, control_rx) = mpsc::channel(64);
     let shared = Arc::new(Shared {
-        store: std::sync::Mutex::new(store),
-        api_writes: std::sync::Mutex::new(Store::open(&cfg.state.dir)?),
+        store: opened.stores,
         notify: broadcast::channel(4096).0,
         machine: watch::channel(Default::default()).0,
         progress: watch::channel(None).0,
@@ -196,9 +197,15 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         alive: Default::default(),
         config: cfg,
     });
-    let checkpoints = checkpoints::Writer::start(Store::open(&shared.config.state.dir)?)
-        .context("cannot start the checkpoint writer thread")?;
-    let streamer = tokio::spawn(Streamer::new(Arc::clone(&shared), checkpoints).run(control_rx));
+    let streamer = tokio::spawn(
+        Streamer::new(
+            Arc::clone(&shared),
+            opened.service_index,
+            opened.service_reserved_until,
+            events_rx,
+        )
+        .run(control_rx),
+    );
     let api = tokio::spawn(api::serve(listener, Arc::clone(&shared)));
     info!(socket = %shared.config.api.socket.display(), port = %shared.port.display(), "edod ready");
     let notifier = Notifier::start();

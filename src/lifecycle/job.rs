@@ -98,8 +98,8 @@ pub struct JobInfo {
     pub submitted_ms: i64,
 }
 
-/// Live progress of the active job.
-#[derive(Debug, Clone, Default, Serialize, PartialEq)]
+/// Live progress of the active job (`notify_job_progress`, `machine.status`).
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
 pub struct Progress {
     /// Job id.
     pub job_id: u32,

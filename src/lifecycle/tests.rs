@@ -1109,6 +1109,56 @@ fn setups() -> Vec<Setup> {
             }),
         ),
         (
+            "done",
+            Box::new(|| {
+                let mut r = Rig::printing();
+                r.plan(12);
+                r.run(100);
+                r
+            }),
+        ),
+        (
+            "failed",
+            Box::new(|| {
+                let mut r = streaming_rig();
+                let (_, _, run) = r.planner.unwrap();
+                r.feed(Event::Planner {
+                    run,
+                    output: PlannerOutput::Failed("the mesh is open".into()),
+                });
+                r
+            }),
+        ),
+        (
+            "cancelled while queued",
+            Box::new(|| {
+                let mut r = Rig::new();
+                r.submit(1);
+                r.command(Command::Cancel(1));
+                r.connect();
+                r
+            }),
+        ),
+        (
+            "streaming, the store locked, a pause waiting for it",
+            Box::new(|| {
+                let mut r = streaming_rig();
+                r.auto_store = false;
+                r.command(Command::Pause(1));
+                r
+            }),
+        ),
+        (
+            "interrupted, the store locked, a resume waiting for it",
+            Box::new(|| {
+                let mut r = streaming_rig();
+                r.command(Command::EStop);
+                r.auto_store = false;
+                r.command(Command::Resume(1));
+                r
+            }),
+        ),
+        (
             "stopping",
             Box::new(|| {
                 let mut r = streaming_rig();
@@ -1301,12 +1351,16 @@ fn check_invariants(name: &str, event: &str, rig: &mut Rig) {
 fn every_phase_under_every_event() {
     let mut cases = 0;
     let mut phases = std::collections::BTreeSet::new();
+    let mut states = std::collections::BTreeSet::new();
     for (name, setup) in setups() {
         let count = every_event(1).len();
         for k in 0..count {
             let mut rig = setup();
             if let Some(p) = rig.lc.phase() {
                 phases.insert(format!("{p:?}"));
+            }
+            if let Some(s) = rig.lc.job_state(1) {
+                states.insert(s.as_str());
             }
             let run = rig.planner.map_or(1, |p| p.2);
             let mut event = every_event(run).remove(k);
@@ -1321,7 +1375,59 @@ fn every_phase_under_every_event() {
             cases += 1;
         }
     }
-    // Every phase was a starting point.
+    // Every phase, and every state of job 1, was a starting point.
     assert_eq!(phases.len(), Phase::ALL.len(), "{phases:?}");
-    assert!(cases > 800, "{cases} cases");
+    assert_eq!(states.len(), JobState::ALL.len(), "{states:?}");
+    assert!(cases > 1000, "{cases} cases");
+}
+
+#[test]
+fn time_left_from_moves_once_known_else_from_layers() {
+    // 1,000 of 4,000 moves in 10 s since a fresh start: 30 s left.
+    assert_eq!(
+        time_left_s(Some((4000, 1000, 1000)), Some((8, 2)), 0, 10.0),
+        Some(30.0)
+    );
+    // Resumed at move 600: the rate counts only moves since the restart.
+    assert_eq!(
+        time_left_s(Some((4000, 1000, 400)), None, 0, 10.0),
+        Some(75.0)
+    );
+    // Total not planned yet: layer 3 of 10 (0-based 2) after 20 s: 2 layers a 10 s,
+    // 8 layers (the current one whole) left.
+    assert_eq!(time_left_s(None, Some((10, 2)), 0, 20.0), Some(80.0));
+    // Resumed at layer 5: only layers finished since then count.
+    assert_eq!(time_left_s(None, Some((10, 7)), 5, 20.0), Some(30.0));
+    // No rate yet: still in the first layer, nothing executed, or nothing known.
+    assert_eq!(time_left_s(None, Some((10, 0)), 0, 20.0), None);
+    assert_eq!(time_left_s(Some((4000, 0, 0)), None, 0, 5.0), None);
+    assert_eq!(time_left_s(None, None, 0, 5.0), None);
+    // Past the last layer (a count from an older plan): nothing left, not negative.
+    assert_eq!(time_left_s(None, Some((10, 12)), 0, 20.0), Some(0.0));
+}
+
+/// The lifecycle knows no wire protocol: no code of it names the link (a G-code link
+/// plugs in below it the way the edo link does, through an adapter in the daemon).
+#[test]
+fn the_lifecycle_names_no_link() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/lifecycle");
+    for e in std::fs::read_dir(&dir).unwrap() {
+        let path = e.unwrap().path();
+        if path.ends_with("tests.rs") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&path).unwrap();
+        for (n, line) in text.lines().enumerate() {
+            let code = line.trim_start();
+            if code.starts_with("//") {
+                continue;
+            }
+            assert!(
+                !code.contains("link::") && !code.contains("gcode_link"),
+                "{}:{}: {line}",
+                path.display(),
+                n + 1
+            );
+        }
+    }
 }

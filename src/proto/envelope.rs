@@ -84,9 +84,12 @@ impl ApiError {
     pub const INVALID_JOB: i64 = -32003;
     /// The machine is not connected.
     pub const NOT_CONNECTED: i64 = -32004;
+    /// The job store is busy (another process holds its write lock): nothing was done,
+    /// retry.
+    pub const STORE_BUSY: i64 = -32005;
 
     /// Every code `docs/api.md` lists.
-    pub const CODES: [i64; 9] = [
+    pub const CODES: [i64; 10] = [
         Self::PARSE,
         Self::INVALID_REQUEST,
         Self::METHOD_NOT_FOUND,
@@ -96,6 +99,7 @@ impl ApiError {
         Self::BAD_STATE,
         Self::INVALID_JOB,
         Self::NOT_CONNECTED,
+        Self::STORE_BUSY,
     ];
 
     /// An error with a code and message.

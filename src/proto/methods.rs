@@ -199,6 +199,10 @@ pub struct StateChange {
     /// Its state now (`paused`, `printing`; `cancelled`, or `printing` while a printing
     /// job stops).
     pub state: JobState,
+    /// Whether that state is on disk; `false` when the job store could not write it
+    /// within 75 ms (another process holds its lock): the state is in effect and is
+    /// written, and `notify_job_state` tells it, once the store takes it.
+    pub stored: bool,
 }
 
 /// `job.delete`'s result.

@@ -4,7 +4,8 @@
 //! One definition for both ends: edod (`daemon::api`) reads a [`Call`] and answers with a
 //! [`MethodResult`]; edoctl (`cli::client`) sends a [`Method`]'s params and reads its
 //! typed result; a web page can share the same types. It depends on serde and serde_json
-//! only (and the machine link's state names), so it stays in the pure core.
+//! only (and the machine link's state names and the lifecycle's job state, checkpoint
+//! and progress), so it stays in the pure core.
 //!
 //! - [`envelope`]: the JSON-RPC 2.0 framing: [`Request`], [`Response`], [`Notification`],
 //!   [`Id`], [`ApiError`] and its codes.

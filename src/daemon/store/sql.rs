@@ -1,5 +1,5 @@
-//! The job store: every accepted job, its state, what is needed to plan it again, and its
-//! checkpoint, in an embedded SQLite database (`edod.db` in the state directory).
+//! The job database: every accepted job, its state, what is needed to plan it again, and
+//! its checkpoint, in an embedded SQLite database (`edod.db` in the state directory).
 //!
 //! Crash safety: WAL journal with `synchronous = FULL`, so a `job.submit` answered with an
 //! id has been written through to disk, and a checkpoint committed is never lost even on
@@ -7,33 +7,18 @@
 //! TOML (and its mesh) regenerates the exact move stream, and a checkpoint (first move not
 //! executed, layer, composition, syringe volumes) says where to continue.
 //!
-//! The store is synchronous (rusqlite); callers hold it for one short statement at a time.
+//! The store is synchronous (rusqlite) and is only ever called on the store's own threads
+//! (`writer`, `reader`): every call checks it is not on a tokio runtime thread
+//! ([`StoreError::OnRuntime`]).
 
 use std::path::Path;
+use std::time::Duration;
 
-use rusqlite::{params, Connection, OptionalExtension};
+use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 use serde::{Deserialize, Serialize};
 
-/// Wire job id reserved for the daemon's own service moves (home, prime, park).
-pub const SERVICE_JOB_ID: u32 = 0;
-
+use crate::lifecycle::{JobInfo, JobUpdate, Record};
 pub use crate::proto::{Checkpoint, JobState};
-
-/// Reading a stored state name (an unknown one reads as `failed`).
-impl JobState {
-    fn parse(s: &str) -> JobState {
-        match s {
-            "queued" => JobState::Queued,
-            "planning" => JobState::Planning,
-            "printing" => JobState::Printing,
-            "paused" => JobState::Paused,
-            "interrupted" => JobState::Interrupted,
-            "done" => JobState::Done,
-            "cancelled" => JobState::Cancelled,
-            _ => JobState::Failed,
-        }
-    }
-}
 
 /// How a job's moves are produced.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -96,6 +81,42 @@ pub enum StoreError {
     /// No such job.
     #[error("no job {0}")]
     NotFound(u32),
+    /// Another process holds the database's write lock, past the time the caller waits.
+    #[error("job store busy: another process holds the write lock of edod.db")]
+    Busy,
+    /// The store's thread has stopped.
+    #[error("job store thread stopped")]
+    Stopped,
+    /// Called on a tokio runtime thread: a bug (the store has threads of its own).
+    #[error("job store called on a tokio runtime thread (a bug: use the store's threads)")]
+    OnRuntime,
+}
+
+impl StoreError {
+    /// The database is locked by another connection (SQLite's busy or locked).
+    pub fn is_busy(&self) -> bool {
+        match self {
+            StoreError::Busy => true,
+            StoreError::Sql(rusqlite::Error::SqliteFailure(e, _)) => matches!(
+                e.code,
+                rusqlite::ErrorCode::DatabaseBusy | rusqlite::ErrorCode::DatabaseLocked
+            ),
+            _ => false,
+        }
+    }
+}
+
+impl JobRecord {
+    /// What the lifecycle needs of the job.
+    pub fn info(&self) -> JobInfo {
+        JobInfo {
+            id: self.id,
+            state: self.state,
+            checkpoint: self.checkpoint.clone(),
+            total_moves: self.total_moves,
+            submitted_ms: self.submitted_ms,
+        }
+    }
 }
 
 /// Milliseconds since the Unix epoch.
@@ -136,9 +157,22 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS job_meshes (id INTEGER PRIMARY KEY, mesh BLOB NOT NULL);
 ";
 
+/// How long a statement waits for another connection's write lock, as opened.
+pub const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// A transaction that takes the write lock at once (`BEGIN IMMEDIATE`): waiting for the
+/// lock happens at its start, under the busy timeout, never half way through.
+fn write_tx(conn: &Connection) -> Result<Transaction<'_>, StoreError> {
+    Ok(Transaction::new_unchecked(
+        conn,
+        TransactionBehavior::Immediate,
+    )?)
+}
+
 impl Store {
     /// Open (or create) `edod.db` in `dir`.
     pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        off_runtime()?;
         std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
             path: dir.display().to_string(),
             source,
@@ -146,20 +180,32 @@ impl Store {
         let conn = Connection::open(dir.join("edod.db"))?;
         conn.pragma_update(None, "journal_mode", "WAL")?;
         conn.pragma_update(None, "synchronous", "FULL")?;
-        conn.busy_timeout(std::time::Duration::from_secs(5))?;
+        conn.busy_timeout(BUSY_TIMEOUT)?;
         conn.execute_batch(SCHEMA)?;
         Ok(Store { conn })
     }
 
+    /// The connection, off the runtime.
+    fn conn(&self) -> Result<&Connection, StoreError> {
+        off_runtime()?;
+        Ok(&self.conn)
+    }
+
     /// Store a new job (queued) and return its id.
     pub fn insert(&self, name: &str, spec: &JobSpec) -> Result<u32, StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let id = Self::insert_in(&tx, name, spec)?;
+        tx.commit()?;
+        Ok(id)
+    }
+
+    fn insert_in(tx: &Transaction<'_>, name: &str, spec: &JobSpec) -> Result<u32, StoreError> {
         let spec_json = serde_json::to_string(spec).unwrap_or_default();
         let mesh = match spec {
             JobSpec::Toml { mesh, .. } => mesh.as_deref(),
             JobSpec::DryRun { .. } => None,
         };
         let t = now_ms();
-        let tx = self.conn.unchecked_transaction()?;
         tx.execute(
             "INSERT INTO jobs (name, state, spec, submitted_ms, updated_ms)
              VALUES (?1, 'queued', ?2, ?3, ?3)",
@@ -172,8 +218,24 @@ impl Store {
                 params![id, mesh],
             )?;
         }
-        tx.commit()?;
         Ok(id as u32)
+    }
+
+    /// Store a new job (queued) and delete the finished jobs beyond the newest `keep`
+    /// (at most `at_most` of them, see [`Store::prune_finished`]), in one transaction:
+    /// the job's id and the ids deleted.
+    pub fn insert_pruning(
+        &self,
+        name: &str,
+        spec: &JobSpec,
+        keep: usize,
+        at_most: usize,
+    ) -> Result<(u32, Vec<u32>), StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let id = Self::insert_in(&tx, name, spec)?;
+        let pruned = Self::prune_in(&tx, keep, at_most)?;
+        tx.commit()?;
+        Ok((id, pruned))
     }
 
     fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<JobRecord> {
@@ -186,7 +248,8 @@ impl Store {
         Ok(JobRecord {
             id: r.get::<_, i64>("id")? as u32,
             name: r.get("name")?,
-            state: JobState::parse(&r.get::<_, String>("state")?),
+            // An unknown state name reads as failed.
+            state: JobState::from_name(&r.get::<_, String>("state")?).unwrap_or(JobState::Failed),
             reason: r.get("reason")?,
             total_moves: r.get::<_, Option<i64>>("total_moves")?.map(|v| v as u32),
             checkpoint: Checkpoint {
@@ -203,7 +266,7 @@ impl Store {
 
     /// One job.
     pub fn get(&self, id: u32) -> Result<JobRecord, StoreError> {
-        self.conn
+        self.conn()?
             .query_row(
                 &format!("SELECT {COLUMNS} FROM jobs WHERE id = ?1"),
                 [id],
@@ -218,7 +281,7 @@ impl Store {
     pub fn mesh(&self, id: u32) -> Result<Option<Vec<u8>>, StoreError> {
         self.get(id)?;
         Ok(self
-            .conn
+            .conn()?
             .query_row("SELECT mesh FROM job_meshes WHERE id = ?1", [id], |r| {
                 r.get(0)
             })
@@ -227,23 +290,20 @@ impl Store {
 
     /// Every job, oldest first.
     pub fn list(&self) -> Result<Vec<JobRecord>, StoreError> {
-        let mut st = self
-            .conn
-            .prepare(&format!("SELECT {COLUMNS} FROM jobs ORDER BY id"))?;
-        let rows = st.query_map([], Store::row)?;
-        Ok(rows.collect::<Result<_, _>>()?)
+        self.select("")
     }
 
-    /// The oldest queued job.
-    pub fn next_queued(&self) -> Result<Option<JobRecord>, StoreError> {
-        Ok(self
-            .conn
-            .query_row(
-                &format!("SELECT {COLUMNS} FROM jobs WHERE state = 'queued' ORDER BY id LIMIT 1"),
-                [],
-                Store::row,
-            )
-            .optional()?)
+    /// The queued jobs, oldest first.
+    pub fn queued(&self) -> Result<Vec<JobRecord>, StoreError> {
+        self.select("WHERE state = 'queued'")
+    }
+
+    fn select(&self, filter: &str) -> Result<Vec<JobRecord>, StoreError> {
+        let mut st = self
+            .conn()?
+            .prepare(&format!("SELECT {COLUMNS} FROM jobs {filter} ORDER BY id"))?;
+        let rows = st.query_map([], Store::row)?;
+        Ok(rows.collect::<Result<_, _>>()?)
     }
 
     /// Change a job's state (and reason).
@@ -253,7 +313,7 @@ impl Store {
         state: JobState,
         reason: Option<&str>,
     ) -> Result<(), StoreError> {
-        let n = self.conn.execute(
+        let n = self.conn()?.execute(
             "UPDATE jobs SET state = ?2, reason = ?3, updated_ms = ?4 WHERE id = ?1",
             params![id, state.as_str(), reason, now_ms()],
         )?;
@@ -264,8 +324,8 @@ impl Store {
     }
 
     /// Record the total move count once planning finished.
-    pub fn set_total(&self, id: u32, total: u32) -> Result<(), StoreError> {
-        self.conn.execute(
+    fn set_total(&self, id: u32, total: u32) -> Result<(), StoreError> {
+        self.conn()?.execute(
             "UPDATE jobs SET total_moves = ?2 WHERE id = ?1",
             params![id, total],
         )?;
@@ -274,7 +334,7 @@ impl Store {
 
     /// Write a checkpoint.
     pub fn checkpoint(&self, id: u32, c: &Checkpoint) -> Result<(), StoreError> {
-        self.conn.execute(
+        self.conn()?.execute(
             "UPDATE jobs SET next_index = ?2, layer = ?3, composition = ?4, remaining_nl = ?5,
              updated_ms = ?6 WHERE id = ?1",
             params![
@@ -291,28 +351,49 @@ impl Store {
         Ok(())
     }
 
-    /// Write checkpoints and move counts of several jobs in one transaction (one fsync):
-    /// per job its checkpoint and total where given. The checkpoint writer's batch.
-    pub fn record_progress<'a>(
-        &self,
-        records: impl IntoIterator<Item = (u32, Option<&'a Checkpoint>, Option<u32>)>,
-    ) -> Result<(), StoreError> {
-        let tx = self.conn.unchecked_transaction()?;
-        for (id, checkpoint, total) in records {
-            if let Some(c) = checkpoint {
-                self.checkpoint(id, c)?;
-            }
-            if let Some(t) = total {
-                self.set_total(id, t)?;
+    /// Apply the lifecycle's records in one transaction (one fsync), in order: job
+    /// checkpoints, move counts and states, and service index reservations. A job no
+    /// longer stored (deleted) is skipped: returned are the ids skipped.
+    pub fn apply(&self, records: &[Record]) -> Result<Vec<u32>, StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let mut missing = Vec::new();
+        for r in records {
+            match r {
+                Record::Job(u) => {
+                    if !self.apply_job(u)? {
+                        missing.push(u.job_id);
+                    }
+                }
+                Record::ServiceIndices { reserved_until } => {
+                    self.set_service_reserved(*reserved_until)?
+                }
             }
         }
         tx.commit()?;
-        Ok(())
+        Ok(missing)
     }
 
-    /// How long a statement waits for another connection's write lock (5 s as opened).
-    pub fn set_busy_timeout(&mut self, t: std::time::Duration) -> Result<(), StoreError> {
-        self.conn.busy_timeout(t)?;
+    /// Write one job's update; false if there is no such job.
+    fn apply_job(&self, u: &JobUpdate) -> Result<bool, StoreError> {
+        if let Some(c) = &u.checkpoint {
+            self.checkpoint(u.job_id, c)?;
+        }
+        if let Some(t) = u.total_moves {
+            self.set_total(u.job_id, t)?;
+        }
+        if let Some((state, reason)) = &u.state {
+            match self.set_state(u.job_id, *state, reason.as_deref()) {
+                Err(StoreError::NotFound(_)) => return Ok(false),
+                r => r?,
+            }
+        }
+        Ok(true)
+    }
+
+    /// How long a statement waits for another connection's write lock
+    /// ([`BUSY_TIMEOUT`] as opened).
+    pub fn set_busy_timeout(&mut self, t: Duration) -> Result<(), StoreError> {
+        self.conn()?.busy_timeout(t)?;
         Ok(())
     }
 
@@ -320,11 +401,11 @@ impl Store {
     /// returns its state otherwise, and deletes nothing. Job ids are never reused
     /// (`AUTOINCREMENT`), so a machine's report of a deleted job's moves names no other.
     pub fn delete_finished(&self, id: u32) -> Result<Result<(), JobState>, StoreError> {
+        let tx = write_tx(self.conn()?)?;
         let state = self.get(id)?.state;
         if !state.is_final() {
             return Ok(Err(state));
         }
-        let tx = self.conn.unchecked_transaction()?;
         tx.execute("DELETE FROM job_meshes WHERE id = ?1", [id])?;
         tx.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
         tx.commit()?;
@@ -336,8 +417,15 @@ impl Store {
     /// large before a lower `keep` holds the store's lock only briefly; returns the
     /// ids deleted, oldest first. Unfinished jobs are never touched.
     pub fn prune_finished(&self, keep: usize, at_most: usize) -> Result<Vec<u32>, StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let ids = Self::prune_in(&tx, keep, at_most)?;
+        tx.commit()?;
+        Ok(ids)
+    }
+
+    fn prune_in(tx: &Transaction<'_>, keep: usize, at_most: usize) -> Result<Vec<u32>, StoreError> {
         let ids: Vec<u32> = {
-            let mut st = self.conn.prepare(
+            let mut st = tx.prepare(
                 "SELECT id FROM jobs WHERE state IN ('done', 'failed', 'cancelled')
                  ORDER BY id DESC LIMIT -1 OFFSET ?1",
             )?;
@@ -349,20 +437,19 @@ impl Store {
                 .map(|v| v as u32)
                 .collect()
         };
-        let tx = self.conn.unchecked_transaction()?;
         for &id in &ids {
             tx.execute("DELETE FROM job_meshes WHERE id = ?1", [id])?;
             tx.execute("DELETE FROM jobs WHERE id = ?1", [id])?;
         }
-        tx.commit()?;
         Ok(ids)
     }
 
     /// At start-up: jobs that were planning, printing or paused when edod stopped are
     /// interrupted (they resume from their checkpoint). Returns their ids.
     pub fn interrupt_unfinished(&self, reason: &str) -> Result<Vec<u32>, StoreError> {
+        let tx = write_tx(self.conn()?)?;
         let ids: Vec<u32> = {
-            let mut st = self.conn.prepare(
+            let mut st = tx.prepare(
                 "SELECT id FROM jobs WHERE state IN ('planning', 'printing', 'paused') ORDER BY id",
             )?;
             let rows = st.query_map([], |r| r.get::<_, i64>(0))?;
@@ -374,29 +461,52 @@ impl Store {
         for &id in &ids {
             self.set_state(id, JobState::Interrupted, Some(reason))?;
         }
+        tx.commit()?;
         Ok(ids)
     }
 
-    /// Next index of the daemon's service moves (persisted, so the machine's order check
-    /// of job 0 never sees an index twice across restarts).
-    pub fn next_service_index(&self) -> Result<u32, StoreError> {
-        let tx = self.conn.unchecked_transaction()?;
-        let v: Option<i64> = tx
+    /// The first service move index not reserved by an earlier run (0 at first).
+    fn service_reserved(&self) -> Result<u32, StoreError> {
+        let v: Option<i64> = self
+            .conn()?
             .query_row(
                 "SELECT value FROM meta WHERE key = 'service_index'",
                 [],
                 |r| r.get(0),
             )
             .optional()?;
-        let v = v.unwrap_or(0);
-        tx.execute(
-            "INSERT INTO meta (key, value) VALUES ('service_index', ?1)
-             ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-            [v + 1],
-        )?;
-        tx.commit()?;
-        Ok(v as u32)
+        Ok(v.unwrap_or(0).clamp(0, i64::from(u32::MAX)) as u32)
     }
+
+    fn set_service_reserved(&self, until: u32) -> Result<(), StoreError> {
+        self.conn()?.execute(
+            "INSERT INTO meta (key, value) VALUES ('service_index', ?1)
+             ON CONFLICT(key) DO UPDATE SET value = MAX(value, excluded.value)",
+            [i64::from(until)],
+        )?;
+        Ok(())
+    }
+
+    /// At start-up: reserve `block` service move indices for this run (the machine's
+    /// order check of job 0 must never see an index twice across restarts). Returns the
+    /// first index and the end of the reservation.
+    pub fn reserve_service_indices(&self, block: u32) -> Result<(u32, u32), StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let first = self.service_reserved()?;
+        let until = first.saturating_add(block);
+        self.set_service_reserved(until)?;
+        tx.commit()?;
+        Ok((first, until))
+    }
+}
+
+/// Fails on a tokio runtime thread (its workers and its blocking pool alike): SQLite
+/// waits for locks and for the disk, and the store has threads of its own for that.
+fn off_runtime() -> Result<(), StoreError> {
+    if tokio::runtime::Handle::try_current().is_ok() {
+        return Err(StoreError::OnRuntime);
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -500,8 +610,12 @@ mod tests {
                 remaining_nl: vec![5, 6],
             };
             s.checkpoint(a, &c).unwrap();
-            assert_eq!(s.next_service_index().unwrap(), 0);
-            assert_eq!(s.next_service_index().unwrap(), 1);
+            assert_eq!(s.reserve_service_indices(100).unwrap(), (0, 100));
+            // A reservation recorded by the lifecycle moves the end on.
+            s.apply(&[Record::ServiceIndices {
+                reserved_until: 150,
+            }])
+            .unwrap();
         }
         let s = Store::open(dir.path()).unwrap();
         assert_eq!(s.interrupt_unfinished("restart").unwrap(), vec![1]);
@@ -521,8 +635,69 @@ mod tests {
         assert_eq!(s.mesh(2).unwrap(), Some(vec![0, 1, 2, 255]));
         assert_eq!(s.mesh(1).unwrap(), None);
         assert!(matches!(s.mesh(9), Err(StoreError::NotFound(9))));
-        assert_eq!(s.next_queued().unwrap().map(|j| j.id), Some(2));
-        assert_eq!(s.next_service_index().unwrap(), 2);
+        let queued: Vec<u32> = s.queued().unwrap().iter().map(|j| j.id).collect();
+        assert_eq!(queued, [2]);
+        assert_eq!(s.reserve_service_indices(100).unwrap(), (150, 250));
         assert!(matches!(s.get(9), Err(StoreError::NotFound(9))));
+    }
+
+    #[test]
+    fn records_apply_in_one_go_and_a_deleted_job_is_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path()).unwrap();
+        let a = s.insert("a", &JobSpec::DryRun { moves: 10 }).unwrap();
+        let c = |next_index| Checkpoint {
+            next_index,
+            ..Checkpoint::default()
+        };
+        let job = |checkpoint, total_moves, state| {
+            Record::Job(JobUpdate {
+                job_id: a,
+                checkpoint,
+                total_moves,
+                state,
+            })
+        };
+        let missing = s
+            .apply(&[
+                job(Some(c(3)), None, Some((JobState::Printing, None))),
+                job(None, Some(10), None),
+                job(
+                    Some(c(7)),
+                    None,
+                    Some((JobState::Paused, Some("paused by an operator".into()))),
+                ),
+                Record::Job(JobUpdate {
+                    job_id: 99,
+                    state: Some((JobState::Done, None)),
+                    ..JobUpdate::default()
+                }),
+            ])
+            .unwrap();
+        assert_eq!(missing, [99]);
+        let j = s.get(a).unwrap();
+        assert_eq!(j.state, JobState::Paused);
+        assert_eq!(j.reason.as_deref(), Some("paused by an operator"));
+        assert_eq!(j.checkpoint.next_index, 7);
+        assert_eq!(j.total_moves, Some(10));
+    }
+
+    #[test]
+    fn the_store_refuses_to_run_on_a_tokio_runtime_thread() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path()).unwrap();
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        let on_worker = rt.block_on(async { s.list().map(|_| ()) });
+        assert!(matches!(on_worker, Err(StoreError::OnRuntime)));
+        let path = dir.path().to_path_buf();
+        let on_blocking_pool = rt.block_on(async move {
+            tokio::task::spawn_blocking(move || Store::open(&path).map(|_| ()))
+                .await
+                .unwrap()
+        });
+        assert!(matches!(on_blocking_pool, Err(StoreError::OnRuntime)));
+        assert!(s.list().is_ok(), "off the runtime");
     }
 }

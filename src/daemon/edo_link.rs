@@ -1,0 +1,218 @@
+//! The adapter between the job lifecycle and the edo link: the one place that knows both.
+//! It holds the sans-IO [`Host`] and turns its events into the lifecycle's
+//! protocol-neutral [`Event`]s, and the lifecycle's [`MachineCommand`]s and moves into
+//! link calls. The lifecycle never sees a frame, a priority lane or a session id; a
+//! G-code firmware link will be a second adapter of the same shape.
+
+use tracing::{info, warn};
+
+use crate::lifecycle::{
+    Event, MachineCommand, MachineFault, MachineReport, MachineState as State, MoveAt,
+};
+use crate::link::{
+    FaultKind, Host, HostEvent, HostState, LinkConfig, LinkStats, MachineInfo, MachineState,
+    Micros, MoveRef, PriorityCmd, Status,
+};
+use crate::machine::Move;
+
+/// The edo link under the lifecycle.
+pub struct EdoLink {
+    host: Host,
+    /// Session seed: a new one for every (re)connection.
+    seed: u64,
+    /// The machine, as its handshake said.
+    info: Option<MachineInfo>,
+    /// Its last status.
+    status: Status,
+}
+
+fn state_of(s: MachineState) -> State {
+    match s {
+        MachineState::Idle => State::Idle,
+        MachineState::Running => State::Running,
+        MachineState::Held => State::Held,
+        MachineState::EStopped => State::EStopped,
+        MachineState::Faulted => State::Faulted,
+    }
+}
+
+fn move_at(m: MoveRef) -> MoveAt {
+    MoveAt {
+        job_id: m.job_id,
+        index: m.index,
+    }
+}
+
+/// A status report in the lifecycle's words.
+pub fn report_of(s: &Status) -> MachineReport {
+    MachineReport {
+        state: state_of(s.state),
+        last_executed: s.last_executed.map(move_at),
+        queued: u32::from(s.queued),
+        faults: s.faults,
+        position: s.position,
+        remaining_nl: s.remaining_nl.clone(),
+    }
+}
+
+fn command_of(p: PriorityCmd) -> MachineCommand {
+    match p {
+        PriorityCmd::EmergencyStop => MachineCommand::EmergencyStop,
+        PriorityCmd::FeedHold => MachineCommand::FeedHold,
+        PriorityCmd::Resume => MachineCommand::Resume,
+    }
+}
+
+impl EdoLink {
+    /// A link configured by `cfg`, its first session seeded `seed`, at `now`.
+    pub fn new(cfg: LinkConfig, seed: u64, now: Micros) -> Self {
+        Self {
+            host: Host::new(cfg, seed, now),
+            seed,
+            info: None,
+            status: Status::default(),
+        }
+    }
+
+    /// The port was (re)opened: start a new session.
+    pub fn reconnect(&mut self, now: Micros) {
+        self.seed = self.seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        self.host.reconnect(self.seed, now);
+    }
+
+    /// Feed bytes read from the port.
+    pub fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
+        self.host.handle_bytes(bytes, now);
+    }
+
+    /// Run the link's timers.
+    pub fn handle_timeout(&mut self, now: Micros) {
+        self.host.handle_timeout(now);
+    }
+
+    /// When the link's timers are next due.
+    pub fn next_timeout(&self) -> Option<Micros> {
+        self.host.next_timeout()
+    }
+
+    /// Bytes to write to the port.
+    pub fn poll_transmit(&mut self, now: Micros) -> Option<Vec<u8>> {
+        self.host.poll_transmit(now).map(|t| t.bytes)
+    }
+
+    /// The next lifecycle event from the link, if any.
+    pub fn poll_event(&mut self, now: Micros) -> Option<Event> {
+        loop {
+            let e = self.host.poll_event()?;
+            if let Some(e) = self.translate(e, now) {
+                return Some(e);
+            }
+        }
+    }
+
+    fn translate(&mut self, e: HostEvent, now: Micros) -> Option<Event> {
+        Some(match e {
+            HostEvent::Connected(i) => {
+                info!(identity = %i.identity, boot_id = i.boot_id, last = ?i.status.last_executed, "machine connected");
+                self.status = i.status.clone();
+                let report = report_of(&i.status);
+                self.info = Some(i);
+                Event::MachineConnected(report)
+            }
+            HostEvent::Status(s) => {
+                let report = report_of(&s);
+                self.status = s;
+                Event::MachineStatus(report)
+            }
+            HostEvent::Fault(f) => {
+                warn!(fault = ?f.kind, at = ?f.at, "machine fault");
+                Event::MachineFault(match f.kind {
+                    FaultKind::SyringeEmpty(n) => MachineFault::SyringeEmpty(n),
+                    FaultKind::EStopPressed => MachineFault::EStopPressed,
+                    other => MachineFault::Other(format!("{other:?}")),
+                })
+            }
+            HostEvent::MachineReset { last_executed, .. } => {
+                // The link never resumes a session silently: a new one starts now.
+                self.seed = self.seed.wrapping_add(1);
+                self.host.reconnect(self.seed, now);
+                Event::MachineReset {
+                    last_executed: last_executed.map(move_at),
+                }
+            }
+            HostEvent::LinkLost { silent_us } => {
+                warn!(silent_ms = silent_us / 1000, "link lost");
+                Event::LinkSilent
+            }
+            HostEvent::LinkRestored => {
+                info!("link restored");
+                Event::LinkRestored
+            }
+            HostEvent::PriorityAcked(cmd) => Event::CommandAcked(command_of(cmd)),
+            HostEvent::Incompatible { machine_version } => {
+                warn!(machine_version, "machine speaks another protocol version");
+                Event::MachineIncompatible
+            }
+        })
+    }
+
+    /// Carry out a machine command: the stops and the resume go ahead of every move
+    /// queued (the priority lane); clearing faults and a status query are in order with
+    /// the moves, and are dropped while the link is not connected (the lifecycle asks
+    /// again after a reconnection).
+    pub fn command(&mut self, c: MachineCommand, now: Micros) {
+        match c {
+            MachineCommand::EmergencyStop => {
+                self.host.priority(PriorityCmd::EmergencyStop, now);
+            }
+            MachineCommand::FeedHold => {
+                self.host.priority(PriorityCmd::FeedHold, now);
+            }
+            MachineCommand::Resume => {
+                self.host.priority(PriorityCmd::Resume, now);
+            }
+            MachineCommand::ClearFaults => {
+                let _ = self.host.clear_faults();
+            }
+            MachineCommand::QueryStatus => {
+                let _ = self.host.query();
+            }
+        }
+    }
+
+    /// Whether the link takes another move now: connected, and fewer than `ahead`
+    /// waiting in it.
+    pub fn has_room(&self, ahead: usize) -> bool {
+        self.host.state() == HostState::Connected && self.host.pending() < ahead
+    }
+
+    /// Queue a move; why not, if it cannot go.
+    pub fn send_move(&mut self, mv: Move) -> Result<(), String> {
+        self.host.send_move(mv).map_err(|e| e.to_string())
+    }
+
+    /// Moves waiting in the link and moves sent and not acknowledged.
+    pub fn in_link(&self) -> (usize, u64) {
+        (self.host.pending(), self.host.moves_in_flight())
+    }
+
+    /// The machine's identity, once it answered.
+    pub fn identity(&self) -> Option<&str> {
+        self.info.as_ref().map(|i| i.identity.as_str())
+    }
+
+    /// Its last status.
+    pub fn status(&self) -> &Status {
+        &self.status
+    }
+
+    /// The link's counters.
+    pub fn stats(&self) -> LinkStats {
+        self.host.stats()
+    }
+}
+
+/// The link's settings for a line of `baud`.
+pub fn link_config(baud: u32) -> LinkConfig {
+    LinkConfig::default().with_priority_latency(baud, crate::link::PRIORITY_LATENCY_US)
+}
