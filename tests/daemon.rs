@@ -993,3 +993,82 @@ layer = 0.2
         .collect();
     assert!(xs.iter().all(|x| (91.9..=108.1).contains(x)), "{xs:?}");
 }
+
+/// Run a second edod with `config` that must refuse to start: it exits at once,
+/// non-zero; what it printed.
+fn refused_to_start(config: &Path) -> String {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_edod"))
+        .arg("--config")
+        .arg(config)
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("the second edod did not exit");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let out = child.wait_with_output().unwrap();
+    assert!(!status.success(), "the second edod exited {status}");
+    eprintln!("second edod refused after {:?}", t.elapsed());
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A second edod on the same state directory (same config, or another socket) or on
+/// the same socket (another state directory) exits at once naming the running one,
+/// having touched nothing: the first's job goes on and finishes, every move exactly
+/// once, and no job was marked interrupted.
+#[test]
+fn a_second_edod_on_the_same_state_or_socket_refuses_and_touches_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 11, 20.0, 1500, 100);
+    let pid = format!("pid {}", d.child.id());
+    let socket = d.socket.display().to_string();
+    let text = std::fs::read_to_string(&d.config).unwrap();
+    let other_socket = dir.path().join("other.sock");
+    let other_state = dir.path().join("other-state");
+    let configs = [
+        ("same config", text.clone()),
+        (
+            "another socket",
+            text.replace(&socket, &other_socket.display().to_string()),
+        ),
+        (
+            "another state dir",
+            text.replace(
+                &dir.path().join("state").display().to_string(),
+                &other_state.display().to_string(),
+            ),
+        ),
+    ];
+    for (what, body) in configs {
+        let f = dir.path().join("second.toml");
+        std::fs::write(&f, &body).unwrap();
+        let err = refused_to_start(&f);
+        assert!(
+            err.contains("another edod") && err.contains(&pid) && err.contains(&socket),
+            "{what}: {err}"
+        );
+        assert_eq!(c.job(a)["state"], json!("printing"), "{what}");
+    }
+    assert!(!other_socket.exists(), "the second edod bound its socket");
+    c.wait_state(a, "done");
+    let jobs = c.call("job.list", json!({})).unwrap();
+    assert_eq!(jobs.as_array().map(Vec::len), Some(1), "{jobs}");
+    assert_eq!(jobs[0]["reason"], Value::Null, "{jobs}");
+    let lock = std::fs::read_to_string(dir.path().join("state").join("edod.lock")).unwrap();
+    assert!(lock.starts_with(&format!("{pid}\n")), "{lock}");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 1500);
+}

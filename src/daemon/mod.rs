@@ -14,12 +14,15 @@
 //! - [`streamer`]: the one task that owns the serial port and pumps the sans-IO
 //!   [`crate::link::Host`]; it runs the job lifecycle (start, pause, resume, cancel,
 //!   e-stop, faults, checkpoints). Progress is what the machine reports executed.
+//! - [`instance`]: one edod per state directory and socket (locks taken first), the
+//!   modes of the files it creates.
 //! - [`supervise`]: signals, systemd notify (READY, STATUS, WATCHDOG), the simulated
 //!   machine child, graceful stop.
 
 pub mod api;
 pub mod checkpoints;
 pub mod config;
+pub mod instance;
 pub mod planner;
 pub mod store;
 pub mod streamer;

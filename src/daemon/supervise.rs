@@ -18,7 +18,7 @@ use tracing::{info, warn};
 use super::config::{Config, SIM_PORT};
 use super::store::Store;
 use super::streamer::Streamer;
-use super::{api, checkpoints, Control, Shared};
+use super::{api, checkpoints, instance, Control, Shared};
 
 fn hil_sim_binary(cfg: &Config) -> PathBuf {
     if let Some(b) = &cfg.sim.binary {
@@ -167,8 +167,10 @@ pub async fn run(cfg: Config) -> Result<()> {
 /// Run the daemon until SIGTERM, SIGINT or `stop` completes (`edoctl demo` runs edod in
 /// its own process and stops it this way), then stop cleanly.
 pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>) -> Result<()> {
-    std::fs::create_dir_all(&cfg.state.dir)
-        .with_context(|| format!("cannot create state dir {}", cfg.state.dir.display()))?;
+    // First of all: one edod per state directory and socket (nothing read or started
+    // before), held until this function returns.
+    let _instance = instance::lock(&cfg)?;
+    instance::secure_db_files(&cfg.state.dir)?;
     let (sim, port) = if cfg.serial.port == SIM_PORT {
         let (c, l) = start_sim(&cfg).await?;
         (Some(c), l)
@@ -176,6 +178,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         (None, PathBuf::from(&cfg.serial.port))
     };
     let store = Store::open(&cfg.state.dir)?;
+    instance::secure_db_files(&cfg.state.dir)?;
     let interrupted = store.interrupt_unfinished("edod restarted")?;
     if !interrupted.is_empty() {
         warn!(jobs = ?interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
