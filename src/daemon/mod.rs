@@ -6,6 +6,8 @@
 //!
 //! - [`config`]: `edod.toml` (unknown keys refused, line/column errors).
 //! - [`store`]: jobs, states, checkpoints in SQLite (WAL); nothing accepted is lost.
+//! - [`connections`]: the socket's connections and their limits (idle timeout, a
+//!   reserve for e-stop, one memory budget for requests in flight).
 //! - [`api`]: the Unix socket, newline-delimited JSON-RPC 2.0 (`docs/api.md`),
 //!   requests and notifications typed by [`crate::proto`]; slow clients are cut off,
 //!   never waited for.
@@ -22,6 +24,7 @@
 pub mod api;
 pub mod checkpoints;
 pub mod config;
+pub mod connections;
 pub mod instance;
 pub mod planner;
 pub mod store;
@@ -83,6 +86,8 @@ pub struct Shared {
     pub port: std::path::PathBuf,
     /// Incremented by every turn of the streamer's loop (watchdog liveness).
     pub alive: std::sync::atomic::AtomicU64,
+    /// Memory for requests in flight across all clients (`api.memory_budget_bytes`).
+    pub budget: connections::Budget,
 }
 
 /// Run `f` on the store behind `store`, its errors as the API's.

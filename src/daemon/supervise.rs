@@ -194,6 +194,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         control: control_tx,
         port,
         alive: Default::default(),
+        budget: super::connections::Budget::new(&cfg.api),
         config: cfg,
     });
     let checkpoints = checkpoints::Writer::start(Store::open(&shared.config.state.dir)?)

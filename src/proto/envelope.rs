@@ -85,8 +85,12 @@ impl ApiError {
     /// The machine is not connected.
     pub const NOT_CONNECTED: i64 = -32004;
 
+    /// A limit of edod's was reached (too many clients, the request memory budget, the
+    /// idle timeout): the message names the `[api]` setting; try again later.
+    pub const LIMIT: i64 = -32005;
+
     /// Every code `docs/api.md` lists.
-    pub const CODES: [i64; 9] = [
+    pub const CODES: [i64; 10] = [
         Self::PARSE,
         Self::INVALID_REQUEST,
         Self::METHOD_NOT_FOUND,
@@ -96,6 +100,7 @@ impl ApiError {
         Self::BAD_STATE,
         Self::INVALID_JOB,
         Self::NOT_CONNECTED,
+        Self::LIMIT,
     ];
 
     /// An error with a code and message.
