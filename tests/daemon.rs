@@ -8,6 +8,7 @@ use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
@@ -33,20 +34,36 @@ impl Daemon {
         max_request_bytes: usize,
         keep_finished_jobs: usize,
     ) -> Daemon {
-        let socket = dir.join("edod.sock");
-        let config = dir.join("edod.toml");
+        Daemon::write_config(dir, port, max_request_bytes, keep_finished_jobs, "");
+        Daemon::spawn(dir.join("edod.sock"), dir.join("edod.toml"))
+    }
+
+    /// `dir/edod.toml`: the machine on `port`, the socket and state in `dir`, `api`
+    /// added to the `[api]` table.
+    fn write_config(
+        dir: &Path,
+        port: &Path,
+        max_request_bytes: usize,
+        keep_finished_jobs: usize,
+        api: &str,
+    ) {
         std::fs::write(
-            &config,
+            dir.join("edod.toml"),
             format!(
-                "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = {max_request_bytes}\n\
+                "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = {max_request_bytes}\n{api}\n\
                  [state]\ndir = {:?}\nkeep_finished_jobs = {keep_finished_jobs}\n[planner]\ndry_run_moves_per_layer = 100\n",
                 port.display().to_string(),
-                socket.display().to_string(),
+                dir.join("edod.sock").display().to_string(),
                 dir.join("state").display().to_string()
             ),
         )
         .unwrap();
-        Daemon::spawn(socket, config)
+    }
+
+    /// A daemon with `api` added to its `[api]` table.
+    fn start_with_api(dir: &Path, port: &Path, max_request_bytes: usize, api: &str) -> Daemon {
+        Daemon::write_config(dir, port, max_request_bytes, 1000, api);
+        Daemon::spawn(dir.join("edod.sock"), dir.join("edod.toml"))
     }
 
     fn spawn(socket: PathBuf, config: PathBuf) -> Daemon {
@@ -1092,4 +1109,273 @@ layer = 0.2
         .map(|e| e["to_mm"][0].as_f64().unwrap())
         .collect();
     assert!(xs.iter().all(|x| (91.9..=108.1).contains(x)), "{xs:?}");
+}
+
+/// Run a second edod with `config` that must refuse to start: it exits at once,
+/// non-zero; what it printed.
+fn refused_to_start(config: &Path) -> String {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_edod"))
+        .arg("--config")
+        .arg(config)
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t = Instant::now();
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("the second edod did not exit");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    let out = child.wait_with_output().unwrap();
+    assert!(!status.success(), "the second edod exited {status}");
+    eprintln!("second edod refused after {:?}", t.elapsed());
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// A second edod on the same state directory (same config, or another socket) or on
+/// the same socket (another state directory) exits at once naming the running one,
+/// having touched nothing: the first's job goes on and finishes, every move exactly
+/// once, and no job was marked interrupted.
+#[test]
+fn a_second_edod_on_the_same_state_or_socket_refuses_and_touches_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 11, 20.0, 1500, 100);
+    let pid = format!("pid {}", d.child.id());
+    let socket = d.socket.display().to_string();
+    let text = std::fs::read_to_string(&d.config).unwrap();
+    let other_socket = dir.path().join("other.sock");
+    let other_state = dir.path().join("other-state");
+    let configs = [
+        ("same config", text.clone()),
+        (
+            "another socket",
+            text.replace(&socket, &other_socket.display().to_string()),
+        ),
+        (
+            "another state dir",
+            text.replace(
+                &dir.path().join("state").display().to_string(),
+                &other_state.display().to_string(),
+            ),
+        ),
+    ];
+    for (what, body) in configs {
+        let f = dir.path().join("second.toml");
+        std::fs::write(&f, &body).unwrap();
+        let err = refused_to_start(&f);
+        assert!(
+            err.contains("another edod") && err.contains(&pid) && err.contains(&socket),
+            "{what}: {err}"
+        );
+        assert_eq!(c.job(a)["state"], json!("printing"), "{what}");
+    }
+    assert!(!other_socket.exists(), "the second edod bound its socket");
+    c.wait_state(a, "done");
+    let jobs = c.call("job.list", json!({})).unwrap();
+    assert_eq!(jobs.as_array().map(Vec::len), Some(1), "{jobs}");
+    assert_eq!(jobs[0]["reason"], Value::Null, "{jobs}");
+    let lock = std::fs::read_to_string(dir.path().join("state").join("edod.lock")).unwrap();
+    assert!(lock.starts_with(&format!("{pid}\n")), "{lock}");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 1500);
+}
+
+/// edod's peak resident memory (VmHWM), bytes.
+fn peak_memory(d: &Daemon) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{}/status", d.child.id())).unwrap();
+    let kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap();
+    kb * 1024
+}
+
+/// A reply line read from `s` within `timeout`, or None at end of stream.
+fn read_line_within(s: &UnixStream, timeout: Duration) -> Option<Value> {
+    s.set_read_timeout(Some(timeout)).unwrap();
+    let mut l = String::new();
+    let n = BufReader::new(s).read_line(&mut l).unwrap();
+    (n > 0).then(|| serde_json::from_str(&l).unwrap())
+}
+
+/// 300 connections that send nothing take every ordinary slot (256) and the control
+/// slots: an operator's e-stop still gets in (it takes the place of the oldest idle
+/// control connection) and is answered at once; an ordinary request on that connection
+/// is refused naming the limit.
+#[test]
+fn three_hundred_idle_clients_do_not_lock_out_the_estop() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 12, 20.0, 3000, 100);
+    let idle: Vec<UnixStream> = (0..300)
+        .map(|_| UnixStream::connect(&d.socket).unwrap())
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
+    let mut times = Vec::new();
+    for _ in 0..3 {
+        let t = Instant::now();
+        let s = UnixStream::connect(&d.socket).unwrap();
+        (&s).write_all(b"{\"jsonrpc\":\"2.0\",\"id\":1,\"method\":\"machine.status\"}\n")
+            .unwrap();
+        let r = read_line_within(&s, Duration::from_secs(5)).expect("answered");
+        times.push(t.elapsed());
+        assert!(r["result"]["port"].is_string(), "{r}");
+        (&s).write_all(b"{\"jsonrpc\":\"2.0\",\"id\":2,\"method\":\"job.list\"}\n")
+            .unwrap();
+        let r = read_line_within(&s, Duration::from_secs(5)).expect("answered");
+        assert_eq!(r["error"]["code"], json!(-32006), "{r}");
+        assert!(
+            r["error"]["message"]
+                .as_str()
+                .unwrap()
+                .contains("api.max_clients = 256"),
+            "{r}"
+        );
+    }
+    let t = Instant::now();
+    let s = UnixStream::connect(&d.socket).unwrap();
+    (&s).write_all(b"{\"jsonrpc\":\"2.0\",\"id\":9,\"method\":\"machine.estop\"}\n")
+        .unwrap();
+    let r = read_line_within(&s, Duration::from_secs(5)).expect("e-stop answered");
+    let estop = t.elapsed();
+    eprintln!("with 300 idle clients: machine.status {times:?}, machine.estop {estop:?}: {r}");
+    assert!(r["result"]["written_after_us"].is_u64(), "{r}");
+    assert!(estop < Duration::from_millis(500), "e-stop after {estop:?}");
+    drop(idle);
+    let j = c.wait_state(a, "interrupted");
+    assert!(
+        j["reason"].as_str().unwrap().contains("emergency stop"),
+        "{j}"
+    );
+    c.call("job.resume", json!({"id": a})).unwrap();
+    c.wait_state(a, "done");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    let _ = assert_all_executed_repeats_only_at_reset(&record, a, 3000);
+}
+
+/// 20 clients each send half of a 60 MiB request and stop. The ones the memory budget
+/// (256 MiB) cannot hold are refused at once naming it; the others are closed after the
+/// idle timeout; edod's peak memory stays within the budget and a margin.
+#[test]
+fn twenty_half_sent_large_requests_stay_within_the_memory_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 13);
+    let d = Daemon::start_with_api(dir.path(), sim.path(), 64 << 20, "idle_timeout_s = 4");
+    let mut c = d.client();
+    c.wait_connected();
+    let before = peak_memory(&d);
+    let half: Arc<Vec<u8>> = Arc::new({
+        let mut v = br#"{"jsonrpc":"2.0","id":1,"method":"job.submit","params":{"job":""#.to_vec();
+        v.resize(30 << 20, b'A');
+        v
+    });
+    let t = Instant::now();
+    let clients: Vec<_> = (0..20)
+        .map(|_| {
+            let half = Arc::clone(&half);
+            let socket = d.socket.clone();
+            std::thread::spawn(move || {
+                let s = UnixStream::connect(socket).unwrap();
+                (&s).write_all(&half).unwrap();
+                let r = read_line_within(&s, Duration::from_secs(30));
+                (r, t.elapsed())
+            })
+        })
+        .collect();
+    let replies: Vec<(Option<Value>, Duration)> =
+        clients.into_iter().map(|h| h.join().unwrap()).collect();
+    let peak = peak_memory(&d);
+    let mut refused = 0;
+    let mut timed_out = 0;
+    for (r, at) in &replies {
+        let r = r.as_ref().expect("a reply before the close");
+        assert_eq!(r["error"]["code"], json!(-32006), "{r}");
+        let m = r["error"]["message"].as_str().unwrap();
+        if m.contains("api.memory_budget_bytes = 256.0 MiB") {
+            refused += 1;
+            assert!(*at < Duration::from_secs(3), "refused after {at:?}");
+        } else {
+            assert!(m.contains("api.idle_timeout_s"), "{m}");
+            timed_out += 1;
+        }
+    }
+    eprintln!(
+        "20 half-sent 60 MiB requests: {refused} refused over the budget, {timed_out} timed \
+         out; edod VmHWM {} MiB before, {} MiB after",
+        before >> 20,
+        peak >> 20
+    );
+    assert!(refused >= 10, "{refused} refused");
+    assert!(
+        peak < before + (256 << 20) + (32 << 20),
+        "peak {} MiB",
+        peak >> 20
+    );
+    // The budget is free again: the daemon answers (on a new connection: the first one
+    // was idle too).
+    drop(c);
+    let mut c = d.client();
+    assert!(c.call("server.info", json!({})).is_ok());
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
+/// A connection that sends nothing, or half a request, is told and closed after
+/// `api.idle_timeout_s`; a subscriber waiting for notifications is not idle.
+#[test]
+fn idle_connections_are_closed_after_the_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 14);
+    let d = Daemon::start_with_api(dir.path(), sim.path(), 4096, "idle_timeout_s = 1");
+    let mut sub = d.client();
+    sub.call("subscribe", json!({})).unwrap();
+    for half in ["", "{\"jsonrpc\":\"2.0\","] {
+        let t = Instant::now();
+        let s = UnixStream::connect(&d.socket).unwrap();
+        (&s).write_all(half.as_bytes()).unwrap();
+        let r = read_line_within(&s, Duration::from_secs(5)).expect("told why");
+        let after = t.elapsed();
+        assert!(
+            r["error"]["message"]
+                .as_str()
+                .unwrap()
+                .contains("no complete request within 1 s (api.idle_timeout_s)"),
+            "{r}"
+        );
+        assert!(
+            read_line_within(&s, Duration::from_secs(5)).is_none(),
+            "closed"
+        );
+        eprintln!("idle connection ({half:?} sent) closed after {after:?}");
+        assert!(after >= Duration::from_millis(900) && after < Duration::from_secs(3));
+    }
+    // The subscriber, idle for over 2 s, still answers; params of the wrong shape are
+    // refused naming the method.
+    sub.wait_connected();
+    for method in ["server.info", "machine.status", "job.list", "job.get"] {
+        let e = sub.call(method, json!([])).unwrap_err();
+        assert_eq!(e["code"], json!(-32602), "{method}: {e}");
+        assert_eq!(
+            e["message"],
+            json!(format!(
+                "params of {method} must be an object (named params, docs/api.md), not an array"
+            ))
+        );
+    }
+    drop(sub);
+    drop(d);
+    sim.stop().unwrap();
 }

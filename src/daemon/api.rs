@@ -2,18 +2,14 @@
 //!
 //! A request line is read into a [`Call`] (the types of [`crate::proto`]), answered by
 //! one function per method, and the typed result written back as its response line.
-//! Each client gets a reader task and a writer task joined by a bounded queue of reply
-//! lines; notifications come from a broadcast channel. A client that does not read its
-//! replies fills its queue and is disconnected: the daemon never waits for a client.
-//! Requests over `api.max_request_bytes`, malformed JSON, unknown methods and bad params
-//! are answered with JSON-RPC errors and the connection stays usable.
+//! Connections, their limits and the reading of lines are [`super::connections`]'s.
+//! Malformed JSON, unknown methods and bad params are answered with JSON-RPC errors and
+//! the connection stays usable.
 
 use std::sync::Arc;
 
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
-use tokio::net::{UnixListener, UnixStream};
-use tokio::sync::{mpsc, oneshot, Semaphore};
-use tracing::{debug, info, warn};
+use tokio::sync::oneshot;
+use tracing::info;
 
 use super::store::{JobRecord, JobSpec};
 use super::{api_error, ApiError, Control, Shared};
@@ -23,30 +19,7 @@ use crate::proto::{
     StateChange, Submission, SubmitParams, Submitted, Subscribed,
 };
 
-/// Accept clients until the listener fails.
-pub async fn serve(listener: UnixListener, shared: Arc<Shared>) {
-    let slots = Arc::new(Semaphore::new(shared.config.api.max_clients));
-    loop {
-        let (stream, _) = match listener.accept().await {
-            Ok(s) => s,
-            Err(e) => {
-                warn!(error = %e, "accept failed");
-                tokio::time::sleep(std::time::Duration::from_millis(50)).await;
-                continue;
-            }
-        };
-        let Ok(permit) = Arc::clone(&slots).try_acquire_owned() else {
-            warn!("too many clients; refusing one");
-            drop(stream);
-            continue;
-        };
-        let shared = Arc::clone(&shared);
-        tokio::spawn(async move {
-            client(stream, shared).await;
-            drop(permit);
-        });
-    }
-}
+pub use super::connections::serve;
 
 /// The response line to request `id`.
 fn response_line(id: Id, outcome: Result<MethodResult, ApiError>) -> String {
@@ -64,114 +37,6 @@ fn error_line(id: Id, e: ApiError) -> String {
     })
 }
 
-async fn client(stream: UnixStream, shared: Arc<Shared>) {
-    let (rd, mut wr) = stream.into_split();
-    let (tx, mut rx) = mpsc::channel::<Arc<str>>(shared.config.api.client_queue);
-    let writer = tokio::spawn(async move {
-        while let Some(line) = rx.recv().await {
-            if wr.write_all(line.as_bytes()).await.is_err() || wr.write_all(b"\n").await.is_err() {
-                break;
-            }
-        }
-    });
-    let mut reader = BufReader::new(rd);
-    let max = shared.config.api.max_request_bytes;
-    let mut notifications: Option<tokio::sync::broadcast::Receiver<Arc<str>>> = None;
-    let mut line = Vec::new();
-    loop {
-        tokio::select! {
-            r = read_line(&mut reader, &mut line, max) => {
-                match r {
-                    Ok(LineRead::Eof) | Err(_) => break,
-                    Ok(LineRead::TooLong) => {
-                        let e = ApiError::new(ApiError::INVALID_REQUEST,
-                            format!("request over {max} bytes (api.max_request_bytes)"));
-                        if tx.try_send(Arc::from(error_line(Id::Null, e))).is_err() { break; }
-                    }
-                    Ok(LineRead::Line) => {
-                        if line.iter().all(u8::is_ascii_whitespace) { continue; }
-                        let (reply, subscribe) = handle(&line, &shared).await;
-                        if subscribe && notifications.is_none() {
-                            notifications = Some(shared.notify.subscribe());
-                        }
-                        if let Some(r) = reply {
-                            if tx.try_send(Arc::from(r)).is_err() {
-                                debug!("client too slow; disconnecting");
-                                break;
-                            }
-                        }
-                    }
-                }
-            }
-            n = async {
-                match notifications.as_mut() {
-                    Some(rx) => rx.recv().await,
-                    None => std::future::pending().await,
-                }
-            } => match n {
-                Ok(line) => {
-                    if tx.try_send(line).is_err() {
-                        debug!("subscriber too slow; disconnecting");
-                        break;
-                    }
-                }
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    debug!(missed = n, "subscriber lagged; disconnecting");
-                    break;
-                }
-                Err(_) => notifications = None,
-            },
-        }
-    }
-    drop(tx);
-    let _ = writer.await;
-}
-
-enum LineRead {
-    Line,
-    TooLong,
-    Eof,
-}
-
-/// Read one line into `line` (without the newline); a line over `max` bytes is
-/// skipped up to its newline and reported as `TooLong`, so memory stays bounded.
-async fn read_line<R: tokio::io::AsyncBufRead + Unpin>(
-    r: &mut R,
-    line: &mut Vec<u8>,
-    max: usize,
-) -> std::io::Result<LineRead> {
-    line.clear();
-    let mut too_long = false;
-    loop {
-        let buf = r.fill_buf().await?;
-        if buf.is_empty() {
-            // A partial last line without a newline is dropped with the connection.
-            return Ok(LineRead::Eof);
-        }
-        let (chunk, found) = match buf.iter().position(|&b| b == b'\n') {
-            Some(i) => (&buf[..i], Some(i)),
-            None => (buf, None),
-        };
-        if !too_long {
-            if line.len() + chunk.len() > max {
-                too_long = true;
-                line.clear();
-            } else {
-                line.extend_from_slice(chunk);
-            }
-        }
-        let used = found.map_or(buf.len(), |i| i + 1);
-        r.consume(used);
-        if found.is_some() {
-            return Ok(if too_long {
-                LineRead::TooLong
-            } else {
-                LineRead::Line
-            });
-        }
-    }
-}
-
 /// A mesh job needs its mesh, and the mesh must load and stack into layers; the part
 /// must fit the machine's build volume where `geometry.placement` puts it. Checked here
 /// (a mesh on a blocking worker) so a bad part is refused at submission, naming the
@@ -180,6 +45,7 @@ async fn check_part(
     job: &crate::job::Job,
     mesh: Option<Vec<u8>>,
     machine: &super::config::MachineConfig,
+    budget: &super::connections::Budget,
 ) -> Result<Option<Vec<u8>>, ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
     // Checked when the configuration was loaded.
@@ -201,10 +67,14 @@ async fn check_part(
             "geometry.mesh = {path:?}: send the mesh's bytes with the job (mesh_base64); edod reads no files on a client's behalf"
         ))),
         (crate::job::Geometry::Mesh { path }, Some(bytes)) => {
+            // Its working memory comes from the requests' budget (3MF bombs included).
+            let held = budget.mesh_check(&bytes).await?;
+            let limits = budget.mesh_limits();
             let job = job.clone();
             let path = path.clone();
             tokio::task::spawn_blocking(move || {
-                match job.mesh_layers(&bytes, &crate::mesh::MeshLimits::default()) {
+                let _held = held;
+                match job.mesh_layers(&bytes, &limits) {
                     Ok(part) if part.is_empty() => {
                         Err(bad(format!("{path}: the mesh has no height to slice")))
                     }
@@ -350,7 +220,7 @@ async fn file_job(
             })
         })
         .transpose()?;
-    let mesh = check_part(&job, mesh, &shared.config.machine).await?;
+    let mesh = check_part(&job, mesh, &shared.config.machine, &shared.budget).await?;
     Ok((JobSpec::Toml { toml, mesh }, job.name))
 }
 
@@ -499,25 +369,5 @@ mod tests {
         }
         assert!(base64_decode("ab$c").is_err());
         assert_eq!(base64_decode("AQI").unwrap(), vec![1, 2]);
-    }
-
-    #[tokio::test]
-    async fn long_lines_are_skipped_with_bounded_memory() {
-        let data = b"0123456789\nabc\n".to_vec();
-        let mut r = BufReader::with_capacity(4, &data[..]);
-        let mut line = Vec::new();
-        assert!(matches!(
-            read_line(&mut r, &mut line, 5).await.unwrap(),
-            LineRead::TooLong
-        ));
-        assert!(matches!(
-            read_line(&mut r, &mut line, 5).await.unwrap(),
-            LineRead::Line
-        ));
-        assert_eq!(line, b"abc");
-        assert!(matches!(
-            read_line(&mut r, &mut line, 5).await.unwrap(),
-            LineRead::Eof
-        ));
     }
 }

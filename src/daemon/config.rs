@@ -237,6 +237,20 @@ pub struct ApiConfig {
     /// (default 1024).
     #[serde(default = "default_client_queue")]
     pub client_queue: usize,
+    /// A connection must send a complete request within this many seconds of opening
+    /// or of its previous request, or it is closed; a subscriber is idle only while a
+    /// request is half sent (default 10).
+    #[serde(default = "default_idle_timeout")]
+    pub idle_timeout_s: f64,
+    /// Connections beyond `max_clients` kept for `machine.estop` and `machine.status`
+    /// only; a new one takes the place of the oldest that has sent nothing (default 4).
+    #[serde(default = "default_control_clients")]
+    pub control_clients: usize,
+    /// Memory for requests in flight (lines being read, requests being decoded, mesh
+    /// checks) across all clients, in bytes (default 256 MiB, or 4 × max_request_bytes
+    /// if that is more; at least 4 × max_request_bytes).
+    #[serde(default)]
+    pub memory_budget_bytes: Option<usize>,
 }
 
 fn default_socket() -> PathBuf {
@@ -254,6 +268,29 @@ fn default_max_clients() -> usize {
 fn default_client_queue() -> usize {
     1024
 }
+fn default_idle_timeout() -> f64 {
+    10.0
+}
+fn default_control_clients() -> usize {
+    4
+}
+
+/// The default of `api.memory_budget_bytes`: 256 MiB.
+pub const DEFAULT_MEMORY_BUDGET: usize = 256 << 20;
+
+impl ApiConfig {
+    /// `memory_budget_bytes`, or its default: 256 MiB, or 4 × `max_request_bytes` if
+    /// that is more.
+    pub fn memory_budget(&self) -> usize {
+        self.memory_budget_bytes
+            .unwrap_or_else(|| DEFAULT_MEMORY_BUDGET.max(self.max_request_bytes.saturating_mul(4)))
+    }
+
+    /// `idle_timeout_s` as a duration.
+    pub fn idle_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_secs_f64(self.idle_timeout_s)
+    }
+}
 
 impl Default for ApiConfig {
     fn default() -> Self {
@@ -264,6 +301,9 @@ impl Default for ApiConfig {
             max_request_bytes: default_max_request(),
             max_clients: default_max_clients(),
             client_queue: default_client_queue(),
+            idle_timeout_s: default_idle_timeout(),
+            control_clients: default_control_clients(),
+            memory_budget_bytes: None,
         }
     }
 }
@@ -577,6 +617,38 @@ impl Config {
             return Err(bad(
                 "api",
                 "max_clients and client_queue must be positive".into(),
+            ));
+        }
+        self.check_api_limits(bad)
+    }
+
+    /// `[api]`'s limits on idle clients and memory.
+    fn check_api_limits(
+        &self,
+        bad: &impl Fn(&str, String) -> ConfigError,
+    ) -> Result<(), ConfigError> {
+        let idle = self.api.idle_timeout_s;
+        if !(idle.is_finite() && (0.01..=86_400.0).contains(&idle)) {
+            return Err(bad(
+                "api.idle_timeout_s",
+                format!("{idle} is not in [0.01, 86400] seconds"),
+            ));
+        }
+        if self.api.control_clients == 0 {
+            return Err(bad(
+                "api.control_clients",
+                "at least 1 (kept for machine.estop)".into(),
+            ));
+        }
+        let need = self.api.max_request_bytes.saturating_mul(4);
+        if self.api.memory_budget() < need {
+            return Err(bad(
+                "api.memory_budget_bytes",
+                format!(
+                    "{} is less than 4 × api.max_request_bytes ({need}): a largest request \
+                     could never be read and checked",
+                    self.api.memory_budget()
+                ),
             ));
         }
         Ok(())

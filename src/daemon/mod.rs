@@ -8,6 +8,8 @@
 //! - [`store`]: jobs, states, checkpoints in SQLite (WAL); nothing accepted is lost. It
 //!   has two threads of its own (a writer, a reader) reached over channels: no SQLite
 //!   call and no wait for one runs on a runtime worker.
+//! - [`connections`]: the socket's connections and their limits (idle timeout, a
+//!   reserve for e-stop, one memory budget for requests in flight).
 //! - [`api`]: the Unix socket, newline-delimited JSON-RPC 2.0 (`docs/api.md`),
 //!   requests and notifications typed by [`crate::proto`]; slow clients are cut off,
 //!   never waited for.
@@ -20,12 +22,16 @@
 //! - [`edo_link`]: the adapter between the lifecycle and the edo link
 //!   ([`crate::link::Host`]): link events to lifecycle events, machine commands to link
 //!   calls. A G-code firmware link will be a second adapter beside it.
+//! - [`instance`]: one edod per state directory and socket (locks taken first), the
+//!   modes of the files it creates.
 //! - [`supervise`]: signals, systemd notify (READY, STATUS, WATCHDOG), the simulated
 //!   machine child, graceful stop.
 
 pub mod api;
 pub mod config;
+pub mod connections;
 pub mod edo_link;
+pub mod instance;
 pub mod planner;
 pub mod store;
 pub mod streamer;
@@ -81,6 +87,8 @@ pub struct Shared {
     pub port: std::path::PathBuf,
     /// Incremented by every turn of the streamer's loop (watchdog liveness).
     pub alive: std::sync::atomic::AtomicU64,
+    /// Memory for requests in flight across all clients (`api.memory_budget_bytes`).
+    pub budget: connections::Budget,
 }
 
 /// A store error as the API's: -32001 for a job not there, -32005 when another process

@@ -17,7 +17,7 @@ use tracing::{info, warn};
 
 use super::config::{Config, SIM_PORT};
 use super::streamer::Streamer;
-use super::{api, store, Control, Shared};
+use super::{api, instance, store, Control, Shared};
 
 fn hil_sim_binary(cfg: &Config) -> PathBuf {
     if let Some(b) = &cfg.sim.binary {
@@ -166,11 +166,13 @@ pub async fn run(cfg: Config) -> Result<()> {
 /// Run the daemon until SIGTERM, SIGINT or `stop` completes (`edoctl demo` runs edod in
 /// its own process and stops it this way), then stop cleanly.
 pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>) -> Result<()> {
+    // First of all: one edod per state directory and socket (nothing read or started
+    // before), held until this function returns.
+    let _instance = instance::lock(&cfg)?;
+    instance::secure_db_files(&cfg.state.dir)?;
     for w in cfg.check_host().warnings {
         warn!("{w}");
     }
-    std::fs::create_dir_all(&cfg.state.dir)
-        .with_context(|| format!("cannot create state dir {}", cfg.state.dir.display()))?;
     let (sim, port) = if cfg.serial.port == SIM_PORT {
         let (c, l) = start_sim(&cfg).await?;
         (Some(c), l)
@@ -182,6 +184,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     let dir = cfg.state.dir.clone();
     let block = crate::lifecycle::Options::default().service_index_block;
     let opened = store::start(dir, block, events_tx).await?;
+    instance::secure_db_files(&cfg.state.dir)?;
     if !opened.interrupted.is_empty() {
         warn!(jobs = ?opened.interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
     }
@@ -195,6 +198,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         control: control_tx,
         port,
         alive: Default::default(),
+        budget: super::connections::Budget::new(&cfg.api),
         config: cfg,
     });
     let streamer = tokio::spawn(

@@ -88,8 +88,12 @@ impl ApiError {
     /// retry.
     pub const STORE_BUSY: i64 = -32005;
 
+    /// A limit of edod's was reached (too many clients, the request memory budget, the
+    /// idle timeout): the message names the `[api]` setting; try again later.
+    pub const LIMIT: i64 = -32006;
+
     /// Every code `docs/api.md` lists.
-    pub const CODES: [i64; 10] = [
+    pub const CODES: [i64; 11] = [
         Self::PARSE,
         Self::INVALID_REQUEST,
         Self::METHOD_NOT_FOUND,
@@ -100,6 +104,7 @@ impl ApiError {
         Self::INVALID_JOB,
         Self::NOT_CONNECTED,
         Self::STORE_BUSY,
+        Self::LIMIT,
     ];
 
     /// An error with a code and message.
