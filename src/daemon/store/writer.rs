@@ -4,7 +4,7 @@
 //! writes every one waiting in one transaction (one fsync) in order, and reports back as
 //! lifecycle events: [`Event::Stored`] with the last sequence number on disk, or
 //! [`Event::StoreFailed`] when a write fails (once per spell of failures, and again every
-//! [`REPORT_EVERY`] while it lasts). Records that could not be written stay and are
+//! 5 s while it lasts). Records that could not be written stay and are
 //! tried again; a job's records merge while they wait (the newest checkpoint, move count
 //! and state win), so a store locked for long costs writes, never memory or order.
 //!
