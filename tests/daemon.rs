@@ -748,6 +748,39 @@ fn check_config_reports_line_and_column() {
     assert!(!ok && err.contains("sim.faults"), "{err}");
 }
 
+/// The shipped G-code configurations pass `edod --check-config`; an impossible
+/// combination is refused naming its key (docs/firmware.md, "Configuration").
+#[test]
+fn shipped_gcode_configs_pass_check_config() {
+    let check = |path: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_edod"))
+            .arg("--check-config")
+            .arg(path)
+            .output()
+            .unwrap()
+    };
+    for f in [
+        "config/edod-rrf.toml",
+        "config/edod-marlin.toml",
+        "config/edod-klipper.toml",
+    ] {
+        let out = check(&Path::new(env!("CARGO_MANIFEST_DIR")).join(f));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{f}: {err}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("rrf-window.toml");
+    std::fs::write(
+        &f,
+        "[machine]\nprotocol = \"gcode\"\n[machine.gcode]\nfirmware = \"rrf\"\nwindow = 4\n",
+    )
+    .unwrap();
+    let out = check(&f);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("machine.gcode.window"), "{err}");
+}
+
 #[test]
 fn edoctl_submits_watches_and_shows_daemon_errors() {
     let dir = tempfile::tempdir().unwrap();

@@ -47,6 +47,28 @@ struct Cli {
     /// Do not read run-time commands from stdin.
     #[arg(long)]
     no_stdin: bool,
+    /// Speak G-code as this firmware (model of edo::gcode_link) instead of the edo link.
+    #[arg(long, value_name = "FIRMWARE", value_parser = ["rrf", "marlin", "klipper"])]
+    gcode: Option<String>,
+    /// How the mix is written (default per firmware: rrf per-drive-e, marlin m163,
+    /// klipper axes).
+    #[arg(long, value_name = "MIX", requires = "gcode",
+          value_parser = ["per-drive-e", "m163", "direct", "axes"])]
+    gcode_mix: Option<String>,
+    /// Axis letters, one per syringe, with --gcode-mix axes (default A,B,...).
+    #[arg(
+        long,
+        value_name = "LETTERS",
+        requires = "gcode",
+        value_delimiter = ','
+    )]
+    gcode_axes: Vec<char>,
+    /// Marlin: answer ADVANCED_OK `ok N P B`.
+    #[arg(long, requires = "gcode")]
+    gcode_advanced_ok: bool,
+    /// The firmware's receive buffer in bytes (default: the model's).
+    #[arg(long, value_name = "BYTES", requires = "gcode")]
+    gcode_rx_buffer: Option<usize>,
     /// Stop (as on SIGTERM) when the process that started hil-sim dies, even by SIGKILL
     /// (edod's built-in simulated machine uses this; Linux only).
     #[arg(long)]
@@ -85,6 +107,46 @@ fn install_signal_handlers() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `--gcode` and its options.
+fn gcode_options(cli: &Cli) -> anyhow::Result<Option<hil_sim::GcodeOptions>> {
+    use edo::gcode_link::{Dialect, MixWriting};
+    let Some(name) = &cli.gcode else {
+        return Ok(None);
+    };
+    let dialect = match name.as_str() {
+        "rrf" => Dialect::Rrf,
+        "marlin" => Dialect::Marlin,
+        _ => Dialect::Klipper,
+    };
+    let mut opts = hil_sim::GcodeOptions::new(dialect, cli.syringes);
+    opts.advanced_ok = cli.gcode_advanced_ok;
+    opts.rx_buffer_bytes = cli.gcode_rx_buffer;
+    if let Some(mix) = &cli.gcode_mix {
+        opts.mix = match mix.as_str() {
+            "per-drive-e" => MixWriting::PerDriveE,
+            "m163" => MixWriting::MarlinM163,
+            "direct" => MixWriting::MarlinDirect,
+            _ => MixWriting::Axes(('A'..='W').take(cli.syringes).collect()),
+        };
+    }
+    if !cli.gcode_axes.is_empty() {
+        if cli.gcode_axes.len() != cli.syringes {
+            anyhow::bail!(
+                "--gcode-axes: {} letters for {} syringes",
+                cli.gcode_axes.len(),
+                cli.syringes
+            );
+        }
+        opts.mix = MixWriting::Axes(
+            cli.gcode_axes
+                .iter()
+                .map(char::to_ascii_uppercase)
+                .collect(),
+        );
+    }
+    Ok(Some(opts))
+}
+
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     if let Some(Cmd::Render { record, svg }) = &cli.command {
@@ -93,6 +155,7 @@ fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     let faults = Faults::parse(&cli.faults).context("--faults")?;
+    let gcode = gcode_options(&cli)?;
     let cfg = SimConfig {
         link: cli.link.clone(),
         baud: cli.baud,
@@ -103,6 +166,7 @@ fn main() -> anyhow::Result<()> {
         record: cli.record.clone(),
         faults,
         dead_volume_nl: cli.dead_volume_nl,
+        gcode,
         ..SimConfig::default()
     };
     install_signal_handlers()?;

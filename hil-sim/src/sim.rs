@@ -50,6 +50,8 @@ pub struct SimConfig {
     pub barrel_area_um2: u32,
     /// Receive buffer advertised to the host (bytes).
     pub rx_buffer_bytes: u32,
+    /// Speak G-code as this firmware instead of the edo link (`hil-sim --gcode`).
+    pub gcode: Option<crate::gcode_sim::GcodeOptions>,
 }
 
 impl Default for SimConfig {
@@ -67,6 +69,7 @@ impl Default for SimConfig {
             capacity_nl: 10_000_000,
             barrel_area_um2: 78_539_816,
             rx_buffer_bytes: 2048,
+            gcode: None,
         }
     }
 }
@@ -143,13 +146,13 @@ pub struct Summary {
     pub bytes_to_host: u64,
 }
 
-struct Pty {
-    master: File,
+pub(crate) struct Pty {
+    pub(crate) master: File,
     _slave: OwnedFd,
-    slave_path: PathBuf,
+    pub(crate) slave_path: PathBuf,
 }
 
-fn open_pty(link: Option<&Path>) -> anyhow::Result<Pty> {
+pub(crate) fn open_pty(link: Option<&Path>) -> anyhow::Result<Pty> {
     use nix::fcntl::FdFlag;
     use nix::fcntl::{fcntl, FcntlArg, OFlag};
     use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
@@ -285,7 +288,7 @@ impl Injector {
     }
 }
 
-fn move_kind_name(k: &MoveKind) -> &'static str {
+pub(crate) fn move_kind_name(k: &MoveKind) -> &'static str {
     match k {
         MoveKind::Travel { .. } => "travel",
         MoveKind::Extrude { .. } => "extrude",
@@ -297,7 +300,7 @@ fn move_kind_name(k: &MoveKind) -> &'static str {
     }
 }
 
-fn um_to_mm(p: edo::machine::PositionUm) -> [f64; 3] {
+pub(crate) fn um_to_mm(p: edo::machine::PositionUm) -> [f64; 3] {
     [
         f64::from(p.x_um) / 1000.0,
         f64::from(p.y_um) / 1000.0,
@@ -335,6 +338,9 @@ pub fn run(
     }
     if cfg.baud == 0 || cfg.speed.is_nan() || cfg.speed <= 0.0 {
         bail!("--baud and --speed must be positive");
+    }
+    if let Some(opts) = &cfg.gcode {
+        return crate::gcode_sim::run(cfg, opts, stop, commands, on_ready);
     }
     let (mut sim, ready_path) = Sim::new(cfg)?;
     on_ready(&ready_path);
@@ -655,6 +661,7 @@ impl<'a> Sim<'a> {
                 volumes_nl: mv.kind.volumes_nl().to_vec(),
                 exit_composition: ex.exit_composition.clone(),
                 remaining_nl: remaining,
+                gcode: None,
             };
             write_line(w, &line)?;
         }

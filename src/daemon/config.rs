@@ -9,6 +9,10 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
+mod gcode;
+
+pub use gcode::{GcodeConfig, GcodeLink, MixName, Protocol, WindowSetting};
+
 /// The literal `port` value that starts the built-in simulated machine.
 pub const SIM_PORT: &str = "sim";
 
@@ -150,6 +154,12 @@ pub struct MachineConfig {
     /// Lift above the resume point before travelling to it (mm, default 2).
     #[serde(default = "default_lift")]
     pub resume_lift_mm: f64,
+    /// What `serial.port` speaks (default `"edo"`; `docs/firmware.md`).
+    #[serde(default)]
+    pub protocol: Protocol,
+    /// `[machine.gcode]`: with `protocol = "gcode"` only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gcode: Option<GcodeConfig>,
 }
 
 fn default_syringes() -> Vec<SyringeConfig> {
@@ -210,6 +220,8 @@ impl Default for MachineConfig {
             prime_nl: default_prime(),
             park_mm: default_park(),
             resume_lift_mm: default_lift(),
+            protocol: Protocol::default(),
+            gcode: None,
         }
     }
 }
@@ -496,6 +508,8 @@ impl Config {
         };
         self.check_serial(&bad)?;
         self.check_machine(&bad)?;
+        self.gcode_link()
+            .map_err(|(key, message)| bad(&key, message))?;
         self.check_api(&bad)?;
         self.check_bounds(&bad)
     }
@@ -669,6 +683,26 @@ impl Config {
             return Err(bad("planner", "bounds must be positive".into()));
         }
         Ok(())
+    }
+
+    /// The G-code link's settings with `machine.protocol = "gcode"` (`None` for the edo
+    /// protocol); an impossible `[machine.gcode]` names its dotted key.
+    pub fn gcode_link(&self) -> Result<Option<GcodeLink>, (String, String)> {
+        match (self.machine.protocol, &self.machine.gcode) {
+            (Protocol::Edo, None) => Ok(None),
+            (Protocol::Edo, Some(_)) => Err((
+                "machine.gcode".into(),
+                "only with machine.protocol = \"gcode\"".into(),
+            )),
+            (Protocol::Gcode, None) => Err((
+                "machine.gcode".into(),
+                "machine.protocol = \"gcode\" needs a [machine.gcode] table with its firmware"
+                    .into(),
+            )),
+            (Protocol::Gcode, Some(g)) => g
+                .resolve(&self.machine.syringes, self.serial.baud)
+                .map(Some),
+        }
     }
 
     /// Socket permission bits.

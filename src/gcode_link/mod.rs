@@ -90,6 +90,21 @@ pub enum Window {
     AdvancedOk,
 }
 
+/// How a move's per-syringe amounts are written on its line (`docs/firmware.md`, "Writing
+/// the mix").
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum MixWriting {
+    /// RRF: one tool over every drive (`M563`), `G1 ... E a:b:c`, relative per drive.
+    PerDriveE,
+    /// Marlin `MIXING_EXTRUDER`: `M163 S<drive> P<weight>` + `M164 S0`, E the total.
+    MarlinM163,
+    /// Marlin `DIRECT_MIXING_IN_G1`: the weights on the move, `A B C D H I`, E the total.
+    MarlinDirect,
+    /// One axis per syringe, by letter, in syringe order (Klipper `MANUAL_STEPPER ...
+    /// GCODE_AXIS=`, Marlin multi-axis builds); positions in mm of plunger travel.
+    Axes(Vec<char>),
+}
+
 /// The line number of the out-of-sequence probe (Marlin): never `last line + 1`, so the
 /// firmware rejects it and its error names the last line it accepted.
 pub const PROBE_LINE_NUMBER: u32 = 2_000_000_000;

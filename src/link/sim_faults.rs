@@ -34,6 +34,11 @@ pub struct Faults {
     pub limit_at_moves: Option<u64>,
     /// `estop-at=N`: the operator presses the machine's e-stop at executed move N.
     pub estop_at_moves: Option<u64>,
+    /// `corrupt-line=P` (G-code modes): probability that a line to the firmware has one
+    /// byte corrupted, its framing kept (never its first byte, `*` or line end).
+    pub corrupt_line: f64,
+    /// `drop-ok=P` (G-code modes): probability that an `ok` line to the host is lost.
+    pub drop_ok: f64,
 }
 
 /// A bad `--faults` item.
@@ -118,6 +123,8 @@ impl Faults {
             "empty-at" => self.empty_at_moves = Some(int()?),
             "limit-at" => self.limit_at_moves = Some(int()?),
             "estop-at" => self.estop_at_moves = Some(int()?),
+            "corrupt-line" => self.corrupt_line = prob()?,
+            "drop-ok" => self.drop_ok = prob()?,
             _ => return Err(FaultParseError::UnknownKey(key.to_string())),
         }
         Ok(())
@@ -142,6 +149,10 @@ FAULTS (--faults key=value,...; all off by default):
   empty-at=N      syringe 0 runs empty at executed move N (fault SyringeEmpty)
   limit-at=N      X limit switch trips at executed move N (fault LimitHit)
   estop-at=N      the machine's e-stop button is pressed at executed move N
+  corrupt-line=P  (--gcode) a line to the firmware has one byte corrupted, framing kept
+  drop-ok=P       (--gcode) an `ok` line to the host is lost
+  In --gcode modes `drop` loses whole lines and `dup` repeats them; `corrupt` and
+  `jitter` are not used (the line faults above replace them).
 
 RUN-TIME COMMANDS (one per line on stdin, unless --no-stdin):
   any fault item above, e.g. `drop=0.05`  change that fault now

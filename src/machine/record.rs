@@ -34,6 +34,10 @@ pub struct RecordLine {
     pub exit_composition: Option<Vec<f64>>,
     /// Remaining volume per syringe after the move (nl).
     pub remaining_nl: Vec<u32>,
+    /// The G-code command the move came from (hil-sim's G-code modes), without line
+    /// number and checksum; absent on the edo link.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gcode: Option<String>,
 }
 
 /// A recording that does not parse, with the line that is wrong.
@@ -128,6 +132,7 @@ mod tests {
             volumes_nl,
             exit_composition: Some(vec![0.25, 0.75]),
             remaining_nl: vec![0, 0],
+            gcode: None,
         }
     }
 
