@@ -1279,3 +1279,72 @@ fn idle_connections_are_closed_after_the_timeout() {
     drop(d);
     sim.stop().unwrap();
 }
+
+/// `edod --check-config` refuses what can only fail once edod runs, each naming its
+/// key, and warns (passing) about a port that does not exist yet; edod itself refuses
+/// the same before it creates anything.
+#[test]
+fn check_config_catches_what_fails_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let check = |name: &str, text: &str| {
+        let f = dir.path().join(name);
+        std::fs::write(&f, text).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_edod"))
+            .arg("--check-config")
+            .arg(&f)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let long = format!("/tmp/{}/edod.sock", "d".repeat(100));
+    for (name, text, says) in [
+        (
+            "group.toml",
+            "[api]\ngroup = \"no-such-group-edo\"\n".to_string(),
+            "error: api.group: no group \"no-such-group-edo\"",
+        ),
+        (
+            "socket.toml",
+            format!("[api]\nsocket = {long:?}\n"),
+            "error: api.socket: ",
+        ),
+        (
+            "faults.toml",
+            "[sim]\nfaults = \"drop=0.01,frobnicate=1\"\n".to_string(),
+            "error: sim.faults: unknown fault \"frobnicate\"",
+        ),
+        (
+            "baud.toml",
+            "[serial]\nbaud = 1\n".to_string(),
+            "error: serial.baud: 1 is not a line speed",
+        ),
+    ] {
+        let (ok, err) = check(name, &text);
+        assert!(!ok && err.contains(says), "{name}: {err}");
+        assert!(err.contains(name), "{name}: {err}");
+    }
+    let (ok, err) = check("port.toml", "[serial]\nport = \"/dev/ttyEDOmissing\"\n");
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("warning: serial.port: port /dev/ttyEDOmissing does not exist"),
+        "{err}"
+    );
+    // edod refuses to start with an unknown fault before it creates its state dir.
+    let state = dir.path().join("state");
+    let f = dir.path().join("start.toml");
+    std::fs::write(
+        &f,
+        format!(
+            "[sim]\nfaults = \"frobnicate=1\"\n[api]\nsocket = {:?}\n[state]\ndir = {:?}\n",
+            dir.path().join("s.sock").display().to_string(),
+            state.display().to_string()
+        ),
+    )
+    .unwrap();
+    let err = refused_to_start(&f);
+    assert!(err.contains("sim.faults"), "{err}");
+    assert!(!state.exists(), "edod created its state dir");
+}

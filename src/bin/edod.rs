@@ -24,7 +24,14 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Some(path) = cli.check_config {
         return match edo::daemon::Config::load(&path) {
-            Ok(_) => {
+            Ok(cfg) => {
+                let findings = edo::daemon::preflight::check(&cfg);
+                for f in &findings {
+                    eprintln!("edod: {}: {f}", path.display());
+                }
+                if findings.iter().any(|f| f.error) {
+                    return ExitCode::FAILURE;
+                }
                 println!("{}: ok", path.display());
                 ExitCode::SUCCESS
             }
@@ -54,6 +61,18 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    // What can only fail once running is refused now, before anything is started.
+    let findings = edo::daemon::preflight::check(&cfg);
+    for f in &findings {
+        if f.error {
+            eprintln!("edod: {}: {f}", cli.config.display());
+        } else {
+            tracing::warn!("{}: {f}", cli.config.display());
+        }
+    }
+    if findings.iter().any(|f| f.error) {
+        return ExitCode::FAILURE;
+    }
     let rt = match tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

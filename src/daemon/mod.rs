@@ -5,6 +5,8 @@
 //! shared state as snapshots (a watch channel), never a lock held across an await.
 //!
 //! - [`config`]: `edod.toml` (unknown keys refused, line/column errors).
+//! - [`preflight`]: what a parsed config may still get wrong about this host (group,
+//!   socket path length, fault names, serial port, line speed).
 //! - [`store`]: jobs, states, checkpoints in SQLite (WAL); nothing accepted is lost.
 //! - [`connections`]: the socket's connections and their limits (idle timeout, a
 //!   reserve for e-stop, one memory budget for requests in flight).
@@ -27,6 +29,7 @@ pub mod config;
 pub mod connections;
 pub mod instance;
 pub mod planner;
+pub mod preflight;
 pub mod store;
 pub mod streamer;
 pub mod supervise;
