@@ -86,6 +86,11 @@ impl Daemon {
             .stdin(Stdio::null())
             .spawn()
             .unwrap();
+        Daemon::ready(child, socket, config)
+    }
+
+    /// A started edod, once its socket answers.
+    fn ready(child: Child, socket: PathBuf, config: PathBuf) -> Daemon {
         let d = Daemon {
             child,
             socket,
@@ -1347,4 +1352,48 @@ fn check_config_catches_what_fails_at_start() {
     let err = refused_to_start(&f);
     assert!(err.contains("sim.faults"), "{err}");
     assert!(!state.exists(), "edod created its state dir");
+}
+
+/// With umask 0, the files edod creates are still private: the job database and its
+/// -wal and -shm files 0600, the lock files 0640, the state directory 0750.
+#[test]
+fn files_edod_creates_are_private_whatever_the_umask() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 15);
+    Daemon::write_config(dir.path(), sim.path(), 4096, 1000, "");
+    let child = Command::new("sh")
+        .arg("-c")
+        .arg("umask 000; exec \"$0\" --config \"$1\"")
+        .arg(env!("CARGO_BIN_EXE_edod"))
+        .arg(dir.path().join("edod.toml"))
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut d = Daemon::ready(
+        child,
+        dir.path().join("edod.sock"),
+        dir.path().join("edod.toml"),
+    );
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 50);
+    c.wait_state(a, "done");
+    let state = dir.path().join("state");
+    let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+    for (file, want) in [
+        (state.join("edod.db"), 0o600),
+        (state.join("edod.db-wal"), 0o600),
+        (state.join("edod.db-shm"), 0o600),
+        (state.join("edod.lock"), 0o640),
+        (dir.path().join("edod.sock.lock"), 0o640),
+        (state.clone(), 0o750),
+    ] {
+        assert_eq!(mode(&file), want, "{}: {:o}", file.display(), mode(&file));
+    }
+    assert_eq!(mode(&d.socket), 0o660, "the socket keeps api.mode");
+    drop(c);
+    assert!(d.sigterm().success());
+    sim.stop().unwrap();
 }
