@@ -86,6 +86,11 @@ impl Daemon {
             .stdin(Stdio::null())
             .spawn()
             .unwrap();
+        Daemon::ready(child, socket, config)
+    }
+
+    /// A started edod, once its socket answers.
+    fn ready(child: Child, socket: PathBuf, config: PathBuf) -> Daemon {
         let d = Daemon {
             child,
             socket,
@@ -719,33 +724,6 @@ fn check_config_reports_line_and_column() {
         .output()
         .unwrap();
     assert!(ok.status.success());
-    // What only the host can tell: a missing port warns (edod waits for it), a missing
-    // group refuses (edod could not give it the socket).
-    let check = |text: &str| {
-        std::fs::write(&f, text).unwrap();
-        let out = Command::new(env!("CARGO_BIN_EXE_edod"))
-            .arg("--check-config")
-            .arg(&f)
-            .output()
-            .unwrap();
-        (
-            out.status.success(),
-            String::from_utf8_lossy(&out.stderr).into_owned(),
-        )
-    };
-    let (ok, err) = check("[serial]\nport = \"/dev/edo-test-no-port\"\n");
-    assert!(ok, "{err}");
-    assert!(
-        err.contains("warning") && err.contains("port /dev/edo-test-no-port: No such file"),
-        "{err}"
-    );
-    let (ok, err) = check("[api]\ngroup = \"edo-test-no-group\"\n");
-    assert!(
-        !ok && err.contains("no group \"edo-test-no-group\""),
-        "{err}"
-    );
-    let (ok, err) = check("[sim]\nfaults = \"explode=1\"\n");
-    assert!(!ok && err.contains("sim.faults"), "{err}");
 }
 
 /// The shipped G-code configurations pass `edod --check-config`; an impossible
@@ -1410,5 +1388,118 @@ fn idle_connections_are_closed_after_the_timeout() {
     }
     drop(sub);
     drop(d);
+    sim.stop().unwrap();
+}
+
+/// `edod --check-config` refuses what can only fail once edod runs, each naming its
+/// key, and warns (passing) about a port that does not exist yet; edod itself refuses
+/// the same before it creates anything.
+#[test]
+fn check_config_catches_what_fails_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let check = |name: &str, text: &str| {
+        let f = dir.path().join(name);
+        std::fs::write(&f, text).unwrap();
+        let out = Command::new(env!("CARGO_BIN_EXE_edod"))
+            .arg("--check-config")
+            .arg(&f)
+            .output()
+            .unwrap();
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let long = format!("/tmp/{}/edod.sock", "d".repeat(100));
+    for (name, text, says) in [
+        (
+            "group.toml",
+            "[api]\ngroup = \"no-such-group-edo\"\n".to_string(),
+            "error: api.group: no group \"no-such-group-edo\"",
+        ),
+        (
+            "socket.toml",
+            format!("[api]\nsocket = {long:?}\n"),
+            "error: api.socket: ",
+        ),
+        (
+            "faults.toml",
+            "[sim]\nfaults = \"drop=0.01,frobnicate=1\"\n".to_string(),
+            "error: sim.faults: unknown fault \"frobnicate\"",
+        ),
+        (
+            "baud.toml",
+            "[serial]\nbaud = 1\n".to_string(),
+            "error: serial.baud: 1 is not a line speed",
+        ),
+    ] {
+        let (ok, err) = check(name, &text);
+        assert!(!ok && err.contains(says), "{name}: {err}");
+        assert!(err.contains(name), "{name}: {err}");
+    }
+    let (ok, err) = check("port.toml", "[serial]\nport = \"/dev/ttyEDOmissing\"\n");
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("warning: serial.port: port /dev/ttyEDOmissing does not exist"),
+        "{err}"
+    );
+    // edod refuses to start with an unknown fault before it creates its state dir.
+    let state = dir.path().join("state");
+    let f = dir.path().join("start.toml");
+    std::fs::write(
+        &f,
+        format!(
+            "[sim]\nfaults = \"frobnicate=1\"\n[api]\nsocket = {:?}\n[state]\ndir = {:?}\n",
+            dir.path().join("s.sock").display().to_string(),
+            state.display().to_string()
+        ),
+    )
+    .unwrap();
+    let err = refused_to_start(&f);
+    assert!(err.contains("sim.faults"), "{err}");
+    assert!(!state.exists(), "edod created its state dir");
+}
+
+/// With umask 0, the files edod creates are still private: the job database and its
+/// -wal and -shm files 0600, the lock files 0640, the state directory 0750.
+#[test]
+fn files_edod_creates_are_private_whatever_the_umask() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 15);
+    Daemon::write_config(dir.path(), sim.path(), 4096, 1000, "");
+    let child = Command::new("sh")
+        .arg("-c")
+        .arg("umask 000; exec \"$0\" --config \"$1\"")
+        .arg(env!("CARGO_BIN_EXE_edod"))
+        .arg(dir.path().join("edod.toml"))
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut d = Daemon::ready(
+        child,
+        dir.path().join("edod.sock"),
+        dir.path().join("edod.toml"),
+    );
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 50);
+    c.wait_state(a, "done");
+    let state = dir.path().join("state");
+    let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+    for (file, want) in [
+        (state.join("edod.db"), 0o600),
+        (state.join("edod.db-wal"), 0o600),
+        (state.join("edod.db-shm"), 0o600),
+        (state.join("edod.lock"), 0o640),
+        (dir.path().join("edod.sock.lock"), 0o640),
+        (state.clone(), 0o750),
+    ] {
+        assert_eq!(mode(&file), want, "{}: {:o}", file.display(), mode(&file));
+    }
+    assert_eq!(mode(&d.socket), 0o660, "the socket keeps api.mode");
+    drop(c);
+    assert!(d.sigterm().success());
     sim.stop().unwrap();
 }

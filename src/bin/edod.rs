@@ -25,14 +25,11 @@ fn main() -> ExitCode {
     if let Some(path) = cli.check_config {
         return match edo::daemon::Config::load(&path) {
             Ok(cfg) => {
-                let host = cfg.check_host();
-                for w in &host.warnings {
-                    eprintln!("edod: warning: {}: {w}", path.display());
+                let findings = edo::daemon::preflight::check(&cfg);
+                for f in &findings {
+                    eprintln!("edod: {}: {f}", path.display());
                 }
-                for e in &host.errors {
-                    eprintln!("edod: {}: {e}", path.display());
-                }
-                if !host.errors.is_empty() {
+                if findings.iter().any(|f| f.error) {
                     return ExitCode::FAILURE;
                 }
                 println!("{}: ok", path.display());
@@ -64,6 +61,18 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
+    // What can only fail once running is refused now, before anything is started.
+    let findings = edo::daemon::preflight::check(&cfg);
+    for f in &findings {
+        if f.error {
+            eprintln!("edod: {}: {f}", cli.config.display());
+        } else {
+            tracing::warn!("{}: {f}", cli.config.display());
+        }
+    }
+    if findings.iter().any(|f| f.error) {
+        return ExitCode::FAILURE;
+    }
     if cfg.machine.protocol == edo::daemon::config::Protocol::Gcode {
         eprintln!(
             "edod: machine.protocol = \"gcode\": the configuration is valid, but edod's \

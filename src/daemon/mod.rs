@@ -5,6 +5,8 @@
 //! shared state as snapshots (a watch channel), never a lock held across an await.
 //!
 //! - [`config`]: `edod.toml` (unknown keys refused, line/column errors).
+//! - [`preflight`]: what a parsed config may still get wrong about this host (group,
+//!   socket path length, fault names, serial port, line speed).
 //! - [`store`]: jobs, states, checkpoints in SQLite (WAL); nothing accepted is lost. It
 //!   has two threads of its own (a writer, a reader) reached over channels: no SQLite
 //!   call and no wait for one runs on a runtime worker.
@@ -33,6 +35,7 @@ pub mod connections;
 pub mod edo_link;
 pub mod instance;
 pub mod planner;
+pub mod preflight;
 pub mod store;
 pub mod streamer;
 pub mod supervise;

@@ -170,9 +170,6 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     // before), held until this function returns.
     let _instance = instance::lock(&cfg)?;
     instance::secure_db_files(&cfg.state.dir)?;
-    for w in cfg.check_host().warnings {
-        warn!("{w}");
-    }
     let (sim, port) = if cfg.serial.port == SIM_PORT {
         let (c, l) = start_sim(&cfg).await?;
         (Some(c), l)

@@ -19,6 +19,7 @@
 //! - [`Host`]: the host end (streams moves, priority lane, reports, reset/link-loss detection).
 //! - [`MachineLink`]: the machine end (move queue with exactly-once delivery, credits,
 //!   reports), used by `hil-sim` and meant to be ported to firmware.
+//! - [`sim_faults`]: the faults hil-sim injects (`--faults`), named for edod's config too.
 //! - [`testkit`]: a seeded, simulated-time lossy wire for tests and benchmarks.
 
 pub mod frame;
