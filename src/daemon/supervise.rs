@@ -211,6 +211,30 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     info!(socket = %shared.config.api.socket.display(), port = %shared.port.display(), "edod ready");
     let notifier = Notifier::start();
     notifier.send("READY=1");
+    serve_until(&shared, &streamer, &notifier, stop).await?;
+    info!("stopping");
+    notifier.send("STOPPING=1");
+    let (tx, rx) = oneshot::channel();
+    if shared.control.send(Control::Shutdown(tx)).await.is_ok() {
+        let _ = tokio::time::timeout(Duration::from_secs(5), rx).await;
+    }
+    api.abort();
+    let _ = std::fs::remove_file(&shared.config.api.socket);
+    if let Some(c) = sim {
+        stop_sim(c).await;
+    }
+    info!("stopped");
+    Ok(())
+}
+
+/// Serve until SIGTERM, SIGINT, `stop` or the streamer's end, telling systemd the
+/// status line and petting its watchdog while the streamer is alive.
+async fn serve_until(
+    shared: &Shared,
+    streamer: &tokio::task::JoinHandle<()>,
+    notifier: &Notifier,
+    stop: impl std::future::Future<Output = ()>,
+) -> Result<()> {
     let watchdog = sd_notify::watchdog_enabled();
 
     let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
@@ -241,7 +265,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
                 if watchdog.is_some() && alive {
                     notifier.send("WATCHDOG=1");
                 }
-                let s = status_line(&shared);
+                let s = status_line(shared);
                 if s != last_status {
                     notifier.send(&format!("STATUS={s}"));
                     last_status = s;
@@ -249,32 +273,24 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
             }
         }
     }
-    info!("stopping");
-    notifier.send("STOPPING=1");
-    let (tx, rx) = oneshot::channel();
-    if shared.control.send(Control::Shutdown(tx)).await.is_ok() {
-        let _ = tokio::time::timeout(Duration::from_secs(5), rx).await;
-    }
-    api.abort();
-    let _ = std::fs::remove_file(&shared.config.api.socket);
-    if let Some(mut c) = sim {
-        // SIGTERM lets hil-sim remove its link and flush its recording.
-        if let Some(pid) = c.id() {
-            let _ = nix::sys::signal::kill(
-                nix::unistd::Pid::from_raw(pid as i32),
-                nix::sys::signal::Signal::SIGTERM,
-            );
-        }
-        if tokio::time::timeout(Duration::from_secs(3), c.wait())
-            .await
-            .is_err()
-        {
-            let _ = c.start_kill();
-            let _ = c.wait().await;
-        }
-    }
-    info!("stopped");
     Ok(())
+}
+
+/// SIGTERM lets hil-sim remove its link and flush its recording; after 3 s it is killed.
+async fn stop_sim(mut c: tokio::process::Child) {
+    if let Some(pid) = c.id() {
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(pid as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        );
+    }
+    if tokio::time::timeout(Duration::from_secs(3), c.wait())
+        .await
+        .is_err()
+    {
+        let _ = c.start_kill();
+        let _ = c.wait().await;
+    }
 }
 
 fn status_line(shared: &Shared) -> String {
