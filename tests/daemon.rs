@@ -1053,6 +1053,21 @@ layer = 0.2
             .contains("100.0 mm too wide along x"),
         "{e}"
     );
+    // Refused at submission: more materials than the machine has syringes.
+    let three = wide
+        .replace("max = [300.0, 20.0]", "max = [20.0, 20.0]")
+        .replace("names = [\"A\", \"B\"]", "names = [\"A\", \"B\", \"C\"]")
+        .replace("inner = [1.0, 0.0]", "inner = [1.0, 0.0, 0.0]")
+        .replace("outer = [0.0, 1.0]", "outer = [0.0, 0.5, 0.5]");
+    let e = c.call("job.submit", json!({"job": three})).unwrap_err();
+    assert_eq!(e["code"], json!(-32003), "{e}");
+    assert!(
+        e["message"]
+            .as_str()
+            .unwrap()
+            .contains("3 materials (A, B, C) but the machine has 2 syringes (A, B)"),
+        "{e}"
+    );
     let tall = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 160.0, 16));
     let e = c
         .call(

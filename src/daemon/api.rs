@@ -210,6 +210,10 @@ async fn file_job(
 ) -> Result<(JobSpec, String), ApiError> {
     let job = crate::job::Job::from_toml(&toml, "submitted job")
         .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
+    // What would fail when it starts is refused now: its materials against the
+    // machine's syringes, its process settings against the machine's limits.
+    super::planner::process_settings(&job, &shared.config.machine, "submitted job")
+        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e))?;
     let mesh = mesh_base64
         .map(|b| {
             base64_decode(b).map_err(|e| {

@@ -276,10 +276,14 @@ pub fn process_settings(
     source_name: &str,
 ) -> Result<crate::pipeline::ProcessSettings, String> {
     if job.materials.len() != machine.syringes.len() {
+        let syringes: Vec<&str> = machine.syringes.iter().map(|s| s.name.as_str()).collect();
         return Err(format!(
-            "{source_name}: {} materials but the machine has {} syringes",
+            "{source_name}: {} materials ({}) but the machine has {} syringes ({}): \
+             materials.names must list one material per syringe",
             job.materials.len(),
-            machine.syringes.len()
+            job.materials.join(", "),
+            syringes.len(),
+            syringes.join(", ")
         ));
     }
     // The job's [toolpath] settings, bounded by what this machine is.
