@@ -7,7 +7,7 @@
 
 use std::collections::VecDeque;
 use std::fs::File;
-use std::io::{BufWriter, ErrorKind, Read, Write};
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::Receiver;
@@ -22,7 +22,9 @@ use crate::faults::Faults;
 use crate::gcode_machine::GcodeMachine;
 use crate::model::{Executed, MachineModel};
 use crate::record::{write_line, RecordLine};
-use crate::sim::{move_kind_name, open_pty, um_to_mm, Command, Pty, SimConfig, Summary};
+use crate::sim::{
+    move_kind_name, open_pty, read_pty, um_to_mm, write_pty, Command, Pty, SimConfig, Summary,
+};
 
 /// The G-code mode's settings (`--gcode`, `--gcode-mix`, ...).
 #[derive(Debug, Clone, PartialEq)]
@@ -361,23 +363,16 @@ impl<'a> GcodeSim<'a> {
     }
 
     fn receive(&mut self, now_us: u64, dt: u64, stalled: bool) -> anyhow::Result<()> {
-        self.rx_credit = (self.rx_credit + dt as f64 / self.byte_us).min(512.0);
-        if let Some(p) = self.pty.as_mut() {
-            let want = (self.rx_credit as usize).min(self.buf.len());
-            if want > 0 && !stalled {
-                match p.master.read(&mut self.buf[..want]) {
-                    Ok(n) => {
-                        self.rx_credit -= n as f64;
-                        self.sum.bytes_from_host += n as u64;
-                        self.to_firmware
-                            .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
-                    }
-                    Err(e) if e.kind() == ErrorKind::WouldBlock => {}
-                    Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {}
-                    Err(e) => return Err(e).context("read from the pty"),
-                }
-            }
-        }
+        let n = read_pty(
+            self.pty.as_mut(),
+            &mut self.buf,
+            &mut self.rx_credit,
+            dt as f64 / self.byte_us,
+            stalled,
+            &mut self.sum,
+        )?;
+        self.to_firmware
+            .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
         while let Some(b) = self.to_firmware.pop_due(now_us) {
             self.firmware.handle_bytes(&b, Micros(now_us));
         }
@@ -483,27 +478,13 @@ impl<'a> GcodeSim<'a> {
         while let Some(b) = self.to_host.pop_due(now_us) {
             self.tx.extend(b);
         }
-        self.tx_credit = (self.tx_credit + dt as f64 / self.byte_us).min(512.0);
-        let Some(p) = self.pty.as_mut() else {
-            self.tx.clear();
-            return Ok(());
-        };
-        let n = (self.tx_credit as usize).min(self.tx.len());
-        if n == 0 {
-            return Ok(());
-        }
-        let chunk: Vec<u8> = self.tx.iter().take(n).copied().collect();
-        match p.master.write(&chunk) {
-            Ok(w) => {
-                self.tx.drain(..w);
-                self.tx_credit -= w as f64;
-                self.sum.bytes_to_host += w as u64;
-            }
-            Err(e) if e.kind() == ErrorKind::WouldBlock => {}
-            Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {}
-            Err(e) => return Err(e).context("write to the pty"),
-        }
-        Ok(())
+        write_pty(
+            self.pty.as_mut(),
+            &mut self.tx,
+            &mut self.tx_credit,
+            dt as f64 / self.byte_us,
+            &mut self.sum,
+        )
     }
 
     fn finish(mut self) -> anyhow::Result<Summary> {

@@ -146,6 +146,68 @@ pub struct Summary {
     pub bytes_to_host: u64,
 }
 
+/// Host -> machine through the pty, throttled to the line: `new_bytes` of credit are added
+/// (at most 512 banked) and up to the credit is read into `buf`. Returns how many bytes
+/// were read: 0 when stalled, unplugged, or nothing came (a hang-up, EIO, is not an error:
+/// the host may reopen).
+pub(crate) fn read_pty(
+    pty: Option<&mut Pty>,
+    buf: &mut [u8],
+    rx_credit: &mut f64,
+    new_bytes: f64,
+    stalled: bool,
+    sum: &mut Summary,
+) -> anyhow::Result<usize> {
+    *rx_credit = (*rx_credit + new_bytes).min(512.0);
+    let want = (*rx_credit as usize).min(buf.len());
+    let Some(p) = pty else { return Ok(0) };
+    if want == 0 || stalled {
+        return Ok(0);
+    }
+    match p.master.read(&mut buf[..want]) {
+        Ok(n) => {
+            *rx_credit -= n as f64;
+            sum.bytes_from_host += n as u64;
+            Ok(n)
+        }
+        Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(0),
+        Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => Ok(0),
+        Err(e) => Err(e).context("read from the pty"),
+    }
+}
+
+/// Machine -> host through the pty, throttled the same way: writes what the credit
+/// allows from the front of `tx`; unplugged, `tx` is dropped (nobody listens).
+pub(crate) fn write_pty(
+    pty: Option<&mut Pty>,
+    tx: &mut VecDeque<u8>,
+    tx_credit: &mut f64,
+    new_bytes: f64,
+    sum: &mut Summary,
+) -> anyhow::Result<()> {
+    *tx_credit = (*tx_credit + new_bytes).min(512.0);
+    let Some(p) = pty else {
+        tx.clear();
+        return Ok(());
+    };
+    let n = (*tx_credit as usize).min(tx.len());
+    if n == 0 {
+        return Ok(());
+    }
+    let chunk: Vec<u8> = tx.iter().take(n).copied().collect();
+    match p.master.write(&chunk) {
+        Ok(w) => {
+            tx.drain(..w);
+            *tx_credit -= w as f64;
+            sum.bytes_to_host += w as u64;
+            Ok(())
+        }
+        Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(()),
+        Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => Ok(()),
+        Err(e) => Err(e).context("write to the pty"),
+    }
+}
+
 pub(crate) struct Pty {
     pub(crate) master: File,
     _slave: OwnedFd,
@@ -575,23 +637,16 @@ impl<'a> Sim<'a> {
 
     /// Host -> machine, throttled to the baud rate, through the injector into the link.
     fn receive(&mut self, now_us: u64, dt: u64, stalled: bool) -> anyhow::Result<()> {
-        self.rx_credit = (self.rx_credit + dt as f64 / self.byte_us).min(512.0);
-        if let Some(p) = self.pty.as_mut() {
-            let want = (self.rx_credit as usize).min(self.buf.len());
-            if want > 0 && !stalled {
-                match p.master.read(&mut self.buf[..want]) {
-                    Ok(n) => {
-                        self.rx_credit -= n as f64;
-                        self.sum.bytes_from_host += n as u64;
-                        self.to_machine
-                            .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
-                    }
-                    Err(e) if e.kind() == ErrorKind::WouldBlock => {}
-                    Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {}
-                    Err(e) => return Err(e).context("read from the pty"),
-                }
-            }
-        }
+        let n = read_pty(
+            self.pty.as_mut(),
+            &mut self.buf,
+            &mut self.rx_credit,
+            dt as f64 / self.byte_us,
+            stalled,
+            &mut self.sum,
+        )?;
+        self.to_machine
+            .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
         let now = Micros(now_us);
         while let Some(b) = self.to_machine.pop_due(now_us) {
             self.link.handle_bytes(&b, now);
@@ -707,26 +762,13 @@ impl<'a> Sim<'a> {
         while let Some(b) = self.to_host.pop_due(now_us) {
             self.tx.extend(b);
         }
-        self.tx_credit = (self.tx_credit + dt as f64 / self.byte_us).min(512.0);
-        if let Some(p) = self.pty.as_mut() {
-            let n = (self.tx_credit as usize).min(self.tx.len());
-            if n > 0 {
-                let chunk: Vec<u8> = self.tx.iter().take(n).copied().collect();
-                match p.master.write(&chunk) {
-                    Ok(w) => {
-                        self.tx.drain(..w);
-                        self.tx_credit -= w as f64;
-                        self.sum.bytes_to_host += w as u64;
-                    }
-                    Err(e) if e.kind() == ErrorKind::WouldBlock => {}
-                    Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {}
-                    Err(e) => return Err(e).context("write to the pty"),
-                }
-            }
-        } else {
-            self.tx.clear();
-        }
-        Ok(())
+        write_pty(
+            self.pty.as_mut(),
+            &mut self.tx,
+            &mut self.tx_credit,
+            dt as f64 / self.byte_us,
+            &mut self.sum,
+        )
     }
 
     /// Stop: the recording flushed, the link's symlink removed.
