@@ -89,6 +89,7 @@ fn check_result(method: &str, v: &Value) -> Result<(), String> {
         JobPause,
         JobResume,
         JobCancel,
+        JobStartNext,
         JobDelete,
         MachineStatus,
         MachineEstop,

@@ -839,7 +839,9 @@ fn cancel_ends_the_job_when_the_link_is_lost_before_the_park() {
     // The machine stops answering, so the cancel's e-stop is never acknowledged.
     sim.command(hil_sim::Command::Stall(4000));
     let r = c.call("job.cancel", json!({"id": a})).unwrap();
-    assert_eq!(r["state"], json!("printing"), "{r}");
+    // The reply names the state the cancel leads to; it is stored once the job ends.
+    assert_eq!(r["state"], json!("cancelled"), "{r}");
+    assert_eq!(r["stored"], json!(false), "{r}");
     let j = c.wait_state(a, "cancelled");
     let reason = j["reason"].as_str().unwrap();
     assert!(
@@ -1517,4 +1519,108 @@ fn files_edod_creates_are_private_whatever_the_umask() {
     drop(c);
     assert!(d.sigterm().success());
     sim.stop().unwrap();
+}
+
+/// edod on `port` in `dir`, its log (warn and above) written to `dir/edod.log`.
+fn daemon_logging_to_file(dir: &Path, port: &Path) -> Daemon {
+    Daemon::write_config(dir, port, 4096, 1000, "");
+    let log = std::fs::File::create(dir.join("edod.log")).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_edod"))
+        .arg("--config")
+        .arg(dir.join("edod.toml"))
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .unwrap();
+    Daemon::ready(child, dir.join("edod.sock"), dir.join("edod.toml"))
+}
+
+#[test]
+fn a_missing_port_is_logged_once_named_in_the_status_and_retried_until_it_appears() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = dir.path().join("tty");
+    let d = daemon_logging_to_file(dir.path(), &port);
+    let mut c = d.client();
+    // Long enough for eight tries with back-off (0.3, 0.6, 1.2, 2.4 s...).
+    std::thread::sleep(Duration::from_millis(3500));
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["connected"], json!(false), "{m}");
+    assert_eq!(m["state"], Value::Null, "{m}");
+    let why = format!("port {}: No such file or directory", port.display());
+    assert_eq!(m["disconnected_reason"], json!(why), "{m}");
+    let status = String::from_utf8(d.edoctl_ok(["status"])).unwrap();
+    assert!(status.contains("state unknown"), "{status}");
+    assert!(status.contains(&format!("why: {why}")), "{status}");
+    let log = std::fs::read_to_string(dir.path().join("edod.log")).unwrap();
+    let warned = log.matches("No such file or directory").count();
+    assert_eq!(warned, 1, "warned {warned} times in 3.5 s:\n{log}");
+    // The machine appears: edod finds it within the longest back-off (5 s).
+    let (sim, _record) = sim(dir.path(), 21);
+    let t = Instant::now();
+    c.wait_connected();
+    eprintln!("connected {:?} after the port appeared", t.elapsed());
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["disconnected_reason"], Value::Null, "{m}");
+    assert_eq!(m["state"], json!("Idle"), "{m}");
+    // Unplugged: the state is not known any more, and the reason says why.
+    sim.command(hil_sim::Command::Unplug);
+    c.wait("disconnected", |c| {
+        c.call("machine.status", json!({})).unwrap()["connected"] == json!(false)
+    });
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["state"], Value::Null, "{m}");
+    assert!(m["disconnected_reason"].as_str().is_some(), "{m}");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
+#[test]
+fn after_a_restart_an_interrupted_job_holds_the_queue_until_the_operator_decides() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim_at(dir.path(), 22, 50.0);
+    let mut d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 3000);
+    let b = submit(&mut c, 200);
+    c.wait("streaming", |c| c.executed(a) > 300);
+    d.child.kill().unwrap(); // SIGKILL
+    d.child.wait().unwrap();
+    drop(c);
+    let d2 = Daemon::spawn(d.socket.clone(), d.config.clone());
+    let mut c = d2.client();
+    c.wait_connected();
+    c.wait_state(a, "interrupted");
+    // The next job waits: it would print onto the half-finished part.
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(c.job(b)["state"], json!("queued"));
+    let m = c.call("machine.status", json!({})).unwrap();
+    assert_eq!(m["queue_held_by"], json!(a), "{m}");
+    let status = String::from_utf8(d2.edoctl_ok(["status"])).unwrap();
+    assert!(
+        status.contains(&format!("queue waits: job {a} is interrupted")),
+        "{status}"
+    );
+    // The operator says the machine is ready: job b runs, a stays interrupted.
+    let r = c.call("job.start_next", json!({})).unwrap();
+    assert_eq!(r["id"], json!(b), "{r}");
+    c.wait_state(b, "done");
+    assert_eq!(c.job(a)["state"], json!("interrupted"));
+    let e = c.call("job.start_next", json!({})).unwrap_err();
+    assert_eq!(e["code"], json!(-32002), "{e}");
+    // A paused job cancelled: the reply names where it leads.
+    let from = c.executed(a);
+    c.call("job.resume", json!({"id": a})).unwrap();
+    c.wait("streaming again", |c| c.executed(a) > from + 100);
+    c.call("job.pause", json!({"id": a})).unwrap();
+    let r = c.call("job.cancel", json!({"id": a})).unwrap();
+    assert_eq!(r["state"], json!("cancelled"), "{r}");
+    c.wait_state(a, "cancelled");
+    drop(c);
+    drop(d2);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, b, 200);
 }

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 use edo::cli::client::{self, Answer, Client};
-use edo::proto::{method, Job, JobIdParams, JobState, NoParams, SubmitParams};
+use edo::proto::{method, Job, JobIdParams, JobState, NoParams, StartNextParams, SubmitParams};
 
 #[derive(Debug, Parser)]
 #[command(
@@ -82,6 +82,12 @@ enum Commands {
         /// Job id.
         id: u32,
     },
+    /// Start a queued job (the oldest without ID) although an interrupted job holds the
+    /// queue: say so only once the machine is ready for a new part.
+    StartNext {
+        /// Job id (default: the oldest queued job).
+        id: Option<u32>,
+    },
     /// Delete a finished (done, failed or cancelled) job and its mesh from edod's store.
     Delete {
         /// Job id.
@@ -153,6 +159,10 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
                 return Ok(ExitCode::FAILURE);
             }
         }
+        Commands::StartNext { id } => out.print(
+            &c.request::<method::JobStartNext>(&StartNextParams { id: *id })?,
+            |r| client::applied_line(r, "started"),
+        ),
         Commands::Delete { id } => out.print(
             &c.request::<method::JobDelete>(&JobIdParams { id: *id })?,
             |_| format!("job {id} deleted"),
@@ -210,8 +220,17 @@ fn status(c: &mut Client, out: &Output) -> anyhow::Result<()> {
             } else {
                 "not connected"
             },
-            s.state.map_or("unknown state", client::machine_state_name)
+            s.state.map_or("state unknown", client::machine_state_name)
         );
+        if let Some(why) = &s.disconnected_reason {
+            human.push_str(&format!("\n  why: {why}"));
+        }
+        if let Some(held) = s.queue_held_by {
+            human.push_str(&format!(
+                "\n  queue waits: job {held} is interrupted; resume or cancel it, or \
+                 'edoctl start-next' once the machine is ready for a new part"
+            ));
+        }
         if let Some(p) = &m.progress {
             human.push_str(&format!("\n{}", client::progress_line(p)));
         }

@@ -142,6 +142,7 @@ async fn dispatch(call: Call, shared: &Arc<Shared>) -> Result<MethodResult, ApiE
         Call::JobPause(JobIdParams { id }) => job_pause(id, shared).await?.into(),
         Call::JobResume(JobIdParams { id }) => job_resume(id, shared).await?.into(),
         Call::JobCancel(JobIdParams { id }) => job_cancel(id, shared).await?.into(),
+        Call::JobStartNext(p) => ask(shared, |r| Control::StartNext(p.id, r)).await?.into(),
         Call::JobDelete(JobIdParams { id }) => job_delete(id, shared).await?.into(),
         Call::MachineStatus => machine_status(shared).into(),
         Call::MachineEstop => machine_estop(shared).await?.into(),
@@ -305,7 +306,8 @@ async fn job_resume(id: u32, shared: &Shared) -> Result<StateChange, ApiError> {
     ask(shared, |r| Control::Resume(id, r)).await
 }
 
-/// `job.cancel`: `cancelled`, or still `printing` while the machine stops and parks.
+/// `job.cancel`: `cancelled`; `stored: false` while a printing or paused job stops and
+/// parks (its `notify_job_state` follows).
 async fn job_cancel(id: u32, shared: &Shared) -> Result<StateChange, ApiError> {
     ask(shared, |r| Control::Cancel(id, r)).await
 }

@@ -35,6 +35,7 @@ pub mod connections;
 pub mod edo_link;
 pub mod instance;
 pub mod planner;
+pub mod port_watch;
 pub mod preflight;
 pub mod store;
 pub mod streamer;
@@ -64,6 +65,9 @@ pub enum Control {
     Resume(u32, Reply<StateChange>),
     /// Cancel a job (stop, retract, park if it is printing).
     Cancel(u32, Reply<StateChange>),
+    /// Start a queued job (the oldest when `None`) although an interrupted one holds
+    /// the queue.
+    StartNext(Option<u32>, Reply<StateChange>),
     /// Emergency stop now.
     EStop(std::time::Instant, Reply<EStopTiming>),
     /// The syringes were refilled: clear the fault and continue.

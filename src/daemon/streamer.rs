@@ -18,10 +18,11 @@ use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio_serial::{SerialPortBuilderExt, SerialStream};
-use tracing::{debug, info, warn};
+use tracing::{info, warn};
 
 use super::edo_link::{link_config, EdoLink};
 use super::planner;
+use super::port_watch::{PortLog, PortWatch, PortWatchOptions};
 use super::store::now_ms;
 use super::{ApiError, Control, EStopTiming, MachineSnapshot, Reply, Shared, StateChange};
 use crate::lifecycle::{
@@ -33,7 +34,6 @@ use crate::machine::PositionUm;
 use crate::proto::JobStateChanged;
 
 /// How long the port stays closed after an error before it is opened again.
-const REOPEN_AFTER: Duration = Duration::from_millis(300);
 /// Longest sleep of the loop when nothing asks for a wake-up sooner.
 const TICK: Duration = Duration::from_millis(20);
 /// How long `machine.estop` waits for the machine's acknowledgement.
@@ -140,12 +140,12 @@ pub fn lifecycle_options(cfg: &super::Config, wall_ms_at_zero: i64) -> Options {
     }
 }
 
-/// The serial port and when to try opening it again.
+/// The serial port and its health (when to try opening it again, what went wrong).
 struct Port {
     path: PathBuf,
     baud: u32,
     stream: Option<SerialStream>,
-    reopen_at: Instant,
+    watch: PortWatch,
 }
 
 /// The streamer task.
@@ -185,7 +185,12 @@ impl Streamer {
                 path: shared.port.clone(),
                 baud,
                 stream: None,
-                reopen_at: epoch,
+                watch: PortWatch::new(
+                    PortWatchOptions::default(),
+                    &shared.port.display().to_string(),
+                    baud,
+                    epoch,
+                ),
             },
             link: EdoLink::new(link_config(baud), session_seed(), Micros(0)),
             lc: Lifecycle::new(opts, service_index, service_reserved_until),
@@ -261,7 +266,16 @@ impl Streamer {
     // ---- port -------------------------------------------------------------------------
 
     fn try_open(&mut self) {
-        if self.port.stream.is_some() || Instant::now() < self.port.reopen_at {
+        let at = Instant::now();
+        if self.port.stream.is_some() {
+            let connected = self.lc.is_connected();
+            log_port(
+                &self.port.path,
+                self.port.watch.check_handshake(connected, at),
+            );
+            return;
+        }
+        if !self.port.watch.open_due(at) {
             return;
         }
         let path = self.port.path.display().to_string();
@@ -269,20 +283,21 @@ impl Streamer {
             Ok(mut p) => {
                 let _ = p.set_exclusive(false);
                 info!(port = %path, "serial port open");
+                log_port(&self.port.path, self.port.watch.opened(at));
                 self.port.stream = Some(p);
                 let now = self.now();
                 self.link.reconnect(now);
             }
             Err(e) => {
-                debug!(port = %path, error = %e, "cannot open serial port yet");
-                self.port.reopen_at = Instant::now() + REOPEN_AFTER;
+                let log = self.port.watch.open_failed(&os_error(&e), at);
+                log_port(&self.port.path, log);
             }
         }
     }
 
     fn port_lost(&mut self, why: &str) {
         self.port.stream = None;
-        self.port.reopen_at = Instant::now() + REOPEN_AFTER;
+        self.port.watch.lost(why, Instant::now());
         self.handle(Event::PortLost { why: why.into() });
     }
 
@@ -412,6 +427,12 @@ impl Streamer {
             Control::Cancel(id, reply) => {
                 self.command(Command::Cancel(id), Waiting::Change { id, reply })
             }
+            Control::StartNext(id, reply) => match id.or_else(|| self.lc.first_queued()) {
+                Some(id) => self.command(Command::StartNext(id), Waiting::Change { id, reply }),
+                None => {
+                    let _ = reply.send(Err(ApiError::new(ApiError::BAD_STATE, "no job is queued")));
+                }
+            },
             Control::EStop(asked, reply) => {
                 self.command(Command::EStop, Waiting::EStop { asked, reply })
             }
@@ -567,15 +588,29 @@ impl Streamer {
         );
     }
 
+    /// Why the machine is not connected, in words an operator can act on.
+    fn disconnected_reason(&self) -> String {
+        match (self.port.watch.problem(), &self.port.stream) {
+            (Some(p), _) => p.to_string(),
+            (None, None) => format!("port {}: not open yet", self.port.path.display()),
+            (None, Some(_)) => "waiting for the machine's handshake".to_string(),
+        }
+    }
+
     fn publish(&self) {
         let stats = self.link.stats();
         let s = self.link.status();
         let identity = self.link.identity();
+        let connected = self.lc.is_connected() && self.port.stream.is_some();
         let snap = MachineSnapshot {
             port: self.port.path.display().to_string(),
-            connected: self.lc.is_connected() && self.port.stream.is_some(),
+            connected,
+            disconnected_reason: (!connected).then(|| self.disconnected_reason()),
             identity: identity.map(str::to_string),
-            state: identity.map(|_| s.state),
+            // Not connected, the machine's state is not known (it may have been reset,
+            // stopped or be running on): null, not the last report.
+            state: identity.filter(|_| connected).map(|_| s.state),
+            queue_held_by: self.lc.queue_held_by(),
             last_executed: s.last_executed,
             executed_total: s.executed_total,
             remaining_nl: s.remaining_nl.clone(),
@@ -590,6 +625,8 @@ impl Streamer {
         let changed = {
             let old = self.shared.machine.borrow();
             old.connected != snap.connected
+                || old.disconnected_reason != snap.disconnected_reason
+                || old.queue_held_by != snap.queue_held_by
                 || old.state != snap.state
                 || old.faults != snap.faults
                 || old.active_job != snap.active_job
@@ -599,6 +636,35 @@ impl Streamer {
                 .notify(crate::proto::Event::MachineState(snap.clone()));
         }
         self.shared.machine.send_replace(snap);
+    }
+}
+
+/// An open error in the OS's words: "No such file or directory", not the crate's
+/// wrapping of it.
+fn os_error(e: &tokio_serial::Error) -> String {
+    let d = e.description.trim();
+    if d.is_empty() {
+        e.to_string()
+    } else {
+        d.to_string()
+    }
+}
+
+/// Log what the port watch says.
+fn log_port(path: &std::path::Path, log: Option<PortLog>) {
+    match log {
+        Some(PortLog::Warn { message, tries: 0 }) => warn!(port = %path.display(), "{message}"),
+        Some(PortLog::Warn { message, tries }) => warn!(
+            port = %path.display(),
+            tries,
+            "{message}; retrying (every 5 s at most)"
+        ),
+        Some(PortLog::Recovered { after_tries }) => info!(
+            port = %path.display(),
+            after_tries,
+            "serial port open after it could not be opened"
+        ),
+        None => {}
     }
 }
 

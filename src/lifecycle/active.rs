@@ -90,6 +90,15 @@ impl Phase {
         )
     }
 
+    /// The machine is being flushed, released or brought back to where the job stopped:
+    /// moves do not flow yet (or no more).
+    pub fn stopping_or_starting(self) -> bool {
+        matches!(
+            self,
+            Phase::Flushing { .. } | Phase::Releasing { .. } | Phase::Prelude
+        )
+    }
+
     /// Waiting for an operator (a refill or a resume).
     pub fn waits_for_operator(self) -> bool {
         matches!(self, Phase::Empty | Phase::Interrupted)

@@ -88,6 +88,9 @@ pub enum Command {
     Resume(u32),
     /// Cancel a job (a printing one stops, retracts and parks).
     Cancel(u32),
+    /// Start queued job `id` now although a job is interrupted: the operator's word that
+    /// the machine is ready for it (the queue waits for it otherwise).
+    StartNext(u32),
     /// Emergency stop now.
     EStop,
     /// The syringes were refilled: clear the faults, continue a job waiting for it.
@@ -100,7 +103,10 @@ impl Command {
     /// The job the command is about.
     pub fn job(self) -> Option<u32> {
         match self {
-            Command::Pause(id) | Command::Resume(id) | Command::Cancel(id) => Some(id),
+            Command::Pause(id)
+            | Command::Resume(id)
+            | Command::Cancel(id)
+            | Command::StartNext(id) => Some(id),
             Command::EStop | Command::Refill | Command::Shutdown => None,
         }
     }
@@ -188,7 +194,7 @@ pub enum Event {
         /// What it produced.
         output: PlannerOutput,
     },
-    /// The queued jobs, as [`Action::ListQueued`] asked.
+    /// The queued and interrupted jobs, as [`Action::ListQueued`] asked.
     QueuedJobs(Result<Vec<JobInfo>, String>),
     /// Job `id` as the store has it (`None`: no such job), as [`Action::LookUpJob`] asked.
     JobLookedUp {
@@ -357,7 +363,7 @@ pub enum Action {
     },
     /// Read job `id` from the store ([`Event::JobLookedUp`]).
     LookUpJob(u32),
-    /// Read the queued jobs from the store ([`Event::QueuedJobs`]).
+    /// Read the queued and interrupted jobs from the store ([`Event::QueuedJobs`]).
     ListQueued,
     /// Answer request `request`.
     Reply {

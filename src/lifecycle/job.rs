@@ -212,9 +212,14 @@ impl Jobs {
 
     /// The oldest queued job.
     pub fn first_queued(&self) -> Option<u32> {
+        self.first_in(JobState::Queued)
+    }
+
+    /// The oldest job in `state`.
+    pub fn first_in(&self, state: JobState) -> Option<u32> {
         self.map
             .iter()
-            .find(|(_, k)| k.state == JobState::Queued)
+            .find(|(_, k)| k.state == state)
             .map(|(&id, _)| id)
     }
 

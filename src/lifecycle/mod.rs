@@ -289,6 +289,22 @@ impl Lifecycle {
         self.connected
     }
 
+    /// The interrupted job that holds the queue: while a job is interrupted and not
+    /// active (edod restarted), the next queued job waits for the operator to resume
+    /// or cancel it, or to start the next one anyway (`job.start_next`), so that no job
+    /// is printed onto a half-finished part.
+    pub fn queue_held_by(&self) -> Option<u32> {
+        if self.active.is_some() {
+            return None;
+        }
+        self.jobs.first_in(JobState::Interrupted)
+    }
+
+    /// The oldest queued job.
+    pub fn first_queued(&self) -> Option<u32> {
+        self.jobs.first_queued()
+    }
+
     /// The job the machine works on.
     pub fn active_job(&self) -> Option<u32> {
         self.active.as_ref().map(|a| a.id)
@@ -326,7 +342,11 @@ impl Lifecycle {
         if self.is_stopped() {
             return;
         }
-        if self.connected && self.stopping.is_none() && self.active.is_none() {
+        if self.connected
+            && self.stopping.is_none()
+            && self.active.is_none()
+            && self.queue_held_by().is_none()
+        {
             if let Some(id) = self.jobs.first_queued() {
                 self.activate(id, true, now_us);
             }

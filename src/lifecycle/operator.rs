@@ -5,7 +5,8 @@
 
 use super::active::{AfterFlush, Phase};
 use super::io::{
-    Action, Answer, Command, Level, MachineCommand, MachineState, Refusal, RefusalKind, RequestId,
+    Action, Answer, Applied, Command, Level, MachineCommand, MachineState, Refusal, RefusalKind,
+    RequestId,
 };
 use super::job::{JobInfo, JobState};
 use super::{Lifecycle, Stopping};
@@ -32,6 +33,7 @@ impl Lifecycle {
             Command::Pause(id) => self.pause(request, id, now_us),
             Command::Resume(id) => self.resume(request, id, now_us),
             Command::Cancel(id) => self.cancel(request, id, now_us),
+            Command::StartNext(id) => self.start_next(request, id, now_us),
             Command::EStop => {
                 self.estop();
                 Ok(Some(Answer::Done))
@@ -155,6 +157,10 @@ impl Lifecycle {
                 self.reply_applied(request, id, now_us);
                 Ok(None)
             }
+            Some(a) if a.phase.stopping_or_starting() => Err(bad_state(format!(
+                "job {id} is starting or stopping (the machine is flushing or the nozzle \
+                 moves to where it stopped); pause it once it prints"
+            ))),
             Some(_) => Err(bad_state(format!("job {id} is not printing"))),
             None => Err(bad_state(format!(
                 "job {id} is {}, only a printing job can be paused",
@@ -219,12 +225,17 @@ impl Lifecycle {
     ) -> Result<Option<Answer>, Refusal> {
         if self.active_job() == Some(id) {
             if self.connected {
-                // Where the job stopped is kept; the flush makes it final.
+                // Where the job stopped is kept; the flush makes it final. The reply
+                // names the state the cancel leads to, not yet on disk: the job is
+                // cancelled once the machine has stopped and parked.
                 self.save_checkpoints(true, now_us);
                 self.restart_active(AfterFlush::Park);
-            } else {
-                self.end_active(JobState::Cancelled, Some("cancelled by an operator".into()));
+                return Ok(Some(Answer::Applied(Applied {
+                    state: JobState::Cancelled,
+                    stored: false,
+                })));
             }
+            self.end_active(JobState::Cancelled, Some("cancelled by an operator".into()));
             self.reply_applied(request, id, now_us);
             return Ok(None);
         }
@@ -247,6 +258,42 @@ impl Lifecycle {
                 self.machine(MachineCommand::EmergencyStop);
             }
         }
+        self.reply_applied(request, id, now_us);
+        Ok(None)
+    }
+
+    /// `job.start_next`: start queued job `id` now, although an unfinished job holds the
+    /// queue ([`Lifecycle::queue_held_by`]): the operator says the machine is ready for it.
+    fn start_next(
+        &mut self,
+        request: RequestId,
+        id: u32,
+        now_us: u64,
+    ) -> Result<Option<Answer>, Refusal> {
+        let state = self.known_state(id)?;
+        if state != JobState::Queued {
+            return Err(bad_state(format!(
+                "job {id} is {}, only a queued job can be started",
+                state.as_str()
+            )));
+        }
+        if let Some(other) = self.active_job() {
+            return Err(bad_state(format!(
+                "job {other} holds the machine; cancel it or let it finish first"
+            )));
+        }
+        if self.stopping.is_some() {
+            return Err(bad_state("edod is stopping".into()));
+        }
+        self.need_connected()?;
+        if let Some(held) = self.queue_held_by() {
+            self.log(
+                Level::Info,
+                Some(id),
+                format!("job {id} starts by an operator's word while job {held} is interrupted"),
+            );
+        }
+        self.activate(id, true, now_us);
         self.reply_applied(request, id, now_us);
         Ok(None)
     }

@@ -270,7 +270,7 @@ impl Rig {
                 let list = self
                     .store
                     .values()
-                    .filter(|j| j.state == JobState::Queued)
+                    .filter(|j| matches!(j.state, JobState::Queued | JobState::Interrupted))
                     .cloned()
                     .collect();
                 self.events.push_back(Event::QueuedJobs(Ok(list)));
@@ -713,11 +713,12 @@ fn cancel_stops_retracts_and_parks_and_a_lost_link_ends_it_unparked() {
     rig.plan(100);
     rig.run(30);
     let c = rig.command(Command::Cancel(1));
+    // The reply names the state the cancel leads to, not yet on disk.
     assert_eq!(
         rig.applied(c),
         Applied {
-            state: JobState::Printing,
-            stored: true
+            state: JobState::Cancelled,
+            stored: false
         }
     );
     assert_eq!(rig.lc.active_job(), None);
@@ -870,6 +871,93 @@ fn commands_about_jobs_not_known_wait_for_the_store_and_keep_their_order() {
         job: Err("disk I/O error".into()),
     });
     assert_eq!(rig.refused(d), RefusalKind::Internal);
+}
+
+#[test]
+fn a_paused_job_cancelled_replies_cancelled_and_ends_so() {
+    let mut rig = Rig::printing();
+    rig.plan(100);
+    rig.run(30);
+    let p = rig.command(Command::Pause(1));
+    assert_eq!(rig.applied(p).state, JobState::Paused);
+    rig.run(100);
+    let c = rig.command(Command::Cancel(1));
+    assert_eq!(
+        rig.applied(c),
+        Applied {
+            state: JobState::Cancelled,
+            stored: false
+        }
+    );
+    rig.run(10);
+    assert_eq!(rig.stored_state(1), Some(JobState::Cancelled));
+    assert_eq!(rig.notes.last().map(|n| n.state), Some(JobState::Cancelled));
+}
+
+/// A store as edod left it after a restart: job 3 interrupted at move 40, jobs 4 and 5
+/// queued.
+fn restarted_with_an_interrupted_job() -> Rig {
+    let mut rig = Rig::new();
+    let mut job = queued(3);
+    job.state = JobState::Interrupted;
+    job.checkpoint.next_index = 40;
+    rig.store.insert(3, job);
+    rig.store.insert(4, queued(4));
+    rig.store.insert(5, queued(5));
+    rig.feed(Event::Submitted);
+    rig.connect();
+    rig.at(500 * MS);
+    rig
+}
+
+#[test]
+fn an_interrupted_job_holds_the_queue_until_the_operator_decides() {
+    // Resume: job 3 runs, then the queue.
+    let mut rig = restarted_with_an_interrupted_job();
+    assert_eq!(
+        rig.lc.active_job(),
+        None,
+        "no job starts over an interrupted one"
+    );
+    assert_eq!(rig.lc.queue_held_by(), Some(3));
+    assert_eq!(rig.planner, None);
+    let r = rig.command(Command::Resume(3));
+    assert_eq!(rig.applied(r).state, JobState::Printing);
+    assert_eq!(rig.lc.queue_held_by(), None);
+    rig.plan(60);
+    rig.run(1000);
+    assert_eq!(rig.stored_state(3), Some(JobState::Done));
+    assert_eq!(rig.lc.active_job(), Some(4));
+
+    // Cancel: the queue runs on.
+    let mut rig = restarted_with_an_interrupted_job();
+    let c = rig.command(Command::Cancel(3));
+    assert_eq!(rig.applied(c).state, JobState::Cancelled);
+    assert_eq!(rig.lc.active_job(), Some(4));
+
+    // Start next: job 5 starts by name, job 3 stays interrupted, and holds the queue
+    // again once job 5 is done.
+    let mut rig = restarted_with_an_interrupted_job();
+    let s = rig.command(Command::StartNext(5));
+    assert_eq!(rig.applied(s).state, JobState::Planning);
+    assert_eq!(rig.lc.active_job(), Some(5));
+    assert!(rig
+        .logs
+        .iter()
+        .any(|l| l.contains("while job 3 is interrupted")));
+    let again = rig.command(Command::StartNext(4));
+    assert_eq!(rig.refused(again), RefusalKind::BadState);
+    rig.plan(20);
+    rig.run(1000);
+    assert_eq!(rig.stored_state(5), Some(JobState::Done));
+    assert_eq!(rig.stored_state(3), Some(JobState::Interrupted));
+    assert_eq!(rig.lc.active_job(), None);
+    assert_eq!(rig.lc.queue_held_by(), Some(3));
+    // Only a queued job can be started.
+    let bad = rig.command(Command::StartNext(3));
+    assert_eq!(rig.refused(bad), RefusalKind::BadState);
+    let missing = rig.command(Command::StartNext(99));
+    assert_eq!(rig.refused(missing), RefusalKind::NoSuchJob);
 }
 
 #[test]

@@ -14,9 +14,14 @@ pub struct MachineSnapshot {
     pub port: String,
     /// Handshake done and the link alive.
     pub connected: bool,
+    /// Why not, while not connected: the port's OS error (`"port /dev/ttyACM0: No such
+    /// file or directory"`), a silent machine, a lost link.
+    #[serde(default)]
+    pub disconnected_reason: Option<String>,
     /// Machine identity.
     pub identity: Option<String>,
-    /// Execution state (`Idle`, `Running`, `Held`, `EStopped`, `Faulted`).
+    /// Execution state (`Idle`, `Running`, `Held`, `EStopped`, `Faulted`); null when
+    /// not known (not connected).
     pub state: Option<MachineState>,
     /// Last executed move.
     pub last_executed: Option<MoveRef>,
@@ -32,6 +37,10 @@ pub struct MachineSnapshot {
     pub position_mm: [f64; 3],
     /// Job being streamed.
     pub active_job: Option<u32>,
+    /// The interrupted job the queue waits for (resume or cancel it, or
+    /// `job.start_next`); null when the queue runs.
+    #[serde(default)]
+    pub queue_held_by: Option<u32>,
     /// Times the machine ran out of moves while a job still had moves to stream.
     pub underruns: u64,
     /// Frames retransmitted on the link.

@@ -38,6 +38,15 @@ pub struct JobIdParams {
     pub id: u32,
 }
 
+/// `job.start_next`'s params: `{id?}`, the queued job to start (the oldest when absent).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StartNextParams {
+    /// Job id; the oldest queued job when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<u32>,
+}
+
 /// `job.submit`'s params: `{job, mesh_base64?, name?}` or `{dry_run_moves, name?}`
 /// (checked by [`SubmitParams::submission`]).
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -239,7 +248,7 @@ impl Subscribed {
 
 /// Markers of the methods, one per method, each naming its params and result.
 pub mod method {
-    use super::{JobIdParams, Method, NoParams, SubmitParams};
+    use super::{JobIdParams, Method, NoParams, StartNextParams, SubmitParams};
 
     macro_rules! methods {
         ($($(#[$doc:meta])* $marker:ident = $name:literal, $params:ty => $result:ty;)*) => {
@@ -273,6 +282,8 @@ pub mod method {
         JobResume = "job.resume", JobIdParams => super::StateChange;
         /// Cancel a job (a printing one stops, retracts and parks).
         JobCancel = "job.cancel", JobIdParams => super::StateChange;
+        /// Start a queued job although an interrupted one holds the queue.
+        JobStartNext = "job.start_next", StartNextParams => super::StateChange;
         /// Delete a finished job and its mesh.
         JobDelete = "job.delete", JobIdParams => super::Deleted;
         /// The machine snapshot and the active job's progress.
@@ -306,6 +317,8 @@ pub enum Call {
     JobResume(JobIdParams),
     /// `job.cancel`.
     JobCancel(JobIdParams),
+    /// `job.start_next`.
+    JobStartNext(StartNextParams),
     /// `job.delete`.
     JobDelete(JobIdParams),
     /// `machine.status`.
@@ -360,6 +373,7 @@ impl Call {
             m::JobPause::NAME => Call::JobPause(params::<m::JobPause>(p)?),
             m::JobResume::NAME => Call::JobResume(params::<m::JobResume>(p)?),
             m::JobCancel::NAME => Call::JobCancel(params::<m::JobCancel>(p)?),
+            m::JobStartNext::NAME => Call::JobStartNext(params::<m::JobStartNext>(p)?),
             m::JobDelete::NAME => Call::JobDelete(params::<m::JobDelete>(p)?),
             m::MachineStatus::NAME => params::<m::MachineStatus>(p).map(|_| Call::MachineStatus)?,
             m::MachineEstop::NAME => params::<m::MachineEstop>(p).map(|_| Call::MachineEstop)?,
@@ -385,6 +399,7 @@ impl Call {
             Call::JobPause(_) => m::JobPause::NAME,
             Call::JobResume(_) => m::JobResume::NAME,
             Call::JobCancel(_) => m::JobCancel::NAME,
+            Call::JobStartNext(_) => m::JobStartNext::NAME,
             Call::JobDelete(_) => m::JobDelete::NAME,
             Call::MachineStatus => m::MachineStatus::NAME,
             Call::MachineEstop => m::MachineEstop::NAME,
@@ -403,6 +418,7 @@ impl Call {
             | Call::JobResume(p)
             | Call::JobCancel(p)
             | Call::JobDelete(p) => job(p),
+            Call::JobStartNext(p) => serde_json::to_value(p).ok(),
             Call::ServerInfo
             | Call::JobList
             | Call::MachineStatus
@@ -551,6 +567,7 @@ mod tests {
             Call::JobPause(job),
             Call::JobResume(job),
             Call::JobCancel(job),
+            Call::JobStartNext(StartNextParams { id: Some(7) }),
             Call::JobDelete(job),
             Call::MachineStatus,
             Call::MachineEstop,

@@ -26,5 +26,6 @@ pub use job::{Checkpoint, Job, JobState, JobStateChanged, Progress};
 pub use machine::{EStopTiming, MachineSnapshot, MachineStatus};
 pub use methods::{
     method, Call, Deleted, Event, JobIdParams, JobSource, Method, MethodResult, NoParams, Refilled,
-    ServerInfo, StateChange, Submission, SubmitParams, Submitted, Subscribed, API_VERSION, METHODS,
+    ServerInfo, StartNextParams, StateChange, Submission, SubmitParams, Submitted, Subscribed,
+    API_VERSION, METHODS,
 };

@@ -79,7 +79,7 @@ impl Reader {
         self.ask(|r| Read::Get(id, r)).await
     }
 
-    /// The queued jobs, answered as [`Event::QueuedJobs`].
+    /// The queued and interrupted jobs, answered as [`Event::QueuedJobs`].
     pub fn queued(&self) {
         let _ = self.tx.send(Read::Queued);
     }
@@ -118,7 +118,7 @@ fn answer(store: &Store, r: Read, events: &mpsc::UnboundedSender<Event>) {
         }
         Read::Queued => {
             let jobs = store
-                .queued()
+                .waiting()
                 .map(|v| v.iter().map(JobRecord::info).collect())
                 .map_err(|e| e.to_string());
             let _ = events.send(Event::QueuedJobs(jobs));

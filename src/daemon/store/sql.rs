@@ -298,6 +298,12 @@ impl Store {
         self.select("WHERE state = 'queued'")
     }
 
+    /// The jobs the lifecycle must know at start: queued, and interrupted (one holds the
+    /// queue until an operator decides), oldest first.
+    pub fn waiting(&self) -> Result<Vec<JobRecord>, StoreError> {
+        self.select("WHERE state IN ('queued', 'interrupted')")
+    }
+
     fn select(&self, filter: &str) -> Result<Vec<JobRecord>, StoreError> {
         let mut st = self
             .conn()?
