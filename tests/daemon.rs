@@ -1624,3 +1624,89 @@ fn after_a_restart_an_interrupted_job_holds_the_queue_until_the_operator_decides
     sim.stop().unwrap();
     assert_exactly_once(&record, b, 200);
 }
+
+/// A 3MF whose model part inflates to `mib` MiB (an XML header, then spaces), a few
+/// hundred KiB on the wire; `lying`: its headers claim the part is 1000 bytes.
+fn three_mf_bomb(mib: usize, lying: bool) -> Vec<u8> {
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated);
+    zip.start_file("3D/3dmodel.model", opts).unwrap();
+    zip.write_all(b"<?xml version=\"1.0\"?><model unit=\"millimeter\">")
+        .unwrap();
+    let spaces = vec![b' '; 1 << 20];
+    for _ in 0..mib {
+        zip.write_all(&spaces).unwrap();
+    }
+    let mut bytes = zip.finish().unwrap().into_inner();
+    if lying {
+        // The uncompressed size: at 22 in the local header, at 24 in the central one.
+        let claim = 1000u32.to_le_bytes();
+        bytes[22..26].copy_from_slice(&claim);
+        let central = (0..bytes.len() - 4)
+            .rev()
+            .find(|&i| bytes[i..i + 4] == *b"PK\x01\x02")
+            .unwrap();
+        bytes[central + 24..central + 28].copy_from_slice(&claim);
+    }
+    bytes
+}
+
+#[test]
+fn four_3mf_bombs_at_once_stay_within_the_memory_budget() {
+    for lying in [false, true] {
+        four_3mf_bombs_at_once(&three_mf_bomb(500, lying));
+    }
+}
+
+fn four_3mf_bombs_at_once(bomb: &[u8]) {
+    use base64::Engine as _;
+    let dir = tempfile::tempdir().unwrap();
+    eprintln!("3MF bomb: {} bytes, inflating to 500 MiB", bomb.len());
+    let mesh_base64 = base64::engine::general_purpose::STANDARD.encode(bomb);
+    let job =
+        "name = \"bomb\"\n[geometry]\nmesh = \"part.3mf\"\n[materials]\nnames = [\"A\", \"B\"]\n\
+               [gradient]\npattern = \"growth-rings\"\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n\
+               [process]\nr_mach = 0.8\nnozzle = 0.4\nlayer = 0.2\n";
+    let (sim, _record) = sim(dir.path(), 23);
+    let d = Daemon::start_with_limit(dir.path(), sim.path(), 4 << 20);
+    let before = peak_memory(&d);
+    let params = Arc::new(json!({"job": job, "mesh_base64": mesh_base64}));
+    let answers: Vec<Value> = std::thread::scope(|s| {
+        let hs: Vec<_> = (0..4)
+            .map(|_| {
+                let mut c = d.client();
+                let p = Arc::clone(&params);
+                let line = json!({"jsonrpc": "2.0", "id": 1, "method": "job.submit", "params": *p});
+                s.spawn(move || c.send_raw(&line.to_string()))
+            })
+            .collect();
+        hs.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let after = peak_memory(&d);
+    eprintln!(
+        "VmHWM {} MiB before, {} MiB after",
+        before >> 20,
+        after >> 20
+    );
+    for a in &answers {
+        let e = &a["error"];
+        let code = e["code"].as_i64().unwrap();
+        let msg = e["message"].as_str().unwrap();
+        // Refused for its size, declared or found (-32003), or for the budget other
+        // bombs hold (-32006).
+        assert!(code == -32003 || code == -32006, "{e}");
+        assert!(
+            msg.contains("part.3mf") || msg.contains("memory budget"),
+            "{e}"
+        );
+    }
+    // The budget is 256 MiB; four 500 MiB models took edod to 2 GB before it.
+    assert!(after < 400 << 20, "VmHWM {} MiB", after >> 20);
+    // edod still serves.
+    let mut c = d.client();
+    c.call("machine.status", json!({})).unwrap();
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
