@@ -167,6 +167,7 @@ struct RawProcess {
     radial_lines: Option<usize>,
     field_cell: Option<f64>,
     contour_deviation: Option<f64>,
+    move_deviation: Option<f64>,
     cusp: Option<f64>,
     max_gap: Option<f64>,
     thin_regions: Option<crate::plan::ThinRegions>,
@@ -266,7 +267,12 @@ impl Job {
         let z_stations = z_stations(g.z, materials.len(), &tolerances, &bad)?;
         let z_step = z_step(g.z_step, !z_stations.is_empty(), &bad)?;
         check_extruded_size(&geometry, &layers, !z_stations.is_empty(), nozzle_mm, &bad)?;
-        let toolpath = toolpath_settings(raw.toolpath, nozzle_mm, &bad)?;
+        let mut toolpath = toolpath_settings(raw.toolpath, nozzle_mm, &bad)?;
+        if let Some(d) = raw.process.move_deviation {
+            // Up to a quarter of the nozzle, as the contour deviation.
+            up_to_nozzle(d, nozzle_mm / 4.0, "process.move_deviation", &bad)?;
+            toolpath.move_deviation_mm = d;
+        }
         Ok(Job {
             toolpath,
             placement,

@@ -28,7 +28,9 @@
 //! nozzle is not at the path start, extrusion cessation — `Retract` (when pressurised and
 //! the travel is at least `retract_min_travel_mm`), `Travel`, `Prime` (exactly the volumes
 //! retracted), `Dwell` — then one `Extrude` per centreline edge at constant scanning
-//! speed (`print_feed_mm_s`).
+//! speed (`print_feed_mm_s`). The edges are the path's merged within `move_deviation_mm`
+//! where the width does not change (`toolpath::merge`), and split where the mixing
+//! lead's commanded composition changes, so no move blends two compositions.
 //!
 //! # Mixing chamber
 //!
@@ -59,6 +61,11 @@ use crate::plan::LayerPlan;
 use crate::toolpath::{self, OrderSettings, SeamMode, SubRegionOrder, ToolPath};
 use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
+
+/// Default of [`ProcessSettings::move_deviation_mm`]: PrusaSlicer's default
+/// `gcode_resolution` (the largest deviation of exported G-code from the full-resolution
+/// path), half of Cura's default maximum deviation; a thirty-second of a 0.4 mm road.
+pub const DEFAULT_MOVE_DEVIATION_MM: f64 = 0.0125;
 
 /// Process settings: feeds, road width, extrusion cessation, flow limits, mixing chamber,
 /// seams. Units in the names; defaults documented per field (see [`Default`]).
@@ -136,6 +143,12 @@ pub struct ProcessSettings {
     /// Syringes on the machine; when set, every composition must have this many
     /// fractions. Default unset (taken from the plan).
     pub syringes: Option<usize>,
+    /// Consecutive edges of a road merge into one move where the merged edge stays
+    /// within this of every vertex it drops and the width does not change
+    /// (`toolpath::merge`), mm; 0 merges nothing. Set by the job's
+    /// `process.move_deviation`. Default 0.0125.
+    #[serde(skip)]
+    pub move_deviation_mm: f64,
 }
 
 impl Default for ProcessSettings {
@@ -166,6 +179,7 @@ impl Default for ProcessSettings {
             seam_corner_min_deg: 30.0,
             sub_region_order: SubRegionOrder::InnerToOuter,
             syringes: None,
+            move_deviation_mm: DEFAULT_MOVE_DEVIATION_MM,
         }
     }
 }
@@ -239,6 +253,7 @@ impl ProcessSettings {
         non_negative(self.v_dead_ul, "v_dead_ul")?;
         positive(self.purge_pad_mm, "purge_pad_mm")?;
         non_negative(self.purge_min_error, "purge_min_error")?;
+        non_negative(self.move_deviation_mm, "move_deviation_mm")?;
         if let Some([x, y]) = self.purge_xy_mm {
             if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
             {
@@ -527,6 +542,7 @@ pub fn moves_for_paths(
     state: &mut StreamState,
 ) -> Result<LayerMoves, PipelineError> {
     let syringes = syringe_count(layer, &paths, settings, state)?;
+    let paths = roads_as_moves(&paths, settings, layer.thickness_mm);
     if state.planned_nl.len() < syringes {
         state.planned_nl.resize(syringes, 0.0);
         state.commanded_nl.resize(syringes, 0);
@@ -704,6 +720,97 @@ impl<'a> Builder<'a> {
             extrusion_paths: self.extrusion_paths,
         }
     }
+}
+
+/// The edges the layer's paths are built with: merged within `move_deviation_mm`
+/// (`toolpath::merge`), then split where the mixing lead's commanded composition changes
+/// so that no move straddles such a change (a merged edge would blend the two
+/// compositions over its whole length).
+fn roads_as_moves(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<ToolPath> {
+    let merge = toolpath::merge::MergeOptions::within(s.move_deviation_mm);
+    let mut merged: Vec<ToolPath> = paths
+        .iter()
+        .map(|p| toolpath::merge::merge_edges(p, &merge))
+        .collect();
+    let lead = s.v_dead_ul * 1000.0;
+    if s.mixing_lead && lead > 0.0 {
+        let at = lead_changes_nl(&merged, s, h_mm, lead);
+        split_at_volumes(&mut merged, &at, s, h_mm);
+    }
+    merged
+}
+
+/// Where (stream volume, nl) the commanded composition changes under the mixing lead:
+/// V_dead before each change of the designed composition.
+fn lead_changes_nl(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64, lead: f64) -> Vec<f64> {
+    let segs = designed_stream(paths, s, h_mm);
+    let mut at = 0.0;
+    let mut out = Vec::new();
+    for w in segs.windows(2) {
+        at += w[0].0;
+        if w[0].1 != w[1].1 && at - lead > 0.0 {
+            out.push(at - lead);
+        }
+    }
+    out
+}
+
+/// Insert a vertex into the edge holding each stream volume in `at_nl` (sorted), where
+/// the volume before it is exactly that; the new vertex's width factor is interpolated,
+/// so the edge deposits what it did. Volumes within 0.01 nl of a vertex are left.
+fn split_at_volumes(paths: &mut [ToolPath], at_nl: &[f64], s: &ProcessSettings, h_mm: f64) {
+    let section = s.road_width() * h_mm * 1000.0;
+    let mut next = at_nl.iter().copied().peekable();
+    let mut start = 0.0;
+    for p in paths.iter_mut() {
+        let mut k = 0;
+        while p.points.len() >= 2 && k < edge_count(p) {
+            let n = p.points.len();
+            let (a, b) = (p.points[k], p.points[(k + 1) % n]);
+            let (wa, wb) = (p.width_factors[k], p.width_factors[(k + 1) % n]);
+            let len = a.distance(b);
+            let v = len * section * 0.5 * (wa + wb);
+            if len <= 0.0 {
+                k += 1;
+                continue;
+            }
+            while next.peek().is_some_and(|&x| x <= start + 0.01) {
+                next.next();
+            }
+            match next.peek() {
+                Some(&x) if x < start + v - 0.01 => {
+                    let t = fraction_at_volume(x - start, len * section, wa, wb);
+                    p.points.insert(k + 1, a.lerp(b, t));
+                    p.width_factors.insert(k + 1, wa + (wb - wa) * t);
+                    next.next();
+                    start = x;
+                }
+                _ => start += v,
+            }
+            k += 1;
+        }
+    }
+}
+
+fn edge_count(p: &ToolPath) -> usize {
+    if p.closed {
+        p.points.len()
+    } else {
+        p.points.len() - 1
+    }
+}
+
+/// The fraction t of an edge at which `v` of its volume has been laid, the width
+/// factor going linearly from `wa` to `wb` (`full` = volume per unit factor).
+fn fraction_at_volume(v: f64, full: f64, wa: f64, wb: f64) -> f64 {
+    // v = full · (wa·t + (wb − wa)·t²/2)
+    let (qa, qb, qc) = (0.5 * (wb - wa) * full, wa * full, -v);
+    let t = if qa.abs() < 1e-12 * qb.abs().max(1e-300) {
+        -qc / qb
+    } else {
+        (-qb + (qb * qb - 4.0 * qa * qc).max(0.0).sqrt()) / (2.0 * qa)
+    };
+    t.clamp(0.0, 1.0)
 }
 
 /// The designed extrusion stream of a layer: (volume nl, composition) per extrusion

@@ -45,7 +45,7 @@ fn demo_prints_the_crown_as_planned_and_writes_previews() {
     assert_eq!(s["mismatch"], Value::Null);
     let planned = s["moves_planned"].as_u64().unwrap();
     assert_eq!(s["moves_executed"].as_u64(), Some(planned));
-    assert!(planned > 5000, "{planned} moves");
+    assert!(planned > 2000, "{planned} moves");
     assert_eq!(s["layers"], 4);
     // The built gradient follows the design (plug-flow chamber of 1 µL, mixing lead on).
     let built = s["composition_error_built"]["mean"].as_f64().unwrap();
@@ -56,10 +56,10 @@ fn demo_prints_the_crown_as_planned_and_writes_previews() {
         .as_f64()
         .unwrap();
     let predicted = s["composition_error_predicted"]["mean"].as_f64().unwrap();
-    assert!(
-        per_road < built / 2.0,
-        "per road {per_road}, per move {built}"
-    );
+    assert!(per_road < built, "per road {per_road}, per move {built}");
+    // Merged moves keep the lead's changes (split there): no worse than the 0.0018 of
+    // one move per edge.
+    assert!(per_road < 0.002, "per road {per_road}");
     assert!(
         (per_road - predicted).abs() < 0.002,
         "per road {per_road}, predicted {predicted}"
@@ -75,10 +75,9 @@ fn demo_prints_the_crown_as_planned_and_writes_previews() {
     for k in 0..4 {
         let svg = std::fs::read_to_string(out_dir.join(format!("layer-{k:04}.svg"))).unwrap();
         assert!(svg.contains("planned") && svg.contains("as built"));
-        assert!(
-            svg.matches("<line ").count() > 1000,
-            "layer {k} as built is drawn"
-        );
+        // One line per executed extrusion: the layer's ~850 moves.
+        let lines = svg.matches("<line ").count();
+        assert!(lines > 500, "layer {k} as built is drawn: {lines} lines");
     }
     let summary: Value =
         serde_json::from_str(&std::fs::read_to_string(out_dir.join("summary.json")).unwrap())

@@ -27,6 +27,7 @@ pub mod coverage;
 pub mod ends;
 pub mod flow;
 pub mod gapfill;
+pub mod merge;
 
 use crate::geom::{next_in_loop, prev_in_loop, Path};
 use crate::material::OffsetDirection;
