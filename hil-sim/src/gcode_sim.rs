@@ -3,7 +3,9 @@
 //! model reads the lines (Marlin checks numbers and checksums and asks for resends, RRF
 //! drops bad lines silently, Klipper ignores both), the [`GcodeMachine`] turns the
 //! commands it ran into moves, and moves execute on simulated machine time, freeing the
-//! firmware's planner blocks as they finish. Faults are per line (`docs/firmware.md`).
+//! firmware's planner blocks as they finish. Faults are per line (`docs/firmware.md`),
+//! seeded: corrupted lines each way, lost lines and `ok`s, resend requests out of the
+//! blue, busy periods, a firmware reset (its banner mid-job) and an unplug.
 
 use std::collections::VecDeque;
 use std::fs::File;
@@ -22,9 +24,7 @@ use crate::faults::Faults;
 use crate::gcode_machine::GcodeMachine;
 use crate::model::{Executed, MachineModel};
 use crate::record::{write_line, RecordLine};
-use crate::sim::{
-    move_kind_name, open_pty, read_pty, um_to_mm, write_pty, Command, Pty, SimConfig, Summary,
-};
+use crate::sim::{move_kind_name, um_to_mm, Command, PtyPort, SimConfig, Summary};
 
 /// The G-code mode's settings (`--gcode`, `--gcode-mix`, ...).
 #[derive(Debug, Clone, PartialEq)]
@@ -102,10 +102,12 @@ impl LineInjector {
             sum.frames_dropped += 1;
             return;
         }
-        if !self.to_host
-            && self.rng.chance(f.corrupt_line)
-            && corrupt_one_byte(&mut self.rng, &mut line)
-        {
+        let corrupt = if self.to_host {
+            f.corrupt_reply
+        } else {
+            f.corrupt_line
+        };
+        if self.rng.chance(corrupt) && corrupt_one_byte(&mut self.rng, &mut line) {
             sum.bits_flipped += 1;
         }
         let copies = if self.rng.chance(f.dup) {
@@ -168,7 +170,9 @@ struct GcodeSim<'a> {
     cfg: &'a SimConfig,
     opts: GcodeOptions,
     faults: Faults,
-    pty: Option<Pty>,
+    port: PtyPort,
+    /// Seeded draws of the firmware-side faults (busy periods, resend requests).
+    rng: SimRng,
     recorder: Option<BufWriter<File>>,
     start: Instant,
     firmware: Firmware,
@@ -178,15 +182,11 @@ struct GcodeSim<'a> {
     to_host: LineInjector,
     tx: VecDeque<u8>,
     sum: Summary,
-    byte_us: f64,
-    rx_credit: f64,
-    tx_credit: f64,
     last_tick: u64,
     waiting: VecDeque<(Move, String, bool)>,
     executing: Option<Executing>,
     sim_time_us: f64,
     stall_until: u64,
-    replug_at: Option<u64>,
     timed_done: [bool; 3],
     reset_fired: bool,
     buf: Vec<u8>,
@@ -212,8 +212,7 @@ pub fn run(
 impl<'a> GcodeSim<'a> {
     fn new(cfg: &'a SimConfig, opts: GcodeOptions) -> anyhow::Result<(Self, PathBuf)> {
         let mut rng = SimRng::new(cfg.seed);
-        let pty = open_pty(cfg.link.as_deref())?;
-        let ready = cfg.link.clone().unwrap_or_else(|| pty.slave_path.clone());
+        let (port, ready) = PtyPort::open(cfg.link.as_deref(), cfg.baud)?;
         let recorder = match &cfg.record {
             Some(p) => Some(BufWriter::new(
                 File::create(p).with_context(|| format!("create record {}", p.display()))?,
@@ -224,7 +223,7 @@ impl<'a> GcodeSim<'a> {
         let sim = GcodeSim {
             cfg,
             faults: cfg.faults.clone(),
-            pty: Some(pty),
+            port,
             recorder,
             start: Instant::now(),
             firmware: Firmware::new(opts.firmware_config(), Micros(0)),
@@ -237,18 +236,15 @@ impl<'a> GcodeSim<'a> {
             ),
             to_firmware: LineInjector::new(rng.next_u64(), false),
             to_host: LineInjector::new(rng.next_u64(), true),
+            rng: SimRng::new(rng.next_u64()),
             opts,
             tx: VecDeque::new(),
             sum: Summary::default(),
-            byte_us: 10_000_000.0 / f64::from(cfg.baud.max(1)),
-            rx_credit: 0.0,
-            tx_credit: 0.0,
             last_tick: 0,
             waiting: VecDeque::new(),
             executing: None,
             sim_time_us: 0.0,
             stall_until: 0,
-            replug_at: None,
             timed_done: [false; 3],
             reset_fired: false,
             buf: vec![0u8; 4096],
@@ -264,10 +260,7 @@ impl<'a> GcodeSim<'a> {
             self.take_commands(rx, now_us);
         }
         self.timed_faults(now_us);
-        if self.replug_at.is_some_and(|at| now_us >= at) {
-            self.pty = Some(open_pty(self.cfg.link.as_deref())?);
-            self.replug_at = None;
-        }
+        self.port.replug_if_due(now_us)?;
         let stalled = now_us < self.stall_until;
         self.receive(now_us, dt, stalled)?;
         self.run_firmware(now_us);
@@ -295,7 +288,10 @@ impl<'a> GcodeSim<'a> {
                     f.dup = 0.0;
                     f.delay_ms = 0;
                     f.corrupt_line = 0.0;
+                    f.corrupt_reply = 0.0;
                     f.drop_ok = 0.0;
+                    f.resend = 0.0;
+                    f.busy = 0.0;
                 }
                 Command::Status => eprintln!(
                     "{}",
@@ -343,37 +339,32 @@ impl<'a> GcodeSim<'a> {
         self.to_firmware.clear();
         self.to_host.clear();
         self.sum.resets += 1;
-        if self.opts.firmware == Dialect::Rrf && self.pty.is_some() {
+        if self.opts.firmware == Dialect::Rrf {
             self.unplug(now_us);
         }
     }
 
+    /// The cable is pulled (the shared [`PtyPort`]): bytes on the line are lost.
     fn unplug(&mut self, now_us: u64) {
-        if self.pty.is_none() {
-            return;
+        if self.port.unplug(now_us, self.faults.unplug_for_ms) {
+            self.tx.clear();
+            self.to_firmware.clear();
+            self.sum.unplugs += 1;
         }
-        self.pty = None;
-        if let Some(l) = &self.cfg.link {
-            let _ = std::fs::remove_file(l);
-        }
-        self.tx.clear();
-        self.to_firmware.clear();
-        self.sum.unplugs += 1;
-        self.replug_at = Some(now_us + self.faults.unplug_for_ms * 1000);
     }
 
     fn receive(&mut self, now_us: u64, dt: u64, stalled: bool) -> anyhow::Result<()> {
-        let n = read_pty(
-            self.pty.as_mut(),
-            &mut self.buf,
-            &mut self.rx_credit,
-            dt as f64 / self.byte_us,
-            stalled,
-            &mut self.sum,
-        )?;
+        let n = self.port.read(&mut self.buf, dt, stalled, &mut self.sum)?;
         self.to_firmware
             .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
         while let Some(b) = self.to_firmware.pop_due(now_us) {
+            // A resend request out of the blue: Marlin rejects this good numbered line
+            // as line noise would (Error, Resend, ok), as OctoPrint's virtual printer's
+            // resend ratio does.
+            if b.first() == Some(&b'N') && self.rng.chance(self.faults.resend) {
+                self.sum.resend_requests += 1;
+                self.firmware.inject_spurious_resend();
+            }
             self.firmware.handle_bytes(&b, Micros(now_us));
         }
         Ok(())
@@ -456,6 +447,13 @@ impl<'a> GcodeSim<'a> {
         if done.planner {
             self.firmware.moves_done(1, Micros(now_us));
         }
+        if self.rng.chance(self.faults.busy) {
+            // A busy period: the handler blocks (a long command, the user's pause);
+            // Marlin sends `busy: processing` keepalives meanwhile.
+            self.sum.busy_periods += 1;
+            let until = now_us + self.faults.busy_for_ms * 1000;
+            self.firmware.stall(Micros(until), Micros(now_us));
+        }
         if !self.reset_fired && self.faults.reset_at_moves == Some(self.sum.executed) {
             self.reset_fired = true;
             if let Some(w) = self.recorder.as_mut() {
@@ -478,22 +476,14 @@ impl<'a> GcodeSim<'a> {
         while let Some(b) = self.to_host.pop_due(now_us) {
             self.tx.extend(b);
         }
-        write_pty(
-            self.pty.as_mut(),
-            &mut self.tx,
-            &mut self.tx_credit,
-            dt as f64 / self.byte_us,
-            &mut self.sum,
-        )
+        self.port.write(&mut self.tx, dt, &mut self.sum)
     }
 
     fn finish(mut self) -> anyhow::Result<Summary> {
         if let Some(w) = self.recorder.as_mut() {
             w.flush()?;
         }
-        if let Some(l) = &self.cfg.link {
-            let _ = std::fs::remove_file(l);
-        }
+        self.port.remove_link();
         Ok(self.sum)
     }
 }

@@ -144,77 +144,141 @@ pub struct Summary {
     pub bytes_from_host: u64,
     /// Bytes written to the host.
     pub bytes_to_host: u64,
+    /// G-code modes: good lines answered with a resend request (`resend=P`).
+    pub resend_requests: u64,
+    /// G-code modes: busy periods injected (`busy=P`).
+    pub busy_periods: u64,
 }
 
-/// Host -> machine through the pty, throttled to the line: `new_bytes` of credit are added
-/// (at most 512 banked) and up to the credit is read into `buf`. Returns how many bytes
-/// were read: 0 when stalled, unplugged, or nothing came (a hang-up, EIO, is not an error:
-/// the host may reopen).
-pub(crate) fn read_pty(
-    pty: Option<&mut Pty>,
-    buf: &mut [u8],
-    rx_credit: &mut f64,
-    new_bytes: f64,
-    stalled: bool,
-    sum: &mut Summary,
-) -> anyhow::Result<usize> {
-    *rx_credit = (*rx_credit + new_bytes).min(512.0);
-    let want = (*rx_credit as usize).min(buf.len());
-    let Some(p) = pty else { return Ok(0) };
-    if want == 0 || stalled {
-        return Ok(0);
+/// The machine's end of the cable: a pty (behind the `--link` symlink when one is
+/// asked for) throttled to the baud rate both ways, which can be unplugged (closed: the
+/// host sees a hang-up, the symlink goes) and plugged in again as a new pty behind the
+/// same symlink. Both simulators (edo and `--gcode`) use it.
+pub(crate) struct PtyPort {
+    link: Option<PathBuf>,
+    /// `None` while unplugged.
+    pty: Option<Pty>,
+    replug_at: Option<u64>,
+    /// Wall time one byte takes on the line, µs.
+    byte_us: f64,
+    /// Bytes the line may carry now, each way.
+    rx_credit: f64,
+    tx_credit: f64,
+}
+
+impl PtyPort {
+    /// A fresh pty at `baud`, and the path the host should open.
+    pub(crate) fn open(link: Option<&Path>, baud: u32) -> anyhow::Result<(Self, PathBuf)> {
+        let pty = open_pty(link)?;
+        let ready = link.map_or_else(|| pty.slave_path.clone(), Path::to_path_buf);
+        let port = PtyPort {
+            link: link.map(Path::to_path_buf),
+            pty: Some(pty),
+            replug_at: None,
+            byte_us: 10_000_000.0 / f64::from(baud.max(1)),
+            rx_credit: 0.0,
+            tx_credit: 0.0,
+        };
+        Ok((port, ready))
     }
-    match p.master.read(&mut buf[..want]) {
-        Ok(n) => {
-            *rx_credit -= n as f64;
-            sum.bytes_from_host += n as u64;
-            Ok(n)
+
+    /// Pull the cable (at `now_us`, for `for_ms`): the pty closes, master and slave, so
+    /// the host sees a hang-up, and the symlink goes. False if it was already unplugged.
+    pub(crate) fn unplug(&mut self, now_us: u64, for_ms: u64) -> bool {
+        if self.pty.take().is_none() {
+            return false;
         }
-        Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(0),
-        Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => Ok(0),
-        Err(e) => Err(e).context("read from the pty"),
+        self.remove_link();
+        self.replug_at = Some(now_us + for_ms * 1000);
+        true
     }
-}
 
-/// Machine -> host through the pty, throttled the same way: writes what the credit
-/// allows from the front of `tx`; unplugged, `tx` is dropped (nobody listens).
-pub(crate) fn write_pty(
-    pty: Option<&mut Pty>,
-    tx: &mut VecDeque<u8>,
-    tx_credit: &mut f64,
-    new_bytes: f64,
-    sum: &mut Summary,
-) -> anyhow::Result<()> {
-    *tx_credit = (*tx_credit + new_bytes).min(512.0);
-    let Some(p) = pty else {
-        tx.clear();
-        return Ok(());
-    };
-    let n = (*tx_credit as usize).min(tx.len());
-    if n == 0 {
-        return Ok(());
-    }
-    let chunk: Vec<u8> = tx.iter().take(n).copied().collect();
-    match p.master.write(&chunk) {
-        Ok(w) => {
-            tx.drain(..w);
-            *tx_credit -= w as f64;
-            sum.bytes_to_host += w as u64;
-            Ok(())
+    /// Plug a new pty in behind the same symlink once the unplug is over.
+    pub(crate) fn replug_if_due(&mut self, now_us: u64) -> anyhow::Result<()> {
+        if self.replug_at.is_some_and(|at| now_us >= at) {
+            self.pty = Some(open_pty(self.link.as_deref())?);
+            self.replug_at = None;
         }
-        Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(()),
-        Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => Ok(()),
-        Err(e) => Err(e).context("write to the pty"),
+        Ok(())
+    }
+
+    /// Remove the symlink (the simulator stops, or the cable is pulled).
+    pub(crate) fn remove_link(&self) {
+        if let Some(l) = &self.link {
+            let _ = std::fs::remove_file(l);
+        }
+    }
+
+    /// Host -> machine, throttled to the line: `dt_us` of line time is credited (at most
+    /// 512 bytes banked) and up to the credit is read into `buf`. Returns how many bytes
+    /// were read: 0 when stalled, unplugged, or nothing came (a hang-up, EIO, is not an
+    /// error: the host may reopen).
+    pub(crate) fn read(
+        &mut self,
+        buf: &mut [u8],
+        dt_us: u64,
+        stalled: bool,
+        sum: &mut Summary,
+    ) -> anyhow::Result<usize> {
+        self.rx_credit = (self.rx_credit + dt_us as f64 / self.byte_us).min(512.0);
+        let want = (self.rx_credit as usize).min(buf.len());
+        let Some(p) = self.pty.as_mut() else {
+            return Ok(0);
+        };
+        if want == 0 || stalled {
+            return Ok(0);
+        }
+        match p.master.read(&mut buf[..want]) {
+            Ok(n) => {
+                self.rx_credit -= n as f64;
+                sum.bytes_from_host += n as u64;
+                Ok(n)
+            }
+            Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(0),
+            Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => Ok(0),
+            Err(e) => Err(e).context("read from the pty"),
+        }
+    }
+
+    /// Machine -> host through the pty, throttled the same way: writes what the credit
+    /// allows from the front of `tx`; unplugged, `tx` is dropped (nobody listens).
+    pub(crate) fn write(
+        &mut self,
+        tx: &mut VecDeque<u8>,
+        dt_us: u64,
+        sum: &mut Summary,
+    ) -> anyhow::Result<()> {
+        self.tx_credit = (self.tx_credit + dt_us as f64 / self.byte_us).min(512.0);
+        let Some(p) = self.pty.as_mut() else {
+            tx.clear();
+            return Ok(());
+        };
+        let n = (self.tx_credit as usize).min(tx.len());
+        if n == 0 {
+            return Ok(());
+        }
+        let chunk: Vec<u8> = tx.iter().take(n).copied().collect();
+        match p.master.write(&chunk) {
+            Ok(w) => {
+                tx.drain(..w);
+                self.tx_credit -= w as f64;
+                sum.bytes_to_host += w as u64;
+                Ok(())
+            }
+            Err(e) if e.kind() == ErrorKind::WouldBlock => Ok(()),
+            Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => Ok(()),
+            Err(e) => Err(e).context("write to the pty"),
+        }
     }
 }
 
-pub(crate) struct Pty {
-    pub(crate) master: File,
+struct Pty {
+    master: File,
     _slave: OwnedFd,
-    pub(crate) slave_path: PathBuf,
+    slave_path: PathBuf,
 }
 
-pub(crate) fn open_pty(link: Option<&Path>) -> anyhow::Result<Pty> {
+fn open_pty(link: Option<&Path>) -> anyhow::Result<Pty> {
     use nix::fcntl::FdFlag;
     use nix::fcntl::{fcntl, FcntlArg, OFlag};
     use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
@@ -421,8 +485,7 @@ struct Sim<'a> {
     /// The faults now (run-time commands change them).
     faults: Faults,
     rng: SimRng,
-    /// `None` while unplugged.
-    pty: Option<Pty>,
+    port: PtyPort,
     recorder: Option<BufWriter<File>>,
     /// Wall time starts here.
     start: Instant,
@@ -433,17 +496,11 @@ struct Sim<'a> {
     /// Bytes waiting for the line to the host.
     tx: VecDeque<u8>,
     sum: Summary,
-    /// Wall time one byte takes on the line, µs.
-    byte_us: f64,
-    /// Bytes the line may carry now, each way.
-    rx_credit: f64,
-    tx_credit: f64,
     last_tick: u64,
     /// The move under way and when (simulated µs) it is done.
     executing: Option<(Move, crate::model::Executed, u64)>,
     sim_time_us: f64,
     stall_until: u64,
-    replug_at: Option<u64>,
     /// Timed faults already fired: stall, reset, unplug.
     stall_done: bool,
     reset_done: bool,
@@ -458,12 +515,7 @@ impl<'a> Sim<'a> {
     fn new(cfg: &'a SimConfig) -> anyhow::Result<(Self, PathBuf)> {
         let faults = cfg.faults.clone();
         let mut rng = SimRng::new(cfg.seed);
-        let pty = Some(open_pty(cfg.link.as_deref())?);
-        let ready_path = cfg
-            .link
-            .clone()
-            .or_else(|| pty.as_ref().map(|p| p.slave_path.clone()))
-            .unwrap_or_default();
+        let (port, ready_path) = PtyPort::open(cfg.link.as_deref(), cfg.baud)?;
         let recorder = match &cfg.record {
             Some(p) => Some(BufWriter::new(
                 File::create(p).with_context(|| format!("create record {}", p.display()))?,
@@ -484,7 +536,7 @@ impl<'a> Sim<'a> {
             cfg,
             faults,
             rng,
-            pty,
+            port,
             recorder,
             start,
             link,
@@ -493,14 +545,10 @@ impl<'a> Sim<'a> {
             to_host,
             tx: VecDeque::new(),
             sum: Summary::default(),
-            byte_us: 10_000_000.0 / f64::from(cfg.baud),
-            rx_credit: 0.0,
-            tx_credit: 0.0,
             last_tick: 0,
             executing: None,
             sim_time_us: 0.0,
             stall_until: 0,
-            replug_at: None,
             stall_done: false,
             reset_done: false,
             unplug_done: false,
@@ -526,15 +574,10 @@ impl<'a> Sim<'a> {
             self.reset(now_us);
             self.executing = None;
         }
-        if do_unplug && self.pty.is_some() {
+        if do_unplug {
             self.unplug(now_us);
         }
-        if let Some(at) = self.replug_at {
-            if now_us >= at {
-                self.pty = Some(open_pty(self.cfg.link.as_deref())?);
-                self.replug_at = None;
-            }
-        }
+        self.port.replug_if_due(now_us)?;
         let stalled = now_us < self.stall_until;
         self.receive(now_us, dt, stalled)?;
         self.execute(now_us, dt)?;
@@ -625,26 +668,16 @@ impl<'a> Sim<'a> {
     /// The cable is pulled: the pty closes (the host sees a hang-up) until the replug
     /// time.
     fn unplug(&mut self, now_us: u64) {
-        self.pty = None; // closes master and slave: the host sees a hang-up
-        if let Some(l) = &self.cfg.link {
-            let _ = std::fs::remove_file(l);
+        if self.port.unplug(now_us, self.faults.unplug_for_ms) {
+            self.tx.clear();
+            self.to_machine.clear();
+            self.sum.unplugs += 1;
         }
-        self.tx.clear();
-        self.to_machine.clear();
-        self.sum.unplugs += 1;
-        self.replug_at = Some(now_us + self.faults.unplug_for_ms * 1000);
     }
 
     /// Host -> machine, throttled to the baud rate, through the injector into the link.
     fn receive(&mut self, now_us: u64, dt: u64, stalled: bool) -> anyhow::Result<()> {
-        let n = read_pty(
-            self.pty.as_mut(),
-            &mut self.buf,
-            &mut self.rx_credit,
-            dt as f64 / self.byte_us,
-            stalled,
-            &mut self.sum,
-        )?;
+        let n = self.port.read(&mut self.buf, dt, stalled, &mut self.sum)?;
         self.to_machine
             .push(&self.buf[..n], now_us, &self.faults, &mut self.sum);
         let now = Micros(now_us);
@@ -762,13 +795,7 @@ impl<'a> Sim<'a> {
         while let Some(b) = self.to_host.pop_due(now_us) {
             self.tx.extend(b);
         }
-        write_pty(
-            self.pty.as_mut(),
-            &mut self.tx,
-            &mut self.tx_credit,
-            dt as f64 / self.byte_us,
-            &mut self.sum,
-        )
+        self.port.write(&mut self.tx, dt, &mut self.sum)
     }
 
     /// Stop: the recording flushed, the link's symlink removed.
@@ -776,9 +803,7 @@ impl<'a> Sim<'a> {
         if let Some(w) = self.recorder.as_mut() {
             w.flush()?;
         }
-        if let Some(l) = &self.cfg.link {
-            let _ = std::fs::remove_file(l);
-        }
+        self.port.remove_link();
         Ok(self.sum)
     }
 }

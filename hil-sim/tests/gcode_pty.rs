@@ -1,7 +1,7 @@
 //! `hil-sim --gcode` over a real pty, driven by the sans-IO G-code host
 //! (`edo::gcode_link::LineHost`) with wall-clock timers: every firmware's job lands in the
-//! recorder exactly as promised in `docs/firmware.md` through seeded line faults and a
-//! firmware reset.
+//! recorder exactly as promised in `docs/firmware.md` through seeded line faults (both
+//! ways), resend requests out of the blue, busy periods, a firmware reset and an unplug.
 
 use std::collections::HashMap;
 use std::fs::{File, OpenOptions};
@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use edo::gcode_link::{
     Dialect, LastAccepted, LineEvent, LineHost, LineLinkConfig, LinkState, Micros,
 };
-use hil_sim::{Faults, GcodeOptions, SimConfig};
+use hil_sim::{Faults, GcodeOptions, SimConfig, Summary};
 
 /// What a run saw.
 #[derive(Debug, Default)]
@@ -26,12 +26,19 @@ struct Run {
     recoveries: u64,
     /// Lines sent again (resend requests, probes, RRF timeouts).
     sent_again: u64,
+    /// Times the port hung up (unplugged) and was opened again.
+    reopened: u64,
+    /// What the simulator injected.
+    sim: Summary,
 }
 
 struct Driver {
+    path: PathBuf,
     port: File,
     host: LineHost,
     start: Instant,
+    /// The port hung up (EIO): the cable was pulled.
+    hung_up: bool,
 }
 
 impl Driver {
@@ -50,7 +57,10 @@ impl Driver {
                     self.host.handle_bytes(&buf[..n], now);
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock => break,
-                Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => break,
+                Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {
+                    self.hung_up = true;
+                    break;
+                }
                 Err(e) => panic!("read: {e}"),
             }
         }
@@ -64,6 +74,11 @@ impl Driver {
                     Err(e) if e.kind() == ErrorKind::WouldBlock => {
                         std::thread::sleep(Duration::from_millis(1))
                     }
+                    // Unplugged: the bytes are lost, as on a pulled cable.
+                    Err(e) if e.raw_os_error() == Some(nix::libc::EIO) => {
+                        self.hung_up = true;
+                        break;
+                    }
                     Err(e) => panic!("write: {e}"),
                 }
             }
@@ -72,13 +87,36 @@ impl Driver {
     }
 }
 
-fn open_port(path: &Path) -> File {
+fn try_open_port(path: &Path) -> std::io::Result<File> {
     OpenOptions::new()
         .read(true)
         .write(true)
         .custom_flags(nix::libc::O_NOCTTY | nix::libc::O_NONBLOCK)
         .open(path)
-        .unwrap_or_else(|e| panic!("open {}: {e}", path.display()))
+}
+
+fn open_port(path: &Path) -> File {
+    try_open_port(path).unwrap_or_else(|e| panic!("open {}: {e}", path.display()))
+}
+
+impl Driver {
+    /// After a hang-up: open the port again once the cable is back (the symlink points
+    /// at the new pty).
+    fn reopen_when_back(&mut self, run: &mut Run) {
+        let deadline = Instant::now() + Duration::from_secs(10);
+        // The old symlink may still be there for a moment: wait for it to go first.
+        std::thread::sleep(Duration::from_millis(50));
+        loop {
+            assert!(Instant::now() < deadline, "the port did not come back");
+            if let Ok(p) = try_open_port(&self.path) {
+                self.port = p;
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        self.hung_up = false;
+        run.reopened += 1;
+    }
 }
 
 /// A job line, unique per index, in the dialect's mix writing.
@@ -149,9 +187,11 @@ fn stream(dialect: Dialect, lines: u32, faults: &str, name: &str) -> Run {
         .map(|(i, t)| (t.as_str(), i as u32))
         .collect();
     let mut d = Driver {
+        path: sim.path().to_path_buf(),
         port: open_port(sim.path()),
         host: LineHost::new(cfg),
         start: Instant::now(),
+        hung_up: false,
     };
     let mut run = Run::default();
     let mut next = 0u32;
@@ -168,7 +208,11 @@ fn stream(dialect: Dialect, lines: u32, faults: &str, name: &str) -> Run {
             }
         }
         let mut resume = None;
-        for e in d.pump() {
+        let events = d.pump();
+        if d.hung_up && !(d.host.state() == LinkState::Reset && dialect == Dialect::Rrf) {
+            d.reopen_when_back(&mut run);
+        }
+        for e in events {
             match e {
                 LineEvent::MaybeRepeated { .. } => run.maybe_repeated += 1,
                 LineEvent::Reset { .. } => {
@@ -195,6 +239,7 @@ fn stream(dialect: Dialect, lines: u32, faults: &str, name: &str) -> Run {
             if d.host.state() == LinkState::Reset && dialect == Dialect::Rrf {
                 std::thread::sleep(Duration::from_millis(1500)); // USB re-enumerates
                 d.port = open_port(sim.path());
+                d.hung_up = false;
             }
             let done = recorded(&record);
             let after = done
@@ -215,7 +260,7 @@ fn stream(dialect: Dialect, lines: u32, faults: &str, name: &str) -> Run {
     }
     let stats = d.host.stats();
     run.sent_again = stats.lines_resent + stats.lines_repeated;
-    sim.stop().unwrap();
+    run.sim = sim.stop().unwrap();
     run
 }
 
@@ -262,4 +307,46 @@ fn klipper_runs_every_line_once_through_a_restart() {
     let run = stream(Dialect::Klipper, lines, "reset-at=150", "klipper");
     assert_eq!(run.executed, expected(Dialect::Klipper, lines), "{run:?}");
     assert_eq!(run.resets, 1, "{run:?}");
+}
+
+#[test]
+fn marlin_runs_every_line_once_through_busy_periods_resend_requests_and_bad_replies() {
+    let lines = 300;
+    let run = stream(
+        Dialect::Marlin,
+        lines,
+        "resend=0.03,busy=0.01,busy-for=800,corrupt-reply=0.02",
+        "marlin-busy",
+    );
+    assert_eq!(run.executed, expected(Dialect::Marlin, lines), "{run:?}");
+    assert!(run.sim.resend_requests > 0, "{run:?}");
+    assert!(run.sim.busy_periods > 0, "{run:?}");
+    assert!(run.sim.bits_flipped > 0, "{run:?}");
+}
+
+#[test]
+fn marlin_resumes_exactly_after_an_unplug() {
+    let lines = 300;
+    let run = stream(
+        Dialect::Marlin,
+        lines,
+        "unplug-at=0.3,unplug-for=700",
+        "marlin-unplug",
+    );
+    assert_eq!(run.executed, expected(Dialect::Marlin, lines), "{run:?}");
+    assert_eq!(run.sim.unplugs, 1, "{run:?}");
+    assert_eq!(run.reopened, 1, "{run:?}");
+}
+
+#[test]
+fn klipper_runs_every_line_once_through_busy_periods() {
+    let lines = 300;
+    let run = stream(
+        Dialect::Klipper,
+        lines,
+        "busy=0.02,busy-for=300",
+        "klipper-busy",
+    );
+    assert_eq!(run.executed, expected(Dialect::Klipper, lines), "{run:?}");
+    assert!(run.sim.busy_periods > 0, "{run:?}");
 }

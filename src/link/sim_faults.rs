@@ -39,6 +39,17 @@ pub struct Faults {
     pub corrupt_line: f64,
     /// `drop-ok=P` (G-code modes): probability that an `ok` line to the host is lost.
     pub drop_ok: f64,
+    /// `corrupt-reply=P` (G-code modes): probability that a reply line to the host has
+    /// one byte corrupted, its framing kept.
+    pub corrupt_reply: f64,
+    /// `resend=P` (G-code modes, Marlin): probability that a good numbered line is
+    /// answered with a resend request (`Error:`, `Resend:`, `ok`) out of the blue.
+    pub resend: f64,
+    /// `busy=P` (G-code modes): probability, per executed move, of a busy period (the
+    /// handler blocks; Marlin sends `busy: processing`) ...
+    pub busy: f64,
+    /// `busy-for=MS`: ... of MS milliseconds (default 3000).
+    pub busy_for_ms: u64,
 }
 
 /// A bad `--faults` item.
@@ -68,6 +79,7 @@ impl Faults {
         let mut f = Faults {
             stall_for_ms: 3000,
             unplug_for_ms: 1000,
+            busy_for_ms: 3000,
             ..Faults::default()
         };
         for item in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
@@ -125,6 +137,10 @@ impl Faults {
             "estop-at" => self.estop_at_moves = Some(int()?),
             "corrupt-line" => self.corrupt_line = prob()?,
             "drop-ok" => self.drop_ok = prob()?,
+            "corrupt-reply" => self.corrupt_reply = prob()?,
+            "resend" => self.resend = prob()?,
+            "busy" => self.busy = prob()?,
+            "busy-for" => self.busy_for_ms = int()?,
             _ => return Err(FaultParseError::UnknownKey(key.to_string())),
         }
         Ok(())
@@ -151,6 +167,11 @@ FAULTS (--faults key=value,...; all off by default):
   estop-at=N      the machine's e-stop button is pressed at executed move N
   corrupt-line=P  (--gcode) a line to the firmware has one byte corrupted, framing kept
   drop-ok=P       (--gcode) an `ok` line to the host is lost
+  corrupt-reply=P (--gcode) a reply line to the host has one byte corrupted, framing kept
+  resend=P        (--gcode, Marlin) a good numbered line is answered with a resend request
+  busy=P          (--gcode) per executed move, a busy period of busy-for (default 3000
+                  ms): the firmware reads nothing, Marlin sends `busy: processing`
+  busy-for=MS     length of a busy period
   In --gcode modes `drop` loses whole lines and `dup` repeats them; `corrupt` and
   `jitter` are not used (the line faults above replace them).
 
