@@ -315,7 +315,7 @@ fn marlin_runs_every_line_once_through_busy_periods_resend_requests_and_bad_repl
     let run = stream(
         Dialect::Marlin,
         lines,
-        "resend=0.03,busy=0.01,busy-for=800,corrupt-reply=0.02",
+        "resend=0.03,busy=0.03,busy-for=300,corrupt-reply=0.02",
         "marlin-busy",
     );
     assert_eq!(run.executed, expected(Dialect::Marlin, lines), "{run:?}");
