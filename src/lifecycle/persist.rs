@@ -112,14 +112,14 @@ impl Lifecycle {
     /// waiting for them.
     pub(super) fn on_stored(&mut self, upto: u64) {
         self.stored_upto = self.stored_upto.max(upto);
-        if self.stored_upto >= self.last_seq {
-            if let Some(f) = self.store_failing.take() {
-                self.log(
-                    Level::Info,
-                    None,
-                    format!("job store written again, after {} failed tries", f.tries),
-                );
-            }
+        // A write went through (the store reports in order): it can write again. The
+        // records handed over since are on their way.
+        if let Some(f) = self.store_failing.take() {
+            self.log(
+                Level::Info,
+                None,
+                format!("job store written again, after {} failed tries", f.tries),
+            );
         }
         while self
             .notes
