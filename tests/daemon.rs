@@ -1710,3 +1710,228 @@ fn four_3mf_bombs_at_once(bomb: &[u8]) {
     drop(d);
     sim.stop().unwrap();
 }
+
+/// `dir/state/edod.db` opened by another process (an operator's sqlite3 shell).
+fn open_db(dir: &Path) -> rusqlite::Connection {
+    rusqlite::Connection::open(dir.join("state").join("edod.db")).unwrap()
+}
+
+/// A damaged job store: rows that cannot be read are failed naming the job and what is
+/// wrong (not coerced: a spec that is not JSON used to run as a 0-move dry run and end
+/// done, one bad `next_index` failed `job.list` for every job, an unknown state showed
+/// as `failed` without a word); a lost jobs table does not bring ids back to 1; random
+/// bytes over a page nobody reads at start, and a newer schema, stop edod at start with
+/// a message naming the file and what to do.
+#[test]
+fn a_damaged_store_is_refused_or_its_unreadable_rows_quarantined() {
+    let dir = tempfile::tempdir().unwrap();
+    // Five jobs queued for a machine that is not there.
+    let mut d = Daemon::start(dir.path(), &dir.path().join("no-such-tty"));
+    let mut c = d.client();
+    let ids: Vec<u64> = (0..5).map(|_| submit(&mut c, 50)).collect();
+    assert_eq!(ids, [1, 2, 3, 4, 5]);
+    drop(c);
+    assert!(d.sigterm().success());
+    {
+        let db = open_db(dir.path());
+        for sql in [
+            "UPDATE jobs SET spec = 'not json' WHERE id = 1",
+            "UPDATE jobs SET next_index = 'seven' WHERE id = 2",
+            "UPDATE jobs SET state = 'frobbed' WHERE id = 3",
+        ] {
+            assert_eq!(db.execute(sql, []).unwrap(), 1, "{sql}");
+        }
+    }
+    let (sim, record) = sim(dir.path(), 31);
+    let mut d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    let list = c.call("job.list", json!({})).expect("job.list");
+    let jobs = list.as_array().unwrap();
+    assert_eq!(jobs.len(), 5, "{list}");
+    for (j, what) in jobs[..3].iter().zip(["spec: ", "next_index: ", "state: "]) {
+        assert_eq!(j["state"], json!("failed"), "{j}");
+        let reason = j["reason"].as_str().unwrap_or_default();
+        assert!(
+            reason.starts_with("stored job unreadable: ") && reason.contains(what),
+            "{j}"
+        );
+    }
+    c.wait_state(4, "done");
+    c.wait_state(5, "done");
+    for id in 1..=3 {
+        assert_eq!(c.job(id)["state"], json!("failed"), "job {id} never ran");
+        assert!(recorded(&record, id).is_empty(), "job {id} never ran");
+    }
+    drop(c);
+    assert!(d.sigterm().success());
+    // The jobs table lost: ids go on from the highest ever given.
+    open_db(dir.path())
+        .execute_batch("DROP TABLE jobs")
+        .unwrap();
+    let mut d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    assert_eq!(submit(&mut c, 10), 6, "ids are never given twice");
+    c.wait_state(6, "done");
+    drop(c);
+    assert!(d.sigterm().success());
+    sim.stop().unwrap();
+    // Random bytes over the meshes table's first page (nothing reads it at start).
+    let page = {
+        let db = open_db(dir.path());
+        db.pragma_update(None, "wal_checkpoint", "TRUNCATE")
+            .unwrap();
+        db.query_row(
+            "SELECT rootpage FROM sqlite_master WHERE name = 'job_meshes'",
+            [],
+            |r| r.get::<_, i64>(0),
+        )
+        .unwrap() as usize
+    };
+    let path = dir.path().join("state").join("edod.db");
+    let mut bytes = std::fs::read(&path).unwrap();
+    let mut x: u32 = 31;
+    for b in &mut bytes[(page - 1) * 4096..page * 4096] {
+        x = x.wrapping_mul(1_103_515_245).wrapping_add(12345);
+        *b = (x >> 16) as u8;
+    }
+    std::fs::write(&path, &bytes).unwrap();
+    let config = dir.path().join("edod.toml");
+    let said = refused_to_start(&config);
+    assert!(
+        said.contains(&format!(
+            "job store {} is damaged (PRAGMA quick_check",
+            path.display()
+        )) && said.contains(".recover"),
+        "{said}"
+    );
+    // A schema newer than this edod's.
+    std::fs::write(&path, []).unwrap();
+    let _ = std::fs::remove_file(dir.path().join("state").join("edod.db-wal"));
+    open_db(dir.path())
+        .pragma_update(None, "user_version", 9)
+        .unwrap();
+    let said = refused_to_start(&config);
+    assert!(
+        said.contains("schema version 9, newer than this edod knows"),
+        "{said}"
+    );
+}
+
+/// Set edod's file size limit (RLIMIT_FSIZE, soft) to `limit` (`prlimit --fsize`): 0
+/// makes every write of its to a regular file fail as on a full disk (EFBIG; SIGXFSZ is
+/// ignored), `unlimited` gives the room back.
+fn file_size_limit(d: &Daemon, limit: &str) {
+    let out = Command::new("prlimit")
+        .arg("--pid")
+        .arg(d.child.id().to_string())
+        .arg(format!("--fsize={limit}:unlimited"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// A full state disk while a job streams (edod's file size limit set to 0: every write
+/// of edod.db fails, while the machine, the socket and edod's log go on). The job's
+/// planned moves go on; a pause holds the machine and is answered -32007, not `paused`
+/// as if stored; a resume and a cancel are refused or told as not on disk; warnings are
+/// not repeated several times a second; once there is room again everything catches
+/// up, and a restart then reverses no operator's decision.
+#[test]
+fn a_full_state_disk_holds_state_changes_and_loses_no_operator_decision() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim_at(dir.path(), 32, 20.0);
+    Daemon::write_config(dir.path(), sim.path(), 4096, 1000, "");
+    let mut child = Command::new("sh")
+        .arg("-c")
+        .arg("trap '' XFSZ; exec \"$0\" --config \"$1\"")
+        .arg(env!("CARGO_BIN_EXE_edod"))
+        .arg(dir.path().join("edod.toml"))
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let log = Arc::new(std::sync::Mutex::new(Vec::<String>::new()));
+    let stderr = child.stderr.take().unwrap();
+    let lines = Arc::clone(&log);
+    std::thread::spawn(move || {
+        for l in BufReader::new(stderr).lines().map_while(Result::ok) {
+            eprintln!("edod: {l}");
+            lines.lock().unwrap().push(l);
+        }
+    });
+    let mut d = Daemon::ready(
+        child,
+        dir.path().join("edod.sock"),
+        dir.path().join("edod.toml"),
+    );
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 1500);
+    let b = submit(&mut c, 100);
+    c.wait("streaming", |c| c.executed(a) > 200);
+    let progress = |c: &mut Client| {
+        c.call("machine.status", json!({})).unwrap()["progress"]["executed"]
+            .as_u64()
+            .unwrap_or(0)
+    };
+    file_size_limit(&d, "0");
+    let full_at = log.lock().unwrap().len();
+    let before = progress(&mut c);
+    std::thread::sleep(Duration::from_millis(800));
+    let during = progress(&mut c);
+    assert!(during > before + 50, "fed on: {before} -> {during}");
+    // The pause takes effect on the machine, and is not acknowledged as stored.
+    let e = c.call("job.pause", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32007), "{e}");
+    let m = e["message"].as_str().unwrap();
+    assert!(
+        m.starts_with("job store cannot write: ") && m.contains("is paused here"),
+        "{m}"
+    );
+    std::thread::sleep(Duration::from_millis(700));
+    let held = progress(&mut c);
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(progress(&mut c), held, "the machine holds");
+    let e = c.call("job.resume", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32007), "{e}");
+    let e = c.call("job.cancel", json!({"id": b})).unwrap_err();
+    assert_eq!(e["code"], json!(-32007), "{e}");
+    let e = c
+        .call("job.submit", json!({"dry_run_moves": 10}))
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32007), "{e}");
+    std::thread::sleep(Duration::from_millis(1500));
+    let warnings = log.lock().unwrap()[full_at..]
+        .iter()
+        .filter(|l| l.contains("job store"))
+        .count();
+    assert!(warnings <= 2, "{warnings} store warnings in 3.5 s");
+    // Room again: the pause and the cancel reach the disk.
+    file_size_limit(&d, "unlimited");
+    c.wait_state(a, "paused");
+    c.wait_state(b, "cancelled");
+    let r = c.call("job.resume", json!({"id": a})).unwrap();
+    assert_eq!(r["stored"], json!(true), "{r}");
+    c.wait_state(a, "done");
+    drop(c);
+    assert!(d.sigterm().success());
+    // Across a restart nothing is reversed.
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    assert_eq!(c.job(a)["state"], json!("done"));
+    let j = c.job(b);
+    assert_eq!(j["state"], json!("cancelled"), "{j}");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    assert_exactly_once(&record, a, 1500);
+    assert!(
+        recorded(&record, b).is_empty(),
+        "the cancelled job never ran"
+    );
+}

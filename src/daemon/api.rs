@@ -12,7 +12,7 @@ use tokio::sync::oneshot;
 use tracing::info;
 
 use super::store::{JobRecord, JobSpec};
-use super::{api_error, ApiError, Control, Shared};
+use super::{api_error, api_write_error, ApiError, Control, Shared};
 use crate::proto::{
     Call, Deleted, EStopTiming, Event, Id, Job, JobIdParams, JobSource, JobState, JobStateChanged,
     MachineStatus, MethodResult, Progress, Refilled, Refusal, Request, Response, ServerInfo,
@@ -239,7 +239,7 @@ async fn store_submission(shared: &Shared, name: &str, spec: JobSpec) -> Result<
         .writer
         .submit(name.to_string(), spec, keep, PRUNE_AT_MOST, STORE_WAIT)
         .await
-        .map_err(api_error)?;
+        .map_err(api_write_error)?;
     if !pruned.is_empty() {
         info!(jobs = ?pruned, keep, "deleted the oldest finished jobs");
     }
@@ -263,7 +263,7 @@ async fn delete_stored(shared: &Shared, id: u32) -> Result<Result<(), JobState>,
         .writer
         .delete(id, STORE_WAIT)
         .await
-        .map_err(api_error)
+        .map_err(api_write_error)
 }
 
 /// A stored job as the API shows it, with `live` progress if it is the active job.

@@ -113,6 +113,22 @@ pub fn api_error(e: store::StoreError) -> ApiError {
     }
 }
 
+/// A write's store error as the API's: as [`api_error`], but -32007 when SQLite cannot
+/// write (a full disk, an I/O error).
+pub fn api_write_error(e: store::StoreError) -> ApiError {
+    if !e.is_write_failure() {
+        return api_error(e);
+    }
+    ApiError::new(
+        ApiError::STORE_CANNOT_WRITE,
+        format!(
+            "job store cannot write: {}; nothing was done (free space for edod's state \
+             directory, then retry)",
+            e.cause()
+        ),
+    )
+}
+
 impl Shared {
     /// Send a notification to every subscriber (never blocks).
     pub fn notify(&self, event: crate::proto::Event) {

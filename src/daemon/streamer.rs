@@ -463,6 +463,7 @@ impl Streamer {
                 ),
             ),
             RefusalKind::Internal => ApiError::new(ApiError::INTERNAL, r.message),
+            RefusalKind::StoreCannotWrite => ApiError::new(ApiError::STORE_CANNOT_WRITE, r.message),
         }
     }
 

@@ -182,6 +182,9 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     let block = crate::lifecycle::Options::default().service_index_block;
     let opened = store::start(dir, block, events_tx).await?;
     instance::secure_db_files(&cfg.state.dir)?;
+    for (job, what) in &opened.quarantined {
+        warn!(job, "stored job unreadable, marked failed: {what}");
+    }
     if !opened.interrupted.is_empty() {
         warn!(jobs = ?opened.interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
     }

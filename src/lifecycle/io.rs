@@ -208,10 +208,13 @@ pub enum Event {
         /// Sequence number.
         upto: u64,
     },
-    /// A write failed (it is being tried again).
+    /// A write failed (it is being tried again): every failed try is reported.
     StoreFailed {
-        /// Why.
+        /// Why: "disk full", or the store's or the OS's error.
         error: String,
+        /// Another process holds the store's write lock (the write waits for it); else
+        /// the store cannot write (a full disk, an I/O error).
+        busy: bool,
     },
 }
 
@@ -282,6 +285,9 @@ pub enum RefusalKind {
     NotConnected,
     /// The store could not be read.
     Internal,
+    /// The store cannot write (a full disk): the change is not on disk (what took
+    /// effect on the machine is said in the message), or it was not made.
+    StoreCannotWrite,
 }
 
 /// A refused command.

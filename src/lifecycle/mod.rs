@@ -94,9 +94,24 @@ enum Stopping {
 #[derive(Debug, Clone, PartialEq)]
 struct WaitingReply {
     request: RequestId,
+    job_id: u32,
     seq: u64,
     state: JobState,
     until_us: u64,
+}
+
+/// The store's writes fail: since when, and the warnings about it.
+#[derive(Debug, Clone, PartialEq)]
+struct StoreFailing {
+    /// The last failure's cause ("disk full", …).
+    cause: String,
+    /// Only another process's write lock (the writes wait, they do not fail).
+    busy: bool,
+    /// Failed tries in all.
+    tries: u64,
+    /// When the last warning was logged, and the failed tries not logged since.
+    warned_at_us: u64,
+    not_warned: u64,
 }
 
 /// The job lifecycle. See the module docs.
@@ -120,6 +135,8 @@ pub struct Lifecycle {
     /// State notifications waiting for their record (sequence number, note).
     notes: VecDeque<(u64, StateNote)>,
     waiting_replies: Vec<WaitingReply>,
+    /// The store's writes fail (until it reports everything stored).
+    store_failing: Option<StoreFailing>,
     /// Commands waiting for their job to be read from the store.
     parked: Vec<(RequestId, Command)>,
     /// Jobs being read.
@@ -157,6 +174,7 @@ impl Lifecycle {
             stored_upto: 0,
             notes: VecDeque::new(),
             waiting_replies: Vec::new(),
+            store_failing: None,
             parked: Vec::new(),
             looking_up: BTreeSet::new(),
             connect_lookup: None,
@@ -198,13 +216,17 @@ impl Lifecycle {
             }
             Event::CommandAcked(c) => self.on_acked(c),
             Event::MoveRefused { mv, reason } => self.on_move_refused(mv, &reason),
-            Event::Command { request, command } => self.on_command(request, command, now_us),
+            Event::Command { request, command } => {
+                if !self.refused_while_store_fails(request, command) {
+                    self.on_command(request, command, now_us);
+                }
+            }
             Event::Submitted => self.actions.push_back(Action::ListQueued),
             Event::Planner { run, output } => self.on_planner(run, output, now_us),
             Event::QueuedJobs(r) => self.on_queued_jobs(r),
             Event::JobLookedUp { id, job } => self.on_looked_up(id, job, now_us),
             Event::Stored { upto } => self.on_stored(upto),
-            Event::StoreFailed { error } => self.on_store_failed(&error),
+            Event::StoreFailed { error, busy } => self.on_store_failed(error, busy, now_us),
         }
         self.advance(now_us);
     }
@@ -252,7 +274,8 @@ impl Lifecycle {
     }
 
     /// The next move to send, while the link has room: service moves first, then the
-    /// active job's while it streams. `None` while the machine is not connected.
+    /// active job's while it streams. `None` while the machine is not connected, and
+    /// for a job that has not started moving while the store cannot write.
     pub fn poll_move(&mut self) -> Option<Move> {
         if !self.connected || self.is_stopped() {
             return None;
@@ -260,10 +283,11 @@ impl Lifecycle {
         if let Some(m) = self.outbox.pop_front() {
             return Some(m);
         }
+        let cannot_write = self.store_cannot_write().is_some();
         let a = self
             .active
             .as_mut()
-            .filter(|a| a.phase == Phase::Streaming)?;
+            .filter(|a| a.phase == Phase::Streaming && (a.printing || !cannot_write))?;
         let mv = a.queue.pop_front()?;
         a.sent.push_back(mv.clone());
         if !a.printing {
@@ -342,9 +366,14 @@ impl Lifecycle {
         if self.is_stopped() {
             return;
         }
+        // While the store cannot write, no job starts or continues (a state change it
+        // would need could not be made durable); one whose change is not is held.
+        let cannot_write = self.store_cannot_write().is_some();
+        self.hold_for_store();
         if self.connected
             && self.stopping.is_none()
             && self.active.is_none()
+            && !cannot_write
             && self.queue_held_by().is_none()
         {
             if let Some(id) = self.jobs.first_queued() {
@@ -352,6 +381,7 @@ impl Lifecycle {
             }
         }
         if self.connected
+            && !cannot_write
             && self.active.as_ref().is_some_and(|a| {
                 a.phase == Phase::Prelude
                     && (a.resume_point.is_some() || a.checkpoint.next_index == 0)

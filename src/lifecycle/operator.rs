@@ -230,6 +230,16 @@ impl Lifecycle {
                 // cancelled once the machine has stopped and parked.
                 self.save_checkpoints(true, now_us);
                 self.restart_active(AfterFlush::Park);
+                if let Some(cause) = self.store_cannot_write() {
+                    return Err(Refusal::new(
+                        RefusalKind::StoreCannotWrite,
+                        format!(
+                            "job store cannot write: {cause}; job {id} is being cancelled on \
+                             the machine but that is not on disk: it is written once the \
+                             store can write again (free space for edod's state directory)"
+                        ),
+                    ));
+                }
                 return Ok(Some(Answer::Applied(Applied {
                     state: JobState::Cancelled,
                     stored: false,

@@ -1,9 +1,29 @@
 //! What is written and told: job states with their checkpoints, periodic checkpoints,
-//! the notifications and replies that wait for their record to be on disk, progress.
+//! the notifications and replies that wait for their record to be on disk, progress;
+//! and what happens while the store cannot write.
+//!
+//! A store that cannot write (a full disk, an I/O error; not another process's lock,
+//! which only delays the writes) changes what may happen, since no state change can be
+//! made durable meanwhile: the moves already planned of a job that is moving go on
+//! (its checkpoints wait in the writer), but no job starts or continues (no queued job
+//! is started, no prelude sent, a resume or a refill's continue refused), a job whose
+//! state change is not on disk is held (paused, "job store cannot write: <cause>"), and
+//! replies waiting for a state are answered with a refusal saying it is not on disk.
+//! The failures are warned about at once, then at most every
+//! [`STORE_WARN_EVERY_US`] with the count between. Once the store reports everything
+//! stored it all catches up: the states go to disk in order, their notifications out,
+//! and the next job may start.
 
-use super::io::{Action, Answer, Applied, JobUpdate, Level, Record, RequestId, StateNote};
+use super::active::Phase;
+use super::io::{
+    Action, Answer, Applied, Command, JobUpdate, Level, MachineCommand, Record, Refusal,
+    RefusalKind, RequestId, StateNote,
+};
 use super::job::{time_left_s, JobState, Progress};
-use super::{Lifecycle, WaitingReply};
+use super::{Lifecycle, StoreFailing, WaitingReply};
+
+/// While the store's writes fail, a warning at most this often (µs).
+pub const STORE_WARN_EVERY_US: u64 = 10_000_000;
 
 impl Lifecycle {
     /// Hand `record` to the store; returns its sequence number.
@@ -92,6 +112,15 @@ impl Lifecycle {
     /// waiting for them.
     pub(super) fn on_stored(&mut self, upto: u64) {
         self.stored_upto = self.stored_upto.max(upto);
+        // A write went through (the store reports in order): it can write again. The
+        // records handed over since are on their way.
+        if let Some(f) = self.store_failing.take() {
+            self.log(
+                Level::Info,
+                None,
+                format!("job store written again, after {} failed tries", f.tries),
+            );
+        }
         while self
             .notes
             .front()
@@ -112,28 +141,141 @@ impl Lifecycle {
         self.service_stored(stored_upto);
     }
 
-    /// A write failed (the store tries again): replies waiting for it are answered now,
-    /// `stored: false`.
-    pub(super) fn on_store_failed(&mut self, error: &str) {
-        self.log(
-            Level::Warn,
-            None,
-            format!("job store write failed, trying again: {error}"),
-        );
+    /// A write failed (the store tries again): warned about at once, then at most every
+    /// [`STORE_WARN_EVERY_US`]; replies waiting for it are answered now.
+    pub(super) fn on_store_failed(&mut self, cause: String, busy: bool, now_us: u64) {
+        let f = self.store_failing.get_or_insert(StoreFailing {
+            cause: cause.clone(),
+            busy,
+            tries: 0,
+            warned_at_us: now_us,
+            not_warned: 0,
+        });
+        let first = f.tries == 0;
+        f.tries += 1;
+        f.busy &= busy;
+        f.cause = cause;
+        let warn = if first {
+            true
+        } else if now_us.saturating_sub(f.warned_at_us) >= STORE_WARN_EVERY_US {
+            f.warned_at_us = now_us;
+            true
+        } else {
+            f.not_warned += 1;
+            false
+        };
+        if warn {
+            let since = std::mem::take(&mut f.not_warned);
+            let message = match (f.busy, first) {
+                (true, _) => format!(
+                    "job store write failed, trying again: {} ({since} failed tries since \
+                     the last warning)",
+                    f.cause
+                ),
+                (false, true) => format!(
+                    "job store cannot write: {}; trying again. Jobs moving go on, none \
+                     starts or continues until it can",
+                    f.cause
+                ),
+                (false, false) => format!(
+                    "job store cannot write: {}; still trying ({since} failed tries since \
+                     the last warning)",
+                    f.cause
+                ),
+            };
+            self.log(Level::Warn, None, message);
+        }
         for r in std::mem::take(&mut self.waiting_replies) {
-            self.answer_applied(r.request, r.state, false);
+            self.answer_unstored(r);
         }
     }
 
-    /// Replies that waited long enough for their state are answered `stored: false`.
+    /// The store's writes fail for a reason other than another process's lock: the cause.
+    pub(super) fn store_cannot_write(&self) -> Option<&str> {
+        self.store_failing
+            .as_ref()
+            .filter(|f| !f.busy)
+            .map(|f| f.cause.as_str())
+    }
+
+    /// While the store cannot write: a streaming job whose state change is not on disk
+    /// is held (paused, "job store cannot write: <cause>").
+    pub(super) fn hold_for_store(&mut self) {
+        let Some(cause) = self.store_cannot_write().map(str::to_string) else {
+            return;
+        };
+        let Some(a) = self.active.as_mut().filter(|a| a.phase == Phase::Streaming) else {
+            return;
+        };
+        let id = a.id;
+        if !self.notes.iter().any(|(_, n)| n.job_id == id) {
+            return;
+        }
+        a.phase = Phase::Holding;
+        self.machine(MachineCommand::FeedHold);
+        let reason = format!("job store cannot write: {cause}");
+        self.log(Level::Warn, Some(id), format!("job {id} paused: {reason}"));
+        self.set_state(id, JobState::Paused, Some(reason), true);
+    }
+
+    /// While the store cannot write, a command that would start a job moving is refused
+    /// (with nothing done): a resume, and a refill of a job waiting for one. Returns
+    /// whether `command` was.
+    pub(super) fn refused_while_store_fails(
+        &mut self,
+        request: RequestId,
+        command: Command,
+    ) -> bool {
+        let Some(cause) = self.store_cannot_write() else {
+            return false;
+        };
+        let message = match command {
+            Command::Resume(id) => format!(
+                "job store cannot write: {cause}; job {id} stays as it is until it can \
+                 (free space for edod's state directory), then resume it"
+            ),
+            Command::Refill if self.phase() == Some(Phase::Empty) => format!(
+                "job store cannot write: {cause}; the job waiting for the refill stays \
+                 paused until it can (free space for edod's state directory), then refill"
+            ),
+            _ => return false,
+        };
+        self.actions.push_back(Action::Reply {
+            request,
+            result: Err(Refusal::new(RefusalKind::StoreCannotWrite, message)),
+        });
+        true
+    }
+
+    /// Replies that waited long enough for their state are answered.
     pub(super) fn expire_replies(&mut self, now_us: u64) {
         let (due, waiting): (Vec<_>, Vec<_>) = std::mem::take(&mut self.waiting_replies)
             .into_iter()
             .partition(|r| r.until_us <= now_us);
         self.waiting_replies = waiting;
         for r in due {
-            self.answer_applied(r.request, r.state, false);
+            self.answer_unstored(r);
         }
+    }
+
+    /// A reply whose state is not on disk: `stored: false` while the store only waits
+    /// for another process's lock, a refusal saying so when it cannot write.
+    fn answer_unstored(&mut self, r: WaitingReply) {
+        let Some(cause) = self.store_cannot_write() else {
+            self.answer_applied(r.request, r.state, false);
+            return;
+        };
+        let message = format!(
+            "job store cannot write: {cause}; job {} is {} here but that is not on disk: \
+             it is written once the store can write again (free space for edod's state \
+             directory)",
+            r.job_id,
+            r.state.as_str()
+        );
+        self.actions.push_back(Action::Reply {
+            request: r.request,
+            result: Err(Refusal::new(RefusalKind::StoreCannotWrite, message)),
+        });
     }
 
     /// Answer `request` with job `id`'s state once that is stored, or after
@@ -149,6 +291,7 @@ impl Lifecycle {
         match pending {
             Some(seq) => self.waiting_replies.push(WaitingReply {
                 request,
+                job_id: id,
                 seq,
                 state,
                 until_us: now_us.saturating_add(self.opts.reply_wait_us),

@@ -560,6 +560,7 @@ fn a_store_that_cannot_write_delays_replies_and_notifications_not_the_machine() 
     assert_eq!(rig.reply(r), None);
     rig.feed(Event::StoreFailed {
         error: "database is locked".into(),
+        busy: true,
     });
     assert_eq!(
         rig.applied(r),
@@ -1339,6 +1340,11 @@ fn every_event(run: u64) -> Vec<Event> {
         Event::Stored { upto: 1 },
         Event::StoreFailed {
             error: "locked".into(),
+            busy: true,
+        },
+        Event::StoreFailed {
+            error: "disk full".into(),
+            busy: false,
         },
     ];
     for c in [
@@ -1518,4 +1524,169 @@ fn the_lifecycle_names_no_link() {
             );
         }
     }
+}
+
+/// The writer's report of a write that failed on a full disk.
+fn disk_full() -> Event {
+    Event::StoreFailed {
+        error: "disk full".into(),
+        busy: false,
+    }
+}
+
+#[test]
+fn a_full_disk_lets_planned_moves_go_on_but_starts_nothing_until_it_catches_up() {
+    let mut rig = Rig::printing();
+    rig.submit(2);
+    rig.plan(40);
+    rig.run(10);
+    rig.auto_store = false;
+    rig.logs.clear();
+    rig.feed(disk_full());
+    // The job's moves go on to its end; its end is not on disk, and job 2 waits.
+    rig.run(100);
+    assert_once_in_order(&rig.executed(1), 40);
+    assert_eq!(rig.lc.active_job(), None);
+    assert_eq!(rig.lc.job_state(1), Some(JobState::Done));
+    assert_eq!(rig.stored_state(1), Some(JobState::Printing));
+    assert_eq!(rig.planner, None, "job 2 does not start");
+    assert_eq!(rig.lc.job_state(2), Some(JobState::Queued));
+    // A failure every 150 ms for 15 s: a warning at once and one after 10 s.
+    for _ in 0..100 {
+        rig.now += 150 * MS;
+        rig.feed(disk_full());
+    }
+    let warnings: Vec<&String> = rig
+        .logs
+        .iter()
+        .filter(|l| l.starts_with("job store cannot write: disk full"))
+        .collect();
+    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    assert!(
+        warnings[1].contains("(66 failed tries since the last warning)"),
+        "{warnings:?}"
+    );
+    // Room again: the states go to disk and out in order, and job 2 starts.
+    rig.write_all();
+    assert!(rig
+        .logs
+        .iter()
+        .any(|l| l.contains("written again, after 101 failed tries")));
+    assert_eq!(rig.stored_state(1), Some(JobState::Done));
+    assert_eq!(
+        rig.states(1),
+        [JobState::Planning, JobState::Printing, JobState::Done]
+    );
+    assert_eq!(rig.planner.map(|p| p.0), Some(2), "job 2 starts");
+}
+
+#[test]
+fn on_a_full_disk_operators_are_told_what_is_not_on_disk_and_nothing_is_reversed() {
+    let mut rig = Rig::printing();
+    rig.submit(2);
+    rig.plan(40);
+    rig.run(10);
+    rig.auto_store = false;
+    rig.feed(disk_full());
+    // The pause holds the machine at once; it is not on disk, and the reply says so.
+    let p = rig.command(Command::Pause(1));
+    assert_eq!(rig.commands.last(), Some(&MachineCommand::FeedHold));
+    rig.at(76 * MS);
+    assert_eq!(rig.refused(p), RefusalKind::StoreCannotWrite);
+    let Some(Err(refusal)) = rig.reply(p) else {
+        unreachable!()
+    };
+    assert!(
+        refusal.message.starts_with(
+            "job store cannot write: disk full; job 1 is paused here but that is not on disk"
+        ),
+        "{}",
+        refusal.message
+    );
+    // A resume would start it moving: refused, nothing done.
+    let r = rig.command(Command::Resume(1));
+    assert_eq!(rig.refused(r), RefusalKind::StoreCannotWrite);
+    assert_eq!(rig.machine.state, MachineState::Held);
+    assert_eq!(rig.lc.job_state(1), Some(JobState::Paused));
+    // A cancel takes effect here, and is told as not on disk.
+    let c = rig.command(Command::Cancel(2));
+    rig.at(76 * MS);
+    assert_eq!(rig.refused(c), RefusalKind::StoreCannotWrite);
+    assert!(rig.notes.iter().all(|n| n.state != JobState::Paused));
+    // Room again: the operator's decisions are on disk, then told.
+    rig.write_all();
+    assert_eq!(rig.stored_state(1), Some(JobState::Paused));
+    assert_eq!(rig.stored_state(2), Some(JobState::Cancelled));
+    assert_eq!(rig.states(2), [JobState::Cancelled]);
+    rig.auto_store = true;
+    let r = rig.command(Command::Resume(1));
+    assert_eq!(
+        rig.applied(r),
+        Applied {
+            state: JobState::Printing,
+            stored: true
+        }
+    );
+    rig.run(100);
+    assert_once_in_order(&rig.executed(1), 40);
+    assert_eq!(rig.stored_state(1), Some(JobState::Done));
+    assert!(rig.executed(2).is_empty(), "the cancelled job never runs");
+}
+
+#[test]
+fn a_job_whose_start_cannot_be_stored_is_paused_before_its_first_move() {
+    let mut rig = Rig::new();
+    rig.submit(1);
+    rig.auto_store = false;
+    rig.connect();
+    assert_eq!(rig.lc.job_state(1), Some(JobState::Planning));
+    rig.feed(disk_full());
+    assert_eq!(rig.lc.job_state(1), Some(JobState::Paused));
+    assert_eq!(rig.commands.last(), Some(&MachineCommand::FeedHold));
+    rig.plan(40);
+    rig.run(100);
+    assert!(
+        rig.executed(1).is_empty(),
+        "no move while its start is not on disk"
+    );
+    rig.write_all();
+    let last = rig.notes.last().unwrap();
+    assert_eq!(
+        (last.state, last.reason.as_deref()),
+        (JobState::Paused, Some("job store cannot write: disk full"))
+    );
+    assert_eq!(rig.stored_state(1), Some(JobState::Paused));
+    rig.auto_store = true;
+    let r = rig.command(Command::Resume(1));
+    assert_eq!(rig.applied(r).state, JobState::Printing);
+    rig.run(100);
+    assert_once_in_order(&rig.executed(1), 40);
+    assert_eq!(rig.stored_state(1), Some(JobState::Done));
+}
+
+#[test]
+fn on_a_full_disk_a_cancel_of_the_active_job_stops_it_and_says_it_is_not_on_disk() {
+    let mut rig = Rig::printing();
+    rig.plan(40);
+    rig.run(10);
+    rig.auto_store = false;
+    rig.feed(disk_full());
+    let c = rig.command(Command::Cancel(1));
+    assert_eq!(rig.refused(c), RefusalKind::StoreCannotWrite);
+    let Some(Err(refusal)) = rig.reply(c) else {
+        unreachable!()
+    };
+    assert!(
+        refusal
+            .message
+            .contains("job 1 is being cancelled on the machine but that is not on disk"),
+        "{}",
+        refusal.message
+    );
+    assert!(rig.commands.contains(&MachineCommand::EmergencyStop));
+    rig.run(10);
+    rig.write_all();
+    rig.auto_store = true;
+    rig.run(10);
+    assert_eq!(rig.stored_state(1), Some(JobState::Cancelled));
 }

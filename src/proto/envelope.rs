@@ -92,8 +92,12 @@ impl ApiError {
     /// idle timeout): the message names the `[api]` setting; try again later.
     pub const LIMIT: i64 = -32006;
 
+    /// The job store cannot write (a full disk, an I/O error): the change is not on disk
+    /// (the message says what took effect on the machine), or nothing was done.
+    pub const STORE_CANNOT_WRITE: i64 = -32007;
+
     /// Every code `docs/api.md` lists.
-    pub const CODES: [i64; 11] = [
+    pub const CODES: [i64; 12] = [
         Self::PARSE,
         Self::INVALID_REQUEST,
         Self::METHOD_NOT_FOUND,
@@ -105,6 +109,7 @@ impl ApiError {
         Self::NOT_CONNECTED,
         Self::STORE_BUSY,
         Self::LIMIT,
+        Self::STORE_CANNOT_WRITE,
     ];
 
     /// An error with a code and message.

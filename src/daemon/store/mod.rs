@@ -23,7 +23,7 @@ use std::path::Path;
 use tokio::sync::mpsc;
 
 pub use reader::Reader;
-pub use sql::{now_ms, JobRecord, JobSpec, Store, StoreError, BUSY_TIMEOUT};
+pub use sql::{now_ms, JobRecord, JobSpec, Store, StoreError, BUSY_TIMEOUT, DB_FILE};
 pub use writer::Writer;
 
 use crate::lifecycle::Event;
@@ -43,6 +43,9 @@ pub struct Opened {
     pub stores: Stores,
     /// Jobs the previous run left planning, printing or paused, now interrupted.
     pub interrupted: Vec<u32>,
+    /// Jobs whose rows could not be read, now failed ("stored job unreadable"), with
+    /// what could not be read.
+    pub quarantined: Vec<(u32, String)>,
     /// The first service move index of this run.
     pub service_index: u32,
     /// The end of the service indices reserved for it.
@@ -69,14 +72,17 @@ pub async fn start(
 }
 
 /// Open the store in `dir` and start its threads, whose lifecycle events go to
-/// `events`. Blocking (call it off the runtime): the jobs the previous run left
-/// unfinished are interrupted, and `service_block` service move indices reserved.
+/// `events`. Blocking (call it off the runtime): the file is checked first (a damaged
+/// one or a newer schema is refused), jobs whose rows cannot be read are failed, the
+/// jobs the previous run left unfinished are interrupted, and `service_block` service
+/// move indices reserved.
 pub fn open(
     dir: &Path,
     service_block: u32,
     events: mpsc::UnboundedSender<Event>,
 ) -> Result<Opened, StoreError> {
-    let store = Store::open(dir)?;
+    let store = Store::open_checked(dir)?;
+    let quarantined = store.quarantine_unreadable()?;
     let interrupted = store.interrupt_unfinished("edod restarted")?;
     let (service_index, service_reserved_until) = store.reserve_service_indices(service_block)?;
     let thread_error = |source| StoreError::Io {
@@ -88,6 +94,7 @@ pub fn open(
     Ok(Opened {
         stores: Stores { reader, writer },
         interrupted,
+        quarantined,
         service_index,
         service_reserved_until,
     })

@@ -135,6 +135,9 @@ fn answer(store: &Store, r: Read, events: &mpsc::UnboundedSender<Event>) {
             let source = store
                 .get(id)
                 .and_then(|j| {
+                    if let Some(what) = j.unreadable.clone() {
+                        return Err(StoreError::Unreadable { id, what });
+                    }
                     let mesh = match j.spec {
                         super::JobSpec::Toml { .. } => store.mesh(id)?,
                         super::JobSpec::DryRun { .. } => None,

@@ -62,6 +62,10 @@ pub struct JobRecord {
     /// How its moves are produced (not serialised in listings).
     #[serde(skip)]
     pub spec: JobSpec,
+    /// What of its row could not be read (the job is then shown `failed` with the
+    /// reason "stored job unreadable: …" and never planned).
+    #[serde(skip)]
+    pub unreadable: Option<String>,
 }
 
 /// Store errors.
@@ -90,6 +94,39 @@ pub enum StoreError {
     /// Called on a tokio runtime thread: a bug (the store has threads of its own).
     #[error("job store called on a tokio runtime thread (a bug: use the store's threads)")]
     OnRuntime,
+    /// The database file fails SQLite's integrity check (or is no database at all).
+    #[error(
+        "job store {path} is damaged ({problems}); edod did not start. Stop anything \
+         using the file and keep a copy of it, then recover what it holds into a new one \
+         (sqlite3 {path} .recover | sqlite3 {path}.recovered) and move that in its place, \
+         or move it away to start with an empty job store"
+    )]
+    Damaged {
+        /// The file.
+        path: String,
+        /// What `PRAGMA quick_check` (or opening it) said.
+        problems: String,
+    },
+    /// The database was written by a newer edod.
+    #[error(
+        "job store {path} has schema version {version}, newer than this edod knows \
+         ({SCHEMA_VERSION}): a newer edod wrote it. Run that edod, or move the file \
+         away to start with an empty job store"
+    )]
+    NewerSchema {
+        /// The file.
+        path: String,
+        /// Its `PRAGMA user_version`.
+        version: i64,
+    },
+    /// A job's row cannot be read (it is shown failed; it cannot be planned).
+    #[error("job {id}: stored job unreadable: {what}")]
+    Unreadable {
+        /// Job id.
+        id: u32,
+        /// What could not be read.
+        what: String,
+    },
 }
 
 impl StoreError {
@@ -102,6 +139,30 @@ impl StoreError {
                 rusqlite::ErrorCode::DatabaseBusy | rusqlite::ErrorCode::DatabaseLocked
             ),
             _ => false,
+        }
+    }
+
+    /// The disk (or the file system's quota) is full: SQLite's `SQLITE_FULL`.
+    pub fn is_full(&self) -> bool {
+        matches!(
+            self,
+            StoreError::Sql(rusqlite::Error::SqliteFailure(e, _))
+                if e.code == rusqlite::ErrorCode::DiskFull
+        )
+    }
+
+    /// SQLite failed to write, for another reason than another process's lock.
+    pub fn is_write_failure(&self) -> bool {
+        matches!(self, StoreError::Sql(rusqlite::Error::SqliteFailure(..))) && !self.is_busy()
+    }
+
+    /// Why a write failed, for "job store cannot write: <cause>": `disk full`, else
+    /// SQLite's or the OS's error.
+    pub fn cause(&self) -> String {
+        match self {
+            e if e.is_full() => "disk full".into(),
+            StoreError::Sql(e) => e.to_string(),
+            e => e.to_string(),
         }
     }
 }
@@ -157,6 +218,45 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS job_meshes (id INTEGER PRIMARY KEY, mesh BLOB NOT NULL);
 ";
 
+/// The database file in the state directory.
+pub const DB_FILE: &str = "edod.db";
+
+/// The schema version this edod writes (`PRAGMA user_version`): 0 is the unversioned
+/// schema of the first edods, migrated at open; a newer one is refused.
+///
+/// 1: the job id high-water mark is kept in `meta` (`job_id_high_water`) apart from the
+/// jobs table, so ids stay unique even if that table is lost.
+pub const SCHEMA_VERSION: i64 = 1;
+
+/// `meta` key of the highest job id ever given.
+const HIGH_WATER: &str = "job_id_high_water";
+
+/// The highest job id ever given: the largest of the kept mark, AUTOINCREMENT's and the
+/// ids stored.
+const HIGHEST_ID: &str = "MAX(
+    COALESCE((SELECT value FROM meta WHERE key = 'job_id_high_water'), 0),
+    COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'jobs'), 0),
+    COALESCE((SELECT MAX(id) FROM jobs), 0))";
+
+/// An error reading the file at start (while `doing`): damaged if SQLite says it is
+/// corrupt or no database.
+fn damaged(path: &str, doing: &str, e: rusqlite::Error) -> StoreError {
+    match &e {
+        rusqlite::Error::SqliteFailure(f, _)
+            if matches!(
+                f.code,
+                rusqlite::ErrorCode::DatabaseCorrupt | rusqlite::ErrorCode::NotADatabase
+            ) =>
+        {
+            StoreError::Damaged {
+                path: path.to_string(),
+                problems: format!("{doing}{e}"),
+            }
+        }
+        _ => StoreError::Sql(e),
+    }
+}
+
 /// How long a statement waits for another connection's write lock, as opened.
 pub const BUSY_TIMEOUT: Duration = Duration::from_secs(5);
 
@@ -170,19 +270,76 @@ fn write_tx(conn: &Connection) -> Result<Transaction<'_>, StoreError> {
 }
 
 impl Store {
-    /// Open (or create) `edod.db` in `dir`.
+    /// Open (or create) `edod.db` in `dir`, migrating an older schema; refuses a newer
+    /// one ([`StoreError::NewerSchema`]).
     pub fn open(dir: &Path) -> Result<Store, StoreError> {
+        let (conn, version) = Self::connect(dir)?;
+        Self::set_up(conn, version)
+    }
+
+    /// [`Store::open`] at edod's start: the file is checked first (`PRAGMA
+    /// quick_check`, before anything is written), and refused
+    /// ([`StoreError::Damaged`]) if it fails.
+    pub fn open_checked(dir: &Path) -> Result<Store, StoreError> {
+        let (conn, version) = Self::connect(dir)?;
+        let path = dir.join(DB_FILE).display().to_string();
+        let problems: Vec<String> = conn
+            .prepare("PRAGMA quick_check(5)")
+            .and_then(|mut st| {
+                st.query_map([], |r| r.get::<_, String>(0))?
+                    .collect::<Result<_, _>>()
+            })
+            .map_err(|e| damaged(&path, "PRAGMA quick_check: ", e))?;
+        if problems != ["ok"] {
+            return Err(StoreError::Damaged {
+                path,
+                problems: format!("PRAGMA quick_check: {}", problems.join("; ")),
+            });
+        }
+        Self::set_up(conn, version)
+    }
+
+    /// The connection to `dir/edod.db` and its schema version.
+    fn connect(dir: &Path) -> Result<(Connection, i64), StoreError> {
         off_runtime()?;
         std::fs::create_dir_all(dir).map_err(|source| StoreError::Io {
             path: dir.display().to_string(),
             source,
         })?;
-        let conn = Connection::open(dir.join("edod.db"))?;
+        let path = dir.join(DB_FILE);
+        let conn = Connection::open(&path)?;
+        conn.busy_timeout(BUSY_TIMEOUT)?;
+        let path = path.display().to_string();
+        let version: i64 = conn
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .map_err(|e| damaged(&path, "", e))?;
+        if version > SCHEMA_VERSION {
+            return Err(StoreError::NewerSchema { path, version });
+        }
+        Ok((conn, version))
+    }
+
+    fn set_up(conn: Connection, version: i64) -> Result<Store, StoreError> {
         conn.pragma_update(None, "journal_mode", "WAL")?;
         conn.pragma_update(None, "synchronous", "FULL")?;
-        conn.busy_timeout(BUSY_TIMEOUT)?;
-        conn.execute_batch(SCHEMA)?;
-        Ok(Store { conn })
+        let store = Store { conn };
+        {
+            let tx = write_tx(&store.conn)?;
+            tx.execute_batch(SCHEMA)?;
+            if version < 1 {
+                // The unversioned schema: its id high-water mark is AUTOINCREMENT's alone.
+                tx.execute(
+                    &format!(
+                        "INSERT INTO meta (key, value) VALUES ('{HIGH_WATER}', {HIGHEST_ID})
+                         ON CONFLICT(key) DO UPDATE SET value = MAX(value, excluded.value)"
+                    ),
+                    [],
+                )?;
+                tx.pragma_update(None, "user_version", SCHEMA_VERSION)?;
+            }
+            tx.commit()?;
+        }
+        Ok(store)
     }
 
     /// The connection, off the runtime.
@@ -206,12 +363,25 @@ impl Store {
             JobSpec::DryRun { .. } => None,
         };
         let t = now_ms();
+        let highest: i64 = tx.query_row(&format!("SELECT {HIGHEST_ID}"), [], |r| r.get(0))?;
+        let id = highest.saturating_add(1);
+        if id > i64::from(u32::MAX) {
+            return Err(StoreError::Sql(rusqlite::Error::IntegralValueOutOfRange(
+                0, id,
+            )));
+        }
         tx.execute(
-            "INSERT INTO jobs (name, state, spec, submitted_ms, updated_ms)
-             VALUES (?1, 'queued', ?2, ?3, ?3)",
-            params![name, spec_json, t],
+            "INSERT INTO jobs (id, name, state, spec, submitted_ms, updated_ms)
+             VALUES (?1, ?2, 'queued', ?3, ?4, ?4)",
+            params![id, name, spec_json, t],
         )?;
-        let id = tx.last_insert_rowid();
+        tx.execute(
+            &format!(
+                "INSERT INTO meta (key, value) VALUES ('{HIGH_WATER}', ?1)
+                 ON CONFLICT(key) DO UPDATE SET value = MAX(value, excluded.value)"
+            ),
+            [id],
+        )?;
         if let Some(mesh) = mesh {
             tx.execute(
                 "INSERT INTO job_meshes (id, mesh) VALUES (?1, ?2)",
@@ -238,30 +408,85 @@ impl Store {
         Ok((id, pruned))
     }
 
+    /// A job's row. A column that cannot be read is not coerced: the job reads as
+    /// `failed` with the reason "stored job unreadable: …" naming it (and what could be
+    /// read), and is never planned.
     fn row(r: &rusqlite::Row<'_>) -> rusqlite::Result<JobRecord> {
-        let spec_json: String = r.get("spec")?;
+        let mut bad = Vec::new();
+        let id = r.get::<_, i64>("id")? as u32;
+        let state_name: Option<String> = column(r, "state", &mut bad);
+        let state = state_name.as_deref().and_then(|n| {
+            let s = JobState::from_name(n);
+            if s.is_none() {
+                bad.push(format!("state: unknown state {n:?}"));
+            }
+            s
+        });
+        let reason: Option<String> = column(r, "reason", &mut bad).flatten();
         // The mesh stays in the database until the planner asks (`Store::mesh`).
-        let spec: JobSpec =
-            serde_json::from_str(&spec_json).unwrap_or(JobSpec::DryRun { moves: 0 });
-        let composition: Option<String> = r.get("composition")?;
-        let remaining: String = r.get("remaining_nl")?;
-        Ok(JobRecord {
-            id: r.get::<_, i64>("id")? as u32,
-            name: r.get("name")?,
-            // An unknown state name reads as failed.
-            state: JobState::from_name(&r.get::<_, String>("state")?).unwrap_or(JobState::Failed),
-            reason: r.get("reason")?,
-            total_moves: r.get::<_, Option<i64>>("total_moves")?.map(|v| v as u32),
+        let spec = column::<String>(r, "spec", &mut bad)
+            .and_then(|j| json(&j, "spec", &mut bad))
+            .unwrap_or(JobSpec::DryRun { moves: 0 });
+        let composition = column::<Option<String>>(r, "composition", &mut bad)
+            .flatten()
+            .and_then(|c| json(&c, "composition", &mut bad));
+        let remaining_nl = column::<String>(r, "remaining_nl", &mut bad)
+            .and_then(|v| json(&v, "remaining_nl", &mut bad))
+            .unwrap_or_default();
+        let mut j = JobRecord {
+            id,
+            name: column(r, "name", &mut bad).unwrap_or_default(),
+            state: state.unwrap_or(JobState::Failed),
+            reason,
+            total_moves: count(r, "total_moves", &mut bad),
             checkpoint: Checkpoint {
-                next_index: r.get::<_, i64>("next_index")? as u32,
-                layer: r.get::<_, Option<i64>>("layer")?.map(|v| v as u32),
-                composition: composition.and_then(|c| serde_json::from_str(&c).ok()),
-                remaining_nl: serde_json::from_str(&remaining).unwrap_or_default(),
+                next_index: count(r, "next_index", &mut bad).unwrap_or(0),
+                layer: count(r, "layer", &mut bad),
+                composition,
+                remaining_nl,
             },
-            submitted_ms: r.get("submitted_ms")?,
-            updated_ms: r.get("updated_ms")?,
+            submitted_ms: column(r, "submitted_ms", &mut bad).unwrap_or(0),
+            updated_ms: column(r, "updated_ms", &mut bad).unwrap_or(0),
             spec,
-        })
+            unreadable: None,
+        };
+        if !bad.is_empty() {
+            let what = bad.join("; ");
+            // Quarantined earlier: the reason then written stays.
+            let quarantined = state == Some(JobState::Failed)
+                && j.reason
+                    .as_deref()
+                    .is_some_and(|r| r.starts_with(UNREADABLE));
+            if !quarantined {
+                j.reason = Some(format!("{UNREADABLE} {what}"));
+            }
+            j.state = JobState::Failed;
+            j.unreadable = Some(what);
+        }
+        Ok(j)
+    }
+
+    /// At start: every job whose row cannot be read (see [`Store::row`]) is stored as
+    /// `failed`, "stored job unreadable: …", unless it already is. Returns those
+    /// marked now, with what could not be read.
+    pub fn quarantine_unreadable(&self) -> Result<Vec<(u32, String)>, StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let mut marked = Vec::new();
+        for j in self.list()? {
+            let Some(what) = j.unreadable else {
+                continue;
+            };
+            let n = tx.execute(
+                "UPDATE jobs SET state = 'failed', reason = ?2, updated_ms = ?3
+                 WHERE id = ?1 AND (state IS NOT 'failed' OR reason IS NOT ?2)",
+                params![j.id, j.reason, now_ms()],
+            )?;
+            if n > 0 {
+                marked.push((j.id, what));
+            }
+        }
+        tx.commit()?;
+        Ok(marked)
     }
 
     /// One job.
@@ -396,6 +621,20 @@ impl Store {
         Ok(true)
     }
 
+    /// Test only: the database may not grow beyond its size now (SQLite's
+    /// `max_page_count`, for this connection): writes that need more fail as on a full
+    /// disk (`SQLITE_FULL`).
+    #[cfg(test)]
+    pub fn limit_to_current_size(&self) {
+        let pages: i64 = self
+            .conn
+            .pragma_query_value(None, "page_count", |r| r.get(0))
+            .unwrap();
+        self.conn
+            .pragma_update(None, "max_page_count", pages)
+            .unwrap();
+    }
+
     /// How long a statement waits for another connection's write lock
     /// ([`BUSY_TIMEOUT`] as opened).
     pub fn set_busy_timeout(&mut self, t: Duration) -> Result<(), StoreError> {
@@ -503,6 +742,51 @@ impl Store {
         self.set_service_reserved(until)?;
         tx.commit()?;
         Ok((first, until))
+    }
+}
+
+/// The reason of a job whose row cannot be read starts so.
+pub const UNREADABLE: &str = "stored job unreadable:";
+
+/// Column `name` of `r`, or `None` with what is wrong with it added to `bad`.
+fn column<T: rusqlite::types::FromSql>(
+    r: &rusqlite::Row<'_>,
+    name: &str,
+    bad: &mut Vec<String>,
+) -> Option<T> {
+    match r.get::<_, T>(name) {
+        Ok(v) => Some(v),
+        Err(e) => {
+            bad.push(format!("{name}: {e}"));
+            None
+        }
+    }
+}
+
+/// Count column `name` (NULL or a whole number 0 ..= 2^32 - 1).
+fn count(r: &rusqlite::Row<'_>, name: &str, bad: &mut Vec<String>) -> Option<u32> {
+    let v = column::<Option<i64>>(r, name, bad).flatten()?;
+    match u32::try_from(v) {
+        Ok(v) => Some(v),
+        Err(_) => {
+            bad.push(format!("{name}: {v} is out of range"));
+            None
+        }
+    }
+}
+
+/// `text` (column `name`) as JSON of a `T`, or `None` with why added to `bad`.
+fn json<T: serde::de::DeserializeOwned>(
+    text: &str,
+    name: &str,
+    bad: &mut Vec<String>,
+) -> Option<T> {
+    match serde_json::from_str(text) {
+        Ok(v) => Some(v),
+        Err(e) => {
+            bad.push(format!("{name}: {e}"));
+            None
+        }
     }
 }
 
@@ -705,5 +989,191 @@ mod tests {
         });
         assert!(matches!(on_blocking_pool, Err(StoreError::OnRuntime)));
         assert!(s.list().is_ok(), "off the runtime");
+    }
+
+    /// A database as the unversioned (first) edods wrote it: jobs 1..=3, job 3 deleted.
+    fn unversioned(dir: &Path) {
+        let c = Connection::open(dir.join(DB_FILE)).unwrap();
+        c.execute_batch(SCHEMA_V0).unwrap();
+        for k in 1..=3 {
+            c.execute(
+                "INSERT INTO jobs (name, state, spec, submitted_ms, updated_ms)
+                 VALUES (?1, 'done', '{\"dry_run\":{\"moves\":3}}', 0, 0)",
+                [format!("j{k}")],
+            )
+            .unwrap();
+        }
+        c.execute("DELETE FROM jobs WHERE id = 3", []).unwrap();
+    }
+
+    /// The schema of the first edods (no version, no id high-water mark).
+    const SCHEMA_V0: &str = "
+        CREATE TABLE jobs (id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL,
+            state TEXT NOT NULL, reason TEXT, spec TEXT NOT NULL, mesh BLOB,
+            total_moves INTEGER, next_index INTEGER NOT NULL DEFAULT 0, layer INTEGER,
+            composition TEXT, remaining_nl TEXT NOT NULL DEFAULT '[]',
+            submitted_ms INTEGER NOT NULL, updated_ms INTEGER NOT NULL);
+        CREATE TABLE meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+        CREATE TABLE job_meshes (id INTEGER PRIMARY KEY, mesh BLOB NOT NULL);";
+
+    fn user_version(dir: &Path) -> i64 {
+        Connection::open(dir.join(DB_FILE))
+            .unwrap()
+            .pragma_query_value(None, "user_version", |r| r.get(0))
+            .unwrap()
+    }
+
+    #[test]
+    fn an_unversioned_store_is_migrated_and_ids_survive_a_lost_jobs_table() {
+        let dir = tempfile::tempdir().unwrap();
+        unversioned(dir.path());
+        assert_eq!(user_version(dir.path()), 0);
+        let s = Store::open_checked(dir.path()).unwrap();
+        assert_eq!(user_version(dir.path()), SCHEMA_VERSION);
+        assert_eq!(s.list().unwrap().len(), 2);
+        // Job 3 was deleted: its id is not given again.
+        assert_eq!(s.insert("a", &JobSpec::DryRun { moves: 1 }).unwrap(), 4);
+        drop(s);
+        // The jobs table lost (AUTOINCREMENT's counter goes with it).
+        Connection::open(dir.path().join(DB_FILE))
+            .unwrap()
+            .execute_batch("DROP TABLE jobs")
+            .unwrap();
+        let s = Store::open_checked(dir.path()).unwrap();
+        assert!(s.list().unwrap().is_empty());
+        assert_eq!(s.insert("b", &JobSpec::DryRun { moves: 1 }).unwrap(), 5);
+        // And the mark lost instead: AUTOINCREMENT's and the ids stored still count.
+        s.conn.execute("DELETE FROM meta", []).unwrap();
+        assert_eq!(s.insert("c", &JobSpec::DryRun { moves: 1 }).unwrap(), 6);
+    }
+
+    #[test]
+    fn a_newer_schema_is_refused_naming_the_file_and_its_version() {
+        let dir = tempfile::tempdir().unwrap();
+        drop(Store::open(dir.path()).unwrap());
+        Connection::open(dir.path().join(DB_FILE))
+            .unwrap()
+            .pragma_update(None, "user_version", 7)
+            .unwrap();
+        let e = Store::open_checked(dir.path()).err().unwrap();
+        assert!(
+            matches!(e, StoreError::NewerSchema { version: 7, .. }),
+            "{e}"
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains(&dir.path().join(DB_FILE).display().to_string()),
+            "{m}"
+        );
+        assert!(
+            m.contains("schema version 7, newer than this edod knows (1)"),
+            "{m}"
+        );
+        assert_eq!(user_version(dir.path()), 7, "left as it was");
+    }
+
+    #[test]
+    fn random_bytes_over_pages_are_noticed_at_open() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let s = Store::open(dir.path()).unwrap();
+            for k in 0..200 {
+                s.insert(
+                    &format!("job {k} {}", "x".repeat(200)),
+                    &JobSpec::DryRun { moves: 1 },
+                )
+                .unwrap();
+            }
+            s.conn
+                .pragma_update(None, "wal_checkpoint", "TRUNCATE")
+                .unwrap();
+        }
+        let path = dir.path().join(DB_FILE);
+        let mut bytes = std::fs::read(&path).unwrap();
+        assert!(bytes.len() > 8 * 4096, "{}", bytes.len());
+        // Page 4 (of 4 KiB pages): a leaf of the jobs table.
+        let mut x: u32 = 12345;
+        for b in &mut bytes[3 * 4096..4 * 4096] {
+            x = x.wrapping_mul(1_103_515_245).wrapping_add(12345);
+            *b = (x >> 16) as u8;
+        }
+        std::fs::write(&path, &bytes).unwrap();
+        let e = Store::open_checked(dir.path()).err().unwrap();
+        let m = e.to_string();
+        assert!(matches!(e, StoreError::Damaged { .. }), "{m}");
+        assert!(m.contains(&path.display().to_string()), "{m}");
+        assert!(m.contains("quick_check") && m.contains(".recover"), "{m}");
+        // Not a database at all.
+        std::fs::write(&path, vec![0x55; 8192]).unwrap();
+        let m = Store::open_checked(dir.path()).err().unwrap().to_string();
+        assert!(m.contains("is damaged (file is not a database)"), "{m}");
+    }
+
+    #[test]
+    fn rows_that_cannot_be_read_are_quarantined_not_coerced() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path()).unwrap();
+        for k in 1..=5 {
+            s.insert(&format!("j{k}"), &JobSpec::DryRun { moves: 10 })
+                .unwrap();
+        }
+        s.set_state(4, JobState::Printing, None).unwrap();
+        for (id, sql) in [
+            (1, "UPDATE jobs SET spec = 'not json' WHERE id = 1"),
+            (2, "UPDATE jobs SET next_index = 'seven' WHERE id = 2"),
+            (3, "UPDATE jobs SET state = 'frobbed' WHERE id = 3"),
+            (
+                4,
+                "UPDATE jobs SET next_index = -1, remaining_nl = '{' WHERE id = 4",
+            ),
+        ] {
+            assert_eq!(s.conn.execute(sql, []).unwrap(), 1, "job {id}");
+        }
+        // Every job is listed; the bad ones as failed, naming what is wrong.
+        let list = s.list().unwrap();
+        let view: Vec<(u32, JobState, String)> = list
+            .iter()
+            .map(|j| (j.id, j.state, j.reason.clone().unwrap_or_default()))
+            .collect();
+        assert_eq!(view[4], (5, JobState::Queued, String::new()));
+        for (id, _, reason) in &view[..4] {
+            assert!(
+                reason.starts_with("stored job unreadable: "),
+                "job {id}: {reason}"
+            );
+        }
+        assert!(view[0].2.contains("spec: expected value"), "{}", view[0].2);
+        assert!(view[1].2.contains("next_index: "), "{}", view[1].2);
+        assert!(
+            view[2].2.contains("state: unknown state \"frobbed\""),
+            "{}",
+            view[2].2
+        );
+        assert!(
+            view[3].2.contains("next_index: -1 is out of range"),
+            "{}",
+            view[3].2
+        );
+        assert!(view[3].2.contains("remaining_nl: "), "{}", view[3].2);
+        assert!(list[..4].iter().all(|j| j.state == JobState::Failed));
+        // Marked failed on disk at start, once; the queued list leaves them out.
+        let marked: Vec<u32> = s
+            .quarantine_unreadable()
+            .unwrap()
+            .iter()
+            .map(|m| m.0)
+            .collect();
+        assert_eq!(marked, [1, 2, 3, 4]);
+        assert!(s.quarantine_unreadable().unwrap().is_empty());
+        assert_eq!(
+            s.interrupt_unfinished("restart").unwrap(),
+            Vec::<u32>::new()
+        );
+        let queued: Vec<u32> = s.queued().unwrap().iter().map(|j| j.id).collect();
+        assert_eq!(queued, [5]);
+        assert_eq!(s.get(3).unwrap().reason, list[2].reason, "the reason stays");
+        assert!(s.get(1).unwrap().unreadable.is_some());
+        // A quarantined job can be deleted.
+        assert_eq!(s.delete_finished(1).unwrap(), Ok(()));
     }
 }

@@ -3,9 +3,11 @@
 //! It takes the lifecycle's records ([`Action::Persist`](crate::lifecycle::Action)),
 //! writes every one waiting in one transaction (one fsync) in order, and reports back as
 //! lifecycle events: [`Event::Stored`] with the last sequence number on disk, or
-//! [`Event::StoreFailed`] when a write fails (once per spell of failures, and again every
-//! 5 s while it lasts). Records that could not be written stay and are
-//! tried again; a job's records merge while they wait (the newest checkpoint, move count
+//! [`Event::StoreFailed`] for every write that fails, saying why ("disk full", SQLite's
+//! or the OS's error) and whether it only waits for another process's lock (the
+//! lifecycle decides what follows and rate-limits the warnings). Records that could not
+//! be written stay and are tried again (after [`RETRY_AFTER`] behind a lock,
+//! [`RETRY_FAILED_AFTER`] when the write failed otherwise: a full disk); a job's records merge while they wait (the newest checkpoint, move count
 //! and state win), so a store locked for long costs writes, never memory or order.
 //!
 //! Each try waits at most [`LOCK_WAIT`] for another process's write lock (a backup, an
@@ -17,7 +19,7 @@ use std::sync::mpsc as std_mpsc;
 use std::time::{Duration, Instant};
 
 use tokio::sync::{mpsc, oneshot};
-use tracing::{info, warn};
+use tracing::warn;
 
 use super::sql::{JobSpec, Store, StoreError};
 use crate::lifecycle::{Event, JobState, Record};
@@ -25,10 +27,10 @@ use crate::lifecycle::{Event, JobState, Record};
 /// How long one try of the lifecycle's records waits for the write lock before the
 /// thread looks at its inbox again.
 pub const LOCK_WAIT: Duration = Duration::from_millis(20);
-/// Pause between tries of records that could not be written.
-const RETRY_AFTER: Duration = Duration::from_millis(30);
-/// While writes keep failing, [`Event::StoreFailed`] at most this often.
-const REPORT_EVERY: Duration = Duration::from_secs(5);
+/// Pause between tries of records that could not be written for another process's lock.
+pub const RETRY_AFTER: Duration = Duration::from_millis(30);
+/// Pause between tries of records whose write failed otherwise (a full disk).
+pub const RETRY_FAILED_AFTER: Duration = Duration::from_millis(200);
 
 /// A submission's outcome: the job's id and the finished jobs pruned.
 pub type Submitted = Result<(u32, Vec<u32>), StoreError>;
@@ -135,8 +137,8 @@ struct Thread {
     pending: Vec<Record>,
     /// The highest sequence number among them.
     upto: u64,
-    /// Writes have failed since then, last reported then.
-    failing: Option<(Instant, Instant)>,
+    /// Writes fail: the last one for another process's lock (else for another reason).
+    failing: Option<bool>,
 }
 
 impl Thread {
@@ -148,10 +150,10 @@ impl Thread {
                     Err(_) => return,
                 }
             } else {
-                let wait = if self.failing.is_some() {
-                    RETRY_AFTER
-                } else {
-                    Duration::ZERO
+                let wait = match self.failing {
+                    None => Duration::ZERO,
+                    Some(true) => RETRY_AFTER,
+                    Some(false) => RETRY_FAILED_AFTER,
                 };
                 match rx.recv_timeout(wait) {
                     Ok(w) => w,
@@ -243,29 +245,16 @@ impl Thread {
                     warn!(jobs = ?missing, "job store: records of jobs no longer stored skipped");
                 }
                 self.pending.clear();
-                if self.failing.take().is_some() {
-                    info!("job store written again");
-                }
+                self.failing = None;
                 let _ = self.events.send(Event::Stored { upto: self.upto });
             }
             Err(e) => {
-                let now = Instant::now();
-                let report = match &mut self.failing {
-                    None => {
-                        self.failing = Some((now, now));
-                        true
-                    }
-                    Some((_, reported)) if now.duration_since(*reported) >= REPORT_EVERY => {
-                        *reported = now;
-                        true
-                    }
-                    Some(_) => false,
-                };
-                if report {
-                    let _ = self.events.send(Event::StoreFailed {
-                        error: e.to_string(),
-                    });
-                }
+                let busy = e.is_busy();
+                self.failing = Some(busy);
+                let _ = self.events.send(Event::StoreFailed {
+                    error: e.cause(),
+                    busy,
+                });
             }
         }
     }
@@ -305,6 +294,16 @@ mod tests {
                 return None;
             }
             std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// The next event but the failures reported meanwhile.
+    fn stored(rx: &mut mpsc::UnboundedReceiver<Event>, within: Duration) -> Option<Event> {
+        loop {
+            match next(rx, within)? {
+                Event::StoreFailed { .. } => {}
+                e => return Some(e),
+            }
         }
     }
 
@@ -368,7 +367,7 @@ mod tests {
         assert_eq!(main.get(id).unwrap().checkpoint.next_index, 1);
         other.execute_batch("COMMIT").unwrap();
         assert_eq!(
-            next(&mut rx, Duration::from_secs(5)),
+            stored(&mut rx, Duration::from_secs(5)),
             Some(Event::Stored { upto: 51 })
         );
         let j = main.get(id).unwrap();
@@ -389,5 +388,53 @@ mod tests {
             ))
             .unwrap();
         assert_eq!((b, pruned), (id + 1, vec![]));
+    }
+
+    #[test]
+    fn a_full_disk_is_reported_on_every_try_and_the_records_go_once_there_is_room() {
+        let dir = tempfile::tempdir().unwrap();
+        let main = Store::open(dir.path()).unwrap();
+        let id = main.insert("a", &JobSpec::DryRun { moves: 10 }).unwrap();
+        // Another program's data fills what the database may grow to.
+        let other = rusqlite::Connection::open(dir.path().join("edod.db")).unwrap();
+        other
+            .execute_batch(
+                "CREATE TABLE pad (b BLOB);
+                 WITH RECURSIVE n(k) AS (SELECT 1 UNION ALL SELECT k + 1 FROM n WHERE k < 40)
+                 INSERT INTO pad SELECT zeroblob(4000) FROM n;",
+            )
+            .unwrap();
+        let store = Store::open(dir.path()).unwrap();
+        store.limit_to_current_size();
+        let (events, mut rx) = mpsc::unbounded_channel();
+        let writer = Writer::start(store, events).unwrap();
+        let reason = "r".repeat(60_000);
+        writer.persist(
+            1,
+            Record::Job(JobUpdate {
+                job_id: id,
+                state: Some((JobState::Paused, Some(reason.clone()))),
+                ..JobUpdate::default()
+            }),
+        );
+        for _ in 0..3 {
+            assert_eq!(
+                next(&mut rx, Duration::from_secs(2)),
+                Some(Event::StoreFailed {
+                    error: "disk full".into(),
+                    busy: false
+                }),
+                "every try is reported"
+            );
+        }
+        assert_eq!(main.get(id).unwrap().state, JobState::Queued);
+        // Room again.
+        other.execute_batch("DELETE FROM pad").unwrap();
+        assert_eq!(
+            stored(&mut rx, Duration::from_secs(5)),
+            Some(Event::Stored { upto: 1 })
+        );
+        let j = main.get(id).unwrap();
+        assert_eq!((j.state, j.reason), (JobState::Paused, Some(reason)));
     }
 }
