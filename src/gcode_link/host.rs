@@ -350,6 +350,9 @@ pub struct LineHost {
     rewind: Option<Rewind>,
     /// The `Last Line:` of a Marlin line error waiting for its `Resend:`.
     pending_error: Option<u32>,
+    /// A Marlin line error whose `Last Line:` could not be read (a corrupted reply),
+    /// waiting for its `Resend:`.
+    pending_unreadable_error: bool,
     /// An ADVANCED_OK line number ahead of the oldest line in flight, not yet confirmed.
     jump_hint: Option<u32>,
     last_progress: Micros,
@@ -389,6 +392,7 @@ impl LineHost {
             swallow_oks: 0,
             rewind: None,
             pending_error: None,
+            pending_unreadable_error: false,
             jump_hint: None,
             last_progress: Micros(0),
             busy_known: false,
@@ -590,6 +594,7 @@ impl LineHost {
         self.before_recovery = self.state;
         self.swallow_oks = 0;
         self.pending_error = None;
+        self.pending_unreadable_error = false;
         self.start_probe(true, now);
         Ok(())
     }
@@ -1008,6 +1013,13 @@ impl LineHost {
     }
 
     fn on_line_streaming(&mut self, line: &str, reply: Reply<'_>, now: Micros) {
+        if std::mem::take(&mut self.pending_unreadable_error) {
+            if let Reply::Resend(j) = reply {
+                self.on_resend(j, None, now);
+                return;
+            }
+            self.on_unreadable_resend(line, now);
+        }
         if let Some(last_line) = self.pending_error.take() {
             if let Reply::Resend(j) = reply {
                 self.on_resend(j, Some(last_line), now);
@@ -1022,6 +1034,11 @@ impl LineHost {
             Reply::Error {
                 last_line: Some(l), ..
             } if self.cfg.dialect != Dialect::Klipper => self.pending_error = Some(l),
+            Reply::Error { text, .. }
+                if self.cfg.dialect == Dialect::Marlin && text.contains("Last Line") =>
+            {
+                self.pending_unreadable_error = true
+            }
             Reply::Error { text, .. } => self.on_firmware_error(text),
             Reply::KlipperError(text) => self
                 .events
@@ -1035,6 +1052,9 @@ impl LineHost {
             Reply::Action(text) => self
                 .events
                 .push_back(LineEvent::Action { text: text.into() }),
+            Reply::BadResend(text) if self.cfg.dialect == Dialect::Marlin => {
+                self.on_unreadable_resend(text, now)
+            }
             Reply::BadResend(text) => {
                 self.protocol_error(format!("malformed resend request {text:?}"))
             }
@@ -1256,6 +1276,22 @@ impl LineHost {
         removed
     }
 
+    /// Marlin refused a line but which one cannot be read (a corrupted `Resend:` or
+    /// `Last Line:`): the `ok` that follows belongs to the request, not to the line in
+    /// flight, so it is not counted; the probe asks the firmware for its last line.
+    fn on_unreadable_resend(&mut self, text: &str, now: Micros) {
+        self.stats.resend_requests += 1;
+        self.swallow_oks += 1;
+        self.protocol_error(format!(
+            "resend request whose line cannot be read ({:?}): its `ok` is not counted; \
+             asking the firmware for the last line it accepted",
+            truncate(text.trim(), 60)
+        ));
+        if self.state == LinkState::Streaming && !self.in_flight.is_empty() {
+            self.start_probe(false, now);
+        }
+    }
+
     fn on_firmware_error(&mut self, text: &str) {
         let lower = text.to_ascii_lowercase();
         if lower.contains("halted") || lower.contains("kill") || lower.contains("m999") {
@@ -1306,6 +1342,7 @@ impl LineHost {
         self.timeouts_in_row += 1;
         self.swallow_oks = 0;
         self.pending_error = None;
+        self.pending_unreadable_error = false;
         self.jump_hint = None;
         if self.timeouts_in_row > self.cfg.max_timeouts {
             return self.link_lost(now);
@@ -1496,6 +1533,7 @@ impl LineHost {
     fn finish_recovery(&mut self, answer: LastAccepted) {
         self.probe = None;
         self.pending_error = None;
+        self.pending_unreadable_error = false;
         self.state = self.before_recovery;
         self.events.push_back(LineEvent::LastAccepted(answer));
     }
@@ -1551,6 +1589,7 @@ impl LineHost {
         self.swallow_oks = 0;
         self.rewind = None;
         self.pending_error = None;
+        self.pending_unreadable_error = false;
         self.jump_hint = None;
         self.probe = None;
         self.last_busy = None;

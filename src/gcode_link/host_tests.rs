@@ -888,3 +888,214 @@ fn a_line_reported_accepted_from_a_plain_ok_is_sent_again_if_the_firmware_asks()
         .any(|e| matches!(e, LineEvent::ProtocolError { what } if what.contains("miscounted"))));
     assert_eq!(tx(&mut h, t(5)), vec![line(2, "G1 X0"), line(3, "G1 X1")]);
 }
+
+// Bad input from the machine (issue 30, "Bad input from the machine"): whatever comes,
+// no panic, memory bounded, every line accepted once and in order, and a line goes out
+// again only after a resend request or a probe (counted in the stats), never silently.
+
+/// The numbered lines the host wrote, as (number, text).
+fn numbered(sent: &[String]) -> Vec<(u32, String)> {
+    sent.iter()
+        .flat_map(|s| s.lines())
+        .filter_map(|l| {
+            let rest = l.strip_prefix('N')?;
+            let (n, text) = rest.split_once(' ')?;
+            let text = text.rsplit_once('*').map_or(text, |(t, _)| t);
+            Some((n.parse().ok()?, text.to_string()))
+        })
+        .filter(|(n, _)| *n != PROBE_LINE_NUMBER)
+        .collect()
+}
+
+#[test]
+fn a_megabyte_of_seeded_garbage_between_oks_loses_and_repeats_nothing() {
+    let mut h = connected(Dialect::Marlin);
+    let mut rng = crate::link::testkit::SimRng::new(30);
+    let mut sent = Vec::new();
+    let mut acc = Vec::new();
+    let mut garbage_bytes = 0usize;
+    for tag in 0..64u64 {
+        send(&mut h, tag..tag + 1);
+        sent.extend(tx(&mut h, t(3 + tag)));
+        // 16 KiB of bytes that are not UTF-8, cut into lines and not.
+        let junk: Vec<u8> = (0..16_384)
+            .map(|_| match rng.next_u64() % 64 {
+                0 => b'\n',
+                1 => b'\r',
+                _ => 0x80 | (rng.next_u64() as u8),
+            })
+            .collect();
+        garbage_bytes += junk.len();
+        h.handle_bytes(&junk, t(3 + tag));
+        h.handle_bytes(b"\nok\n", t(3 + tag));
+        acc.extend(accepted(&events(&mut h)));
+        assert!(h.reader.buffered_len() <= h.cfg.max_reply_line_bytes);
+    }
+    assert!(garbage_bytes >= 1 << 20);
+    assert_eq!(acc, (0..64).collect::<Vec<_>>());
+    let lines = numbered(&sent);
+    let numbers: Vec<u32> = lines.iter().map(|(n, _)| *n).collect();
+    assert_eq!(numbers, (2..66).collect::<Vec<_>>(), "each line once");
+    assert!(h.stats().garbage_lines > 1000, "{:?}", h.stats());
+    assert_eq!(h.stats().lines_resent, 0);
+}
+
+#[test]
+fn an_unterminated_megabyte_line_keeps_memory_bounded_and_the_timeout_still_runs() {
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..1);
+    tx(&mut h, t(3));
+    for _ in 0..256 {
+        h.handle_bytes(&[b'x'; 4096], t(4));
+        assert!(h.reader.buffered_len() <= h.cfg.max_reply_line_bytes);
+    }
+    // Nothing ended the line: no `ok` came, so the ok timeout probes, once.
+    let deadline = h.next_timeout().unwrap();
+    assert_eq!(
+        tx(&mut h, deadline),
+        vec![format!("\n{}", line(PROBE_LINE_NUMBER, "M105"))]
+    );
+    // The probe's answer arrives after the end of the long line; it is read.
+    feed(
+        &mut h,
+        "tail\nError:Line Number is not Last Line Number+1, Last Line: 2\nResend: 3\nok\n",
+        deadline,
+    );
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+    assert_eq!(h.stats().overlong_lines, 1);
+    assert_eq!(h.state(), LinkState::Streaming);
+}
+
+#[test]
+fn a_line_ended_by_carriage_returns_only_is_bounded_too() {
+    let mut h = connected(Dialect::Marlin);
+    let oks = h.stats().oks;
+    for _ in 0..64 {
+        h.handle_bytes(&b"ok\r".repeat(1000), t(3));
+    }
+    assert!(h.reader.buffered_len() <= h.cfg.max_reply_line_bytes);
+    h.handle_bytes(b"\n", t(3));
+    assert_eq!(h.stats().overlong_lines, 1);
+    assert_eq!(h.stats().oks, oks, "no `ok` is read out of a line of them");
+}
+
+/// A resend request whose number cannot be a line (corrupted, overflowing) sends no
+/// line: Marlin's requests are answered by the probe, which asks the firmware.
+#[test]
+fn resend_requests_with_impossible_numbers_never_send_a_line() {
+    for bad in [
+        "Resend: 99999999999999999999999\nok\n",
+        "Resend:\nok\n",
+        "Resend: -3\nok\n",
+        "rs abc\nok\n",
+        "Resend: 4294967295\nok\n",
+        "Error:checksum mismatch, Last Line: 4294967295\nResend: 0\nok\n",
+        "Error:Line Number is not Last Line Number+1, Last Line: 99999999999999\nok\n",
+    ] {
+        let mut h = windowed(2);
+        send(&mut h, 0..2);
+        tx(&mut h, t(3));
+        feed(&mut h, bad, t(4));
+        let sent = tx(&mut h, t(4));
+        assert!(numbered(&sent).is_empty(), "{bad:?}: sent {sent:?}");
+        // The `ok` after a request belongs to the request: no line is counted from it.
+        let ev = events(&mut h);
+        assert!(accepted(&ev).is_empty(), "{bad:?}: {ev:?}");
+        assert!(
+            ev.iter().any(|e| matches!(
+                e,
+                LineEvent::ProtocolError { .. }
+                    | LineEvent::Stopped { .. }
+                    | LineEvent::Echo { .. }
+            )),
+            "{bad:?} is reported: {ev:?}"
+        );
+    }
+}
+
+#[test]
+fn a_resend_for_a_line_acknowledged_long_ago_is_ignored_and_nothing_goes_twice() {
+    let mut h = connected_with(cfg(Dialect::Marlin), "ok\n");
+    let mut sent = Vec::new();
+    for tag in 0..200 {
+        send(&mut h, tag..tag + 1);
+        sent.extend(tx(&mut h, t(3 + tag)));
+        // ADVANCED_OK numbers confirm each line for good.
+        feed(&mut h, &format!("ok N{} P15 B3\n", tag + 2), t(3 + tag));
+    }
+    feed(&mut h, "Resend: 5\nok\nResend: 150\nok\n", t(300));
+    sent.extend(tx(&mut h, t(300)));
+    let numbers: Vec<u32> = numbered(&sent).iter().map(|(n, _)| *n).collect();
+    assert_eq!(numbers, (2..202).collect::<Vec<_>>());
+    assert_eq!(h.stats().resends_stale, 2);
+    assert_eq!(h.state(), LinkState::Streaming);
+}
+
+#[test]
+fn oks_with_no_line_in_flight_in_every_state_are_ignored() {
+    let mut h = connected(Dialect::Marlin);
+    feed(&mut h, &"ok\n".repeat(100), t(3));
+    assert_eq!(h.stats().oks_unexpected, 100);
+    // They are not banked: the next line still waits for its own `ok`.
+    send(&mut h, 0..2);
+    tx(&mut h, t(4));
+    assert!(accepted(&events(&mut h)).is_empty());
+    assert_eq!(h.in_flight_len(), 1);
+    feed(&mut h, "ok\n", t(5));
+    assert_eq!(accepted(&events(&mut h)), vec![0]);
+    // Once stopped, replies change nothing and send nothing.
+    h.emergency_stop();
+    tx(&mut h, t(6));
+    feed(&mut h, "ok\nok\nResend: 3\nok\n", t(7));
+    assert!(tx(&mut h, t(7)).is_empty());
+    assert!(accepted(&events(&mut h)).is_empty());
+}
+
+#[test]
+fn advanced_ok_numbers_and_counts_out_of_range_do_not_open_the_window() {
+    let mut c = cfg(Dialect::Marlin);
+    c.window = Window::AdvancedOk;
+    let mut h = connected_with(c, "ok N0 P15 B3\n");
+    send(&mut h, 0..40);
+    tx(&mut h, t(3));
+    feed(
+        &mut h,
+        "ok N99999999999 P99999999999 B99999999999\nok N-1 P-5 B-5\nok Nx Py Bz\n",
+        t(4),
+    );
+    events(&mut h);
+    tx(&mut h, t(4));
+    // At most the slots the last good counts gave (B3: 4) and the buffer's bytes.
+    assert!(h.in_flight_len() <= 4, "{} lines", h.in_flight_len());
+    assert!(h.in_flight_bytes <= h.cfg.rx_buffer_bytes - h.cfg.estop_reserve_bytes);
+}
+
+#[test]
+fn an_unreadable_resend_request_does_not_count_its_ok_and_the_probe_finds_the_line() {
+    for bad in [
+        "Resend: 2x\nok\n",
+        "Error:checksum mismatch, Last Line: 1?\nok\n",
+    ] {
+        let mut h = connected(Dialect::Marlin);
+        send(&mut h, 0..2);
+        tx(&mut h, t(3));
+        feed(&mut h, bad, t(4));
+        assert!(accepted(&events(&mut h)).is_empty(), "{bad:?}");
+        // The probe goes out at once; its answer says line 2 was refused.
+        assert_eq!(
+            tx(&mut h, t(4)),
+            vec![format!("\n{}", line(PROBE_LINE_NUMBER, "M105"))],
+            "{bad:?}"
+        );
+        feed(
+            &mut h,
+            "Error:Line Number is not Last Line Number+1, Last Line: 1\nResend: 2\nok\n",
+            t(5),
+        );
+        assert_eq!(tx(&mut h, t(5)), vec![line(2, "G1 X0")], "{bad:?}");
+        feed(&mut h, "ok\n", t(6));
+        assert_eq!(tx(&mut h, t(6)), vec![line(3, "G1 X1")], "{bad:?}");
+        feed(&mut h, "ok\n", t(7));
+        assert_eq!(accepted(&events(&mut h)), vec![0, 1], "{bad:?}");
+    }
+}

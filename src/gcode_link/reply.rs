@@ -31,6 +31,13 @@ impl LineReader {
         }
     }
 
+    /// Bytes of a partial line held now (at most the limit: an over-long line is counted,
+    /// not kept).
+    #[cfg(test)]
+    pub(crate) fn buffered_len(&self) -> usize {
+        self.buf.len()
+    }
+
     /// Forget a partial line (after a reset or reconnect).
     pub(crate) fn clear(&mut self) {
         self.buf.clear();
