@@ -109,42 +109,77 @@ pub fn write_gcode(
     header: &[String],
     out: &mut String,
 ) -> Result<GcodeStats, GcodeError> {
-    let a = settings.barrel_area_mm2;
-    if !(a.is_finite() && a > 0.0) {
-        return Err(GcodeError::BarrelArea(a));
-    }
-    if settings.flavor == Flavor::Marlin && drives > MARLIN_MIX_AXES.len() {
-        return Err(GcodeError::TooManyDrives(drives));
-    }
-    let drives = drives.max(1);
-    let mut w = GcodeWriter {
-        out,
-        lines: 0,
-        settings,
-        drives,
-        ext: vec![Drive::default(); drives],
-        aux: vec![Drive::default(); drives],
-        mix: MarlinMix::new(drives),
-    };
-    w.preamble(header);
-    let mut s = String::new();
+    let mut w = GcodeLines::new(drives, settings)?;
+    out.push_str(&w.preamble(header));
     for m in moves {
-        s.clear();
-        w.command(m, &mut s);
-        w.line(&s);
+        out.push_str(&w.of_move(m));
     }
-    Ok(GcodeStats {
-        extrude_e_mm: w.ext.iter().map(|d| d.printed_units as f64 / 1e6).collect(),
-        lines: w.lines,
-    })
+    Ok(w.stats())
 }
 
-/// The file being written and the E rounding state of every drive.
-struct GcodeWriter<'a> {
-    out: &'a mut String,
+/// The G-code of a move stream, one move at a time: the lines [`write_gcode`] writes,
+/// for a file or for edod's G-code link (`daemon::gcode_link`), which streams exactly
+/// these lines without their comments. Keeps the E rounding and the Marlin mix between
+/// moves, so a stream must go through one `GcodeLines` from its first move.
+pub struct GcodeLines(GcodeWriter);
+
+impl GcodeLines {
+    /// Lines for a job over `drives` syringes written with `settings`.
+    pub fn new(drives: usize, settings: &GcodeSettings) -> Result<Self, GcodeError> {
+        let a = settings.barrel_area_mm2;
+        if !(a.is_finite() && a > 0.0) {
+            return Err(GcodeError::BarrelArea(a));
+        }
+        if settings.flavor == Flavor::Marlin && drives > MARLIN_MIX_AXES.len() {
+            return Err(GcodeError::TooManyDrives(drives));
+        }
+        let drives = drives.max(1);
+        Ok(Self(GcodeWriter {
+            out: String::new(),
+            lines: 0,
+            settings: settings.clone(),
+            drives,
+            ext: vec![Drive::default(); drives],
+            aux: vec![Drive::default(); drives],
+            mix: MarlinMix::new(drives),
+        }))
+    }
+
+    /// The file's start: `header` as comments, the flavour's tool set-up, units and
+    /// modes; each line ends in `\n`.
+    pub fn preamble(&mut self, header: &[String]) -> String {
+        self.0.preamble(header);
+        std::mem::take(&mut self.0.out)
+    }
+
+    /// The lines of move `m` (a Marlin mix it needs first); each ends in `\n`.
+    pub fn of_move(&mut self, m: &Move) -> String {
+        let mut s = String::new();
+        self.0.command(m, &mut s);
+        self.0.line(&s);
+        std::mem::take(&mut self.0.out)
+    }
+
+    /// What was written so far.
+    pub fn stats(&self) -> GcodeStats {
+        GcodeStats {
+            extrude_e_mm: self
+                .0
+                .ext
+                .iter()
+                .map(|d| d.printed_units as f64 / 1e6)
+                .collect(),
+            lines: self.0.lines,
+        }
+    }
+}
+
+/// The text being written and the E rounding state of every drive.
+struct GcodeWriter {
+    out: String,
     /// Lines written.
     lines: usize,
-    settings: &'a GcodeSettings,
+    settings: GcodeSettings,
     drives: usize,
     /// Extrusion E per drive.
     ext: Vec<Drive>,
@@ -153,7 +188,7 @@ struct GcodeWriter<'a> {
     mix: MarlinMix,
 }
 
-impl GcodeWriter<'_> {
+impl GcodeWriter {
     fn line(&mut self, s: &str) {
         self.out.push_str(s);
         self.out.push('\n');
