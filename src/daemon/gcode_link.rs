@@ -121,7 +121,13 @@ pub struct GcodeLink {
     recovering: bool,
     /// The port closed: the reset it causes is the streamer's `PortLost`.
     port_closed: bool,
+    /// The port was just opened: what it reads until then is from before (a boot banner
+    /// printed while nobody listened) and is dropped; the handshake starts then.
+    settle_until: Option<Micros>,
 }
+
+/// How long after opening the port its input is dropped before the handshake, µs.
+const SETTLE_US: u64 = 300_000;
 
 impl GcodeLink {
     /// A link to the firmware configured by `cfg` for `drives` syringes holding
@@ -152,6 +158,7 @@ impl GcodeLink {
             estop_to_ack: false,
             recovering: false,
             port_closed: false,
+            settle_until: None,
         }
     }
 
@@ -504,7 +511,8 @@ fn end_of(mv: &Move) -> Option<crate::machine::PositionUm> {
 impl LinkAdapter for GcodeLink {
     fn reconnect(&mut self, now: Micros) {
         self.port_closed = false;
-        self.connect(now);
+        self.forget();
+        self.settle_until = Some(now.plus_us(SETTLE_US));
     }
 
     fn port_lost(&mut self) {
@@ -514,15 +522,23 @@ impl LinkAdapter for GcodeLink {
     }
 
     fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
+        if self.settle_until.is_some() {
+            debug!(bytes = bytes.len(), "dropped: read before the handshake");
+            return;
+        }
         self.host.handle_bytes(bytes, now);
     }
 
     fn handle_timeout(&mut self, now: Micros) {
+        if self.settle_until.is_some_and(|t| now >= t) {
+            self.settle_until = None;
+            self.connect(now);
+        }
         self.host.handle_timeout(now);
     }
 
     fn next_timeout(&self) -> Option<Micros> {
-        self.host.next_timeout()
+        self.settle_until.or(self.host.next_timeout())
     }
 
     fn poll_transmit(&mut self, now: Micros) -> Option<Vec<u8>> {
