@@ -95,11 +95,13 @@ fn gcode_drive_sums_equal_plan_volumes() {
         (Flavor::Rrf, false),
         (Flavor::Marlin, false),
         (Flavor::Marlin, true),
+        (Flavor::Klipper, false),
     ] {
         let settings = GcodeSettings {
             flavor,
             barrel_area_mm2: 165.0,
             marlin_direct_mixing: direct,
+            axes: Vec::new(),
         };
         let path = dir.path().join(format!("{flavor:?}-{direct}.gcode"));
         // On a 200 x 200 x 150 mm machine, the annulus centred on the bed.
@@ -148,6 +150,10 @@ fn gcode_drive_sums_equal_plan_volumes() {
         assert!(want_nonzero(&summary.commanded_nl));
         match flavor {
             Flavor::Rrf => assert!(text.contains("M563 P0 D0:1")),
+            Flavor::Klipper => {
+                assert!(text.contains("MANUAL_STEPPER STEPPER=syringe_b GCODE_AXIS=B"));
+                assert!(!text.contains(" E") && !text.contains("M163"));
+            }
             Flavor::Marlin if direct => assert!(text.contains(" A") && !text.contains("M163")),
             Flavor::Marlin => {
                 assert!(text.contains("M163 S1") && text.contains("M164 S0"));

@@ -1,4 +1,4 @@
-//! `edoctl plan JOB --gcode FILE --flavor rrf|marlin`: the library side. The lead wires
+//! `edoctl plan JOB --gcode FILE --flavor rrf|marlin|klipper`: the library side. The lead wires
 //! [`GcodeArgs`] into `PlanArgs` (`#[command(flatten)]`) and calls [`write`] with the
 //! planned layers.
 
@@ -26,6 +26,10 @@ pub struct GcodeArgs {
     /// Marlin: put the mix into G1 as A B C weights (DIRECT_MIXING_IN_G1).
     #[arg(long)]
     pub marlin_direct_mixing: bool,
+    /// Klipper: the G1 axis letter of each syringe, in syringe order (`A,B`; default
+    /// A B C D H I ...), as `[machine.gcode] axes`.
+    #[arg(long, value_name = "LETTERS", value_delimiter = ',')]
+    pub axes: Vec<char>,
 }
 
 impl GcodeArgs {
@@ -34,6 +38,7 @@ impl GcodeArgs {
             flavor: self.flavor,
             barrel_area_mm2: self.barrel_area,
             marlin_direct_mixing: self.marlin_direct_mixing,
+            axes: self.axes.clone(),
         }
     }
 }

@@ -1,5 +1,6 @@
-//! G-code export of a move stream, so labs with a Duet (RepRapFirmware) or Marlin mixing
-//! syringe printer can build edo's plans without edod. Contract: `docs/gcode.md`.
+//! G-code export of a move stream, so labs with a Duet (RepRapFirmware), Marlin mixing or
+//! Klipper syringe printer can build edo's plans without edod, and the lines edod streams
+//! over the G-code link ([`MoveWriter`], one move at a time). Contract: `docs/gcode.md`.
 //!
 //! Extrusion is relative (`M83`) and in millimetres of plunger travel: a syringe's volume
 //! V (nl) becomes E = V / 1000 / A mm for a barrel cross-section A (mm²). Printed E values
@@ -20,6 +21,11 @@ pub enum Flavor {
     /// Marlin with `MIXING_EXTRUDER`: mix set per move with `M163`/`M164` (or `A B C ..`
     /// weights in `G1` with `DIRECT_MIXING_IN_G1`), total E per move.
     Marlin,
+    /// Klipper: each syringe a manual stepper moved as a `G1` axis of its own
+    /// (`MANUAL_STEPPER STEPPER=syringe_a GCODE_AXIS=A`), absolute plunger positions in mm.
+    /// Also what a Marlin multi-axis build reads (its `MANUAL_STEPPER` lines are unknown
+    /// commands there, answered and ignored).
+    Klipper,
 }
 
 /// Export settings.
@@ -33,6 +39,9 @@ pub struct GcodeSettings {
     /// Marlin only: put the mix into `G1` as `A B C ..` weights (`DIRECT_MIXING_IN_G1`)
     /// instead of `M163`/`M164` lines. Default false.
     pub marlin_direct_mixing: bool,
+    /// Klipper only: one axis letter per drive, in drive order; empty: [`DEFAULT_AXES`]
+    /// from the first.
+    pub axes: Vec<char>,
 }
 
 impl Default for GcodeSettings {
@@ -41,9 +50,71 @@ impl Default for GcodeSettings {
             flavor: Flavor::Rrf,
             barrel_area_mm2: 165.0,
             marlin_direct_mixing: false,
+            axes: Vec::new(),
         }
     }
 }
+
+impl GcodeSettings {
+    /// The settings that write a G-code link's mix (`[machine.gcode] mix`,
+    /// `docs/firmware.md`): per-drive E → RRF, `M163` or direct mixing → Marlin, axes →
+    /// Klipper with those letters.
+    pub fn for_mix(mix: &crate::gcode_link::MixWriting, barrel_area_mm2: f64) -> Self {
+        use crate::gcode_link::MixWriting;
+        let (flavor, marlin_direct_mixing, axes) = match mix {
+            MixWriting::PerDriveE => (Flavor::Rrf, false, Vec::new()),
+            MixWriting::MarlinM163 => (Flavor::Marlin, false, Vec::new()),
+            MixWriting::MarlinDirect => (Flavor::Marlin, true, Vec::new()),
+            MixWriting::Axes(letters) => (Flavor::Klipper, false, letters.clone()),
+        };
+        GcodeSettings {
+            flavor,
+            barrel_area_mm2,
+            marlin_direct_mixing,
+            axes,
+        }
+    }
+
+    /// The axis letter of every drive (Klipper), checked.
+    fn axis_letters(&self, drives: usize) -> Result<Vec<char>, GcodeError> {
+        if self.axes.is_empty() {
+            if drives > DEFAULT_AXES.len() {
+                return Err(GcodeError::AxesCount {
+                    letters: DEFAULT_AXES.len(),
+                    drives,
+                });
+            }
+            return Ok(DEFAULT_AXES[..drives].to_vec());
+        }
+        if self.axes.len() != drives {
+            return Err(GcodeError::AxesCount {
+                letters: self.axes.len(),
+                drives,
+            });
+        }
+        for (i, &c) in self.axes.iter().enumerate() {
+            let upper = c.to_ascii_uppercase();
+            if !upper.is_ascii_uppercase() || KLIPPER_RESERVED.contains(upper) {
+                return Err(GcodeError::ReservedAxis(c));
+            }
+            if self.axes[..i]
+                .iter()
+                .any(|o| o.to_ascii_uppercase() == upper)
+            {
+                return Err(GcodeError::RepeatedAxis(c));
+            }
+        }
+        Ok(self.axes.iter().map(|c| c.to_ascii_uppercase()).collect())
+    }
+}
+
+/// Axis letters Klipper cannot give a manual stepper (its own axes and words).
+const KLIPPER_RESERVED: &str = "XYZEFGMNT";
+
+/// The Klipper flavor's axis letters when none are given, drive 0 first.
+pub const DEFAULT_AXES: [char; 17] = [
+    'A', 'B', 'C', 'D', 'H', 'I', 'J', 'K', 'L', 'O', 'P', 'Q', 'R', 'S', 'U', 'V', 'W',
+];
 
 /// What the file commands in total.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -63,6 +134,12 @@ pub enum GcodeError {
     BarrelArea(f64),
     #[error("Marlin mixing supports at most 6 drives (A B C D H I), the job has {0}")]
     TooManyDrives(usize),
+    #[error("Klipper axes: {letters} letter(s) for {drives} drive(s); give one per syringe")]
+    AxesCount { letters: usize, drives: usize },
+    #[error("Klipper axis {0:?} is not a letter Klipper can give a manual stepper (not X Y Z E F G M N T)")]
+    ReservedAxis(char),
+    #[error("Klipper axis {0:?} is given twice")]
+    RepeatedAxis(char),
 }
 
 /// Cumulative rounding of one drive's E to 10⁻⁶ mm (a syringe plunger moves a few
@@ -109,22 +186,43 @@ pub fn write_gcode(
     header: &[String],
     out: &mut String,
 ) -> Result<GcodeStats, GcodeError> {
-    let mut w = GcodeLines::new(drives, settings)?;
-    out.push_str(&w.preamble(header));
+    let mut w = MoveWriter::new(drives, settings)?;
+    let mut lines = Vec::new();
+    w.preamble(header, &mut lines);
     for m in moves {
-        out.push_str(&w.of_move(m));
+        w.move_lines(m, &mut lines);
+        for l in lines.drain(..) {
+            out.push_str(&l);
+            out.push('\n');
+        }
+    }
+    for l in lines.drain(..) {
+        out.push_str(&l);
+        out.push('\n');
     }
     Ok(w.stats())
 }
 
-/// The G-code of a move stream, one move at a time: the lines [`write_gcode`] writes,
-/// for a file or for edod's G-code link (`daemon::gcode_link`), which streams exactly
-/// these lines without their comments. Keeps the E rounding and the Marlin mix between
-/// moves, so a stream must go through one `GcodeLines` from its first move.
-pub struct GcodeLines(GcodeWriter);
+/// The lines of a job, one move at a time, with the E rounding state of every drive:
+/// what [`write_gcode`] writes to a file and what edod streams over the G-code link, so
+/// the two are the same lines.
+#[derive(Clone)]
+pub struct MoveWriter {
+    /// Lines written.
+    lines: usize,
+    settings: GcodeSettings,
+    drives: usize,
+    /// Klipper: each drive's axis letter.
+    axes: Vec<char>,
+    /// Extrusion E per drive.
+    ext: Vec<Drive>,
+    /// Retract/prime E, rounded on its own so it never disturbs the extrusion sums.
+    aux: Vec<Drive>,
+    mix: MarlinMix,
+}
 
-impl GcodeLines {
-    /// Lines for a job over `drives` syringes written with `settings`.
+impl MoveWriter {
+    /// A writer for `drives` syringes; refuses settings the file cannot carry.
     pub fn new(drives: usize, settings: &GcodeSettings) -> Result<Self, GcodeError> {
         let a = settings.barrel_area_mm2;
         if !(a.is_finite() && a > 0.0) {
@@ -134,91 +232,87 @@ impl GcodeLines {
             return Err(GcodeError::TooManyDrives(drives));
         }
         let drives = drives.max(1);
-        Ok(Self(GcodeWriter {
-            out: String::new(),
+        let axes = match settings.flavor {
+            Flavor::Klipper => settings.axis_letters(drives)?,
+            _ => Vec::new(),
+        };
+        Ok(MoveWriter {
             lines: 0,
             settings: settings.clone(),
             drives,
+            axes,
             ext: vec![Drive::default(); drives],
             aux: vec![Drive::default(); drives],
             mix: MarlinMix::new(drives),
-        }))
-    }
-
-    /// The file's start: `header` as comments, the flavour's tool set-up, units and
-    /// modes; each line ends in `\n`.
-    pub fn preamble(&mut self, header: &[String]) -> String {
-        self.0.preamble(header);
-        std::mem::take(&mut self.0.out)
-    }
-
-    /// The lines of move `m` (a Marlin mix it needs first); each ends in `\n`.
-    pub fn of_move(&mut self, m: &Move) -> String {
-        let mut s = String::new();
-        self.0.command(m, &mut s);
-        self.0.line(&s);
-        std::mem::take(&mut self.0.out)
+        })
     }
 
     /// What was written so far.
     pub fn stats(&self) -> GcodeStats {
         GcodeStats {
             extrude_e_mm: self
-                .0
                 .ext
                 .iter()
                 .map(|d| d.printed_units as f64 / 1e6)
                 .collect(),
-            lines: self.0.lines,
+            lines: self.lines,
         }
     }
-}
 
-/// The text being written and the E rounding state of every drive.
-struct GcodeWriter {
-    out: String,
-    /// Lines written.
-    lines: usize,
-    settings: GcodeSettings,
-    drives: usize,
-    /// Extrusion E per drive.
-    ext: Vec<Drive>,
-    /// Retract/prime E, rounded on its own so it never disturbs the extrusion sums.
-    aux: Vec<Drive>,
-    mix: MarlinMix,
-}
-
-impl GcodeWriter {
-    fn line(&mut self, s: &str) {
-        self.out.push_str(s);
-        self.out.push('\n');
+    fn line(&mut self, s: String, out: &mut Vec<String>) {
+        out.push(s);
         self.lines += 1;
     }
 
-    /// The header comments, the flavour's tool set-up and the units and modes.
-    fn preamble(&mut self, header: &[String]) {
+    /// The header comments, the flavour's tool set-up and the units and modes, into `out`.
+    pub fn preamble(&mut self, header: &[String], out: &mut Vec<String>) {
         for h in header {
-            self.line(&format!("; {h}"));
+            self.line(format!("; {h}"), out);
         }
         let all: Vec<String> = (0..self.drives).map(|d| d.to_string()).collect();
         match self.settings.flavor {
             Flavor::Rrf => {
-                self.line("; RepRapFirmware 3: one mixing tool over all syringe drives");
-                self.line(&format!("M563 P0 D{} H-1 S\"edo\"", all.join(":")));
-                self.line("T0");
+                self.line(
+                    "; RepRapFirmware 3: one mixing tool over all syringe drives".into(),
+                    out,
+                );
+                self.line(format!("M563 P0 D{} H-1 S\"edo\"", all.join(":")), out);
+                self.line("T0".into(), out);
             }
             Flavor::Marlin => {
-                self.line("; Marlin MIXING_EXTRUDER: mix per move, E is the total plunger travel");
-                self.line("T0");
+                self.line(
+                    "; Marlin MIXING_EXTRUDER: mix per move, E is the total plunger travel".into(),
+                    out,
+                );
+                self.line("T0".into(), out);
+            }
+            Flavor::Klipper => {
+                self.line(
+                    "; Klipper: each syringe a manual stepper on its own G1 axis, positions in mm"
+                        .into(),
+                    out,
+                );
+                for c in self.axes.clone() {
+                    let name = format!("syringe_{}", c.to_ascii_lowercase());
+                    self.line(format!("MANUAL_STEPPER STEPPER={name} SET_POSITION=0"), out);
+                    self.line(format!("MANUAL_STEPPER STEPPER={name} GCODE_AXIS={c}"), out);
+                }
             }
         }
-        self.line("G21 ; millimetres");
-        self.line("G90 ; absolute positions");
-        self.line("M83 ; relative extrusion");
+        self.line("G21 ; millimetres".into(), out);
+        self.line("G90 ; absolute positions".into(), out);
+        self.line("M83 ; relative extrusion".into(), out);
     }
 
-    /// The command of one move into `s` (a Marlin mix it needs is written first).
-    fn command(&mut self, m: &Move, s: &mut String) {
+    /// The lines of one move into `out`: a Marlin mix it needs first, then its command.
+    pub fn move_lines(&mut self, m: &Move, out: &mut Vec<String>) {
+        let mut s = String::new();
+        self.command(m, &mut s, out);
+        self.line(s, out);
+    }
+
+    /// The command of one move into `s` (a Marlin mix it needs goes to `out` first).
+    fn command(&mut self, m: &Move, s: &mut String, out: &mut Vec<String>) {
         match &m.kind {
             MoveKind::Home => s.push_str("G28"),
             MoveKind::LayerMark { layer, z_um } => {
@@ -250,7 +344,16 @@ impl GcodeWriter {
                 feed_um_s,
                 volumes_nl,
                 ..
-            } => self.extrude(to, *feed_um_s, volumes_nl, s),
+            } => self.extrude(to, *feed_um_s, volumes_nl, s, out),
+        }
+    }
+
+    /// Klipper: every drive's axis at its plunger position (extrusion and retract/prime
+    /// rounded apart, so the extrusion moves' increments sum exactly).
+    fn axis_positions(&self, s: &mut String) {
+        for (d, c) in self.axes.iter().enumerate() {
+            let units = self.ext[d].printed_units + self.aux[d].printed_units;
+            let _ = write!(s, " {c}{}", e(units));
         }
     }
 
@@ -265,23 +368,35 @@ impl GcodeWriter {
             })
             .collect();
         let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e6;
-        let feed = most * 60_000.0 / f64::from(duration_ms.max(1));
+        let feed = (most * 60_000.0 / f64::from(duration_ms.max(1))).max(1.0);
         let what = if sign < 0.0 { "retract" } else { "prime" };
         match self.settings.flavor {
             Flavor::Rrf => {
                 let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
-                let _ = write!(s, "G1 E{} F{:.1} ; {what}", es.join(":"), feed.max(1.0));
+                let _ = write!(s, "G1 E{} F{feed:.1} ; {what}", es.join(":"));
             }
             Flavor::Marlin => {
                 let total: i64 = units.iter().sum();
-                let _ = write!(s, "G1 E{} F{:.1} ; {what}", e(total), feed.max(1.0));
+                let _ = write!(s, "G1 E{} F{feed:.1} ; {what}", e(total));
+            }
+            Flavor::Klipper => {
+                s.push_str("G1");
+                self.axis_positions(s);
+                let _ = write!(s, " F{feed:.1} ; {what}");
             }
         }
     }
 
-    /// An extruding move: per-drive E (RRF), or total E with the mix as `G1` weights or
-    /// `M163`/`M164` lines before it (Marlin).
-    fn extrude(&mut self, to: &PositionUm, feed_um_s: u32, volumes_nl: &[u32], s: &mut String) {
+    /// An extruding move: per-drive E (RRF), total E with the mix as `G1` weights or
+    /// `M163`/`M164` lines before it (Marlin), or each drive's axis position (Klipper).
+    fn extrude(
+        &mut self,
+        to: &PositionUm,
+        feed_um_s: u32,
+        volumes_nl: &[u32],
+        s: &mut String,
+        out: &mut Vec<String>,
+    ) {
         let area_mm2 = self.settings.barrel_area_mm2;
         let units: Vec<i64> = (0..self.drives)
             .map(|d| {
@@ -290,30 +405,34 @@ impl GcodeWriter {
             })
             .collect();
         let xyz = format!("G1 X{} Y{} Z{}", mm(to.x_um), mm(to.y_um), mm(to.z_um));
+        let total: i64 = units.iter().sum();
         match self.settings.flavor {
             Flavor::Rrf => {
                 let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
                 let _ = write!(s, "{xyz} E{} F{}", es.join(":"), f_mm_min(feed_um_s));
             }
-            Flavor::Marlin => {
-                let total: i64 = units.iter().sum();
-                if self.settings.marlin_direct_mixing {
-                    let _ = write!(s, "{xyz} E{}", e(total));
-                    if total > 0 {
-                        for (d, u) in units.iter().enumerate() {
-                            let _ = write!(s, " {}{}", MARLIN_MIX_AXES[d], e(*u));
-                        }
+            Flavor::Marlin if self.settings.marlin_direct_mixing => {
+                let _ = write!(s, "{xyz} E{}", e(total));
+                if total > 0 {
+                    for (d, u) in units.iter().enumerate() {
+                        let _ = write!(s, " {}{}", MARLIN_MIX_AXES[d], e(*u));
                     }
-                    let _ = write!(s, " F{}", f_mm_min(feed_um_s));
-                } else {
-                    if let Some(weights) = self.mix.next(&units) {
-                        for (d, w) in weights.iter().enumerate() {
-                            self.line(&format!("M163 S{d} P{w:.6}"));
-                        }
-                        self.line("M164 S0");
-                    }
-                    let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(feed_um_s));
                 }
+                let _ = write!(s, " F{}", f_mm_min(feed_um_s));
+            }
+            Flavor::Marlin => {
+                if let Some(weights) = self.mix.next(&units) {
+                    for (d, w) in weights.iter().enumerate() {
+                        self.line(format!("M163 S{d} P{w:.6}"), out);
+                    }
+                    self.line("M164 S0".into(), out);
+                }
+                let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(feed_um_s));
+            }
+            Flavor::Klipper => {
+                s.push_str(&xyz);
+                self.axis_positions(s);
+                let _ = write!(s, " F{}", f_mm_min(feed_um_s));
             }
         }
     }
@@ -333,6 +452,7 @@ fn nl_to_mm(v: u32, area_mm2: f64) -> f64 {
 /// back over `WINDOW` moves, after which the plain composition is sent again. So every
 /// drive's E summed over the file stays within `DRIFT` units of the plan, with a few
 /// mixes per path instead of one per move.
+#[derive(Clone)]
 struct MarlinMix {
     /// Current weights (fractions summing to 1), none before the first mix.
     weights: Option<Vec<f64>>,
@@ -441,8 +561,11 @@ impl MarlinMix {
 
 /// Sum each drive's E over the Extrude lines of a file this module wrote (for checks).
 /// RRF: the `E a:b:c` values; Marlin: the total E split by the preceding `M163` weights
-/// (or the `A B C` weights on the line).
+/// (or the `A B C` weights on the line); Klipper: each axis' travel on those lines.
 pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
+    if flavor == Flavor::Klipper {
+        return summed_axis_travel(gcode, drives);
+    }
     let mut sums = vec![0.0; drives];
     let mut weights = vec![0.0; drives];
     for l in gcode.lines() {
@@ -487,7 +610,7 @@ pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
                     *s += v;
                 }
             }
-            Flavor::Marlin => {
+            Flavor::Marlin | Flavor::Klipper => {
                 let total = es.first().copied().unwrap_or(0.0);
                 let w = if direct { &line_weights } else { &weights };
                 let wsum: f64 = w.iter().sum();
@@ -500,4 +623,169 @@ pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
         }
     }
     sums
+}
+
+/// Klipper: the axis letters from the `GCODE_AXIS=` lines, then each axis' travel summed
+/// over the extruding `G1 X` lines (positions are absolute; retract/prime lines move the
+/// position without counting).
+fn summed_axis_travel(gcode: &str, drives: usize) -> Vec<f64> {
+    let mut letters: Vec<char> = Vec::new();
+    let mut position = vec![0.0; drives];
+    let mut sums = vec![0.0; drives];
+    for l in gcode.lines() {
+        let code = l.split(';').next().unwrap_or("").trim();
+        if let Some((_, axis)) = code.split_once("GCODE_AXIS=") {
+            letters.extend(axis.chars().next());
+            continue;
+        }
+        if !code.starts_with("G1 ") {
+            continue;
+        }
+        let extruding = code.starts_with("G1 X");
+        for w in code.split_whitespace().skip(1) {
+            let mut chars = w.chars();
+            let Some(c) = chars.next() else { continue };
+            let Some(d) = letters.iter().position(|&l| l == c).filter(|&d| d < drives) else {
+                continue;
+            };
+            let Ok(to) = chars.as_str().parse::<f64>() else {
+                continue;
+            };
+            if extruding {
+                sums[d] += to - position[d];
+            }
+            position[d] = to;
+        }
+    }
+    sums
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mv(index: u32, kind: MoveKind) -> Move {
+        Move {
+            job_id: 0,
+            index,
+            kind,
+        }
+    }
+
+    fn extrude(x_um: i32, volumes_nl: Vec<u32>) -> MoveKind {
+        MoveKind::Extrude {
+            to: PositionUm {
+                x_um,
+                y_um: 0,
+                z_um: 200,
+            },
+            feed_um_s: 10_000,
+            volumes_nl,
+            width_factor_ppt: 1000,
+        }
+    }
+
+    fn klipper(axes: Vec<char>) -> GcodeSettings {
+        GcodeSettings {
+            flavor: Flavor::Klipper,
+            barrel_area_mm2: 100.0,
+            axes,
+            ..GcodeSettings::default()
+        }
+    }
+
+    #[test]
+    fn klipper_writes_absolute_axis_positions_per_syringe() {
+        let moves = vec![
+            mv(0, MoveKind::Home),
+            mv(1, extrude(1000, vec![300, 100])),
+            mv(
+                2,
+                MoveKind::Retract {
+                    volumes_nl: vec![50, 50],
+                    duration_ms: 100,
+                },
+            ),
+            mv(
+                3,
+                MoveKind::Prime {
+                    volumes_nl: vec![50, 50],
+                    duration_ms: 100,
+                },
+            ),
+            mv(4, extrude(2000, vec![300, 0])),
+        ];
+        let mut text = String::new();
+        let stats = write_gcode(&moves, 2, &klipper(vec!['u', 'V']), &[], &mut text).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert!(lines.contains(&"MANUAL_STEPPER STEPPER=syringe_u SET_POSITION=0"));
+        assert!(lines.contains(&"MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=V"));
+        // 300 nl in a 100 mm² barrel: 0.003 mm; the retract pulls 0.0005 back and the
+        // prime pushes it again; the second move adds 0.003 to U only.
+        assert!(lines.contains(&"G1 X1.000 Y0.000 Z0.200 U0.003000 V0.001000 F600.0"));
+        assert!(lines.contains(&"G1 U0.002500 V0.000500 F1.0 ; retract"));
+        assert!(lines.contains(&"G1 U0.003000 V0.001000 F1.0 ; prime"));
+        assert!(lines.contains(&"G1 X2.000 Y0.000 Z0.200 U0.006000 V0.001000 F600.0"));
+        assert_eq!(stats.extrude_e_mm, vec![0.006, 0.001]);
+        assert_eq!(
+            summed_drive_e(&text, 2, Flavor::Klipper),
+            vec![0.006, 0.001]
+        );
+        assert_eq!(stats.lines, lines.len());
+    }
+
+    #[test]
+    fn klipper_axes_default_and_refusals() {
+        let mut out = Vec::new();
+        let mut w = MoveWriter::new(3, &klipper(Vec::new())).unwrap();
+        w.preamble(&[], &mut out);
+        assert!(out.iter().any(|l| l.ends_with("GCODE_AXIS=C")));
+        let refuse = |axes: Vec<char>, drives| MoveWriter::new(drives, &klipper(axes)).err();
+        assert_eq!(
+            refuse(vec!['A'], 2),
+            Some(GcodeError::AxesCount {
+                letters: 1,
+                drives: 2
+            })
+        );
+        assert_eq!(
+            refuse(vec!['A', 'E'], 2),
+            Some(GcodeError::ReservedAxis('E'))
+        );
+        assert_eq!(
+            refuse(vec!['A', 'a'], 2),
+            Some(GcodeError::RepeatedAxis('a'))
+        );
+        assert_eq!(
+            refuse(vec!['A', '1'], 2),
+            Some(GcodeError::ReservedAxis('1'))
+        );
+        assert!(refuse(Vec::new(), 18).is_some());
+    }
+
+    #[test]
+    fn move_writer_lines_are_the_file_lines() {
+        use crate::gcode_link::MixWriting;
+        for mix in [
+            MixWriting::PerDriveE,
+            MixWriting::MarlinM163,
+            MixWriting::MarlinDirect,
+            MixWriting::Axes(vec!['A', 'B']),
+        ] {
+            let settings = GcodeSettings::for_mix(&mix, 165.0);
+            let moves: Vec<Move> = (0..50)
+                .map(|i| mv(i, extrude(i as i32 * 100, vec![100 + i * 7, 400 - i * 3])))
+                .collect();
+            let mut file = String::new();
+            write_gcode(&moves, 2, &settings, &["h".into()], &mut file).unwrap();
+            let mut w = MoveWriter::new(2, &settings).unwrap();
+            let mut lines = Vec::new();
+            w.preamble(&["h".into()], &mut lines);
+            for m in &moves {
+                w.move_lines(m, &mut lines);
+            }
+            let streamed: Vec<&str> = lines.iter().map(String::as_str).collect();
+            assert_eq!(file.lines().collect::<Vec<_>>(), streamed, "{mix:?}");
+        }
+    }
 }
