@@ -1,5 +1,5 @@
 //! edod over the G-code link (`docs/firmware.md`) against hil-sim's firmware models on a
-//! pty: RepRapFirmware, Marlin (and Klipper once the writer has its per-syringe axes).
+//! pty: RepRapFirmware, Marlin and Klipper.
 //! Each test starts its own simulator (in this process, with its recorder) and edod in a
 //! temp dir. The recorder's `gcode` field is each line the firmware ran as a move: the
 //! checks compare it with the lines the offline writer (`edoctl plan --gcode`) writes for
@@ -11,8 +11,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use edo::daemon::gcode_link::{streamed_lines, writer_settings};
+use edo::daemon::gcode_link::streamed_lines;
 use edo::gcode_link::{command_word, Dialect, MixWriting};
+use edo::machine::gcode::GcodeSettings;
 use edo::machine::Move;
 use serde_json::{json, Value};
 
@@ -26,10 +27,10 @@ impl Daemon {
     /// appended to the configuration.
     fn start(dir: &Path, port: &str, firmware: &str, extra: &str) -> Daemon {
         let socket = dir.join("edod.sock");
-        let busy = if firmware == "marlin" {
-            "busy_timeout_ms = 300\n"
-        } else {
-            ""
+        let busy = match firmware {
+            "marlin" => "busy_timeout_ms = 300\n",
+            "klipper" => "axes = [\"A\", \"B\"]\n",
+            _ => "",
         };
         let config = dir.join("edod.toml");
         std::fs::write(
@@ -214,7 +215,7 @@ const AREA_MM2: f64 = std::f64::consts::PI / 4.0 * 100.0;
 
 /// What the offline writer writes for `moves` as `firmware`: the whole text.
 fn offline(moves: &[Move], firmware: &str) -> String {
-    let settings = writer_settings(&mix_of(firmware), AREA_MM2).unwrap();
+    let settings = GcodeSettings::for_mix(&mix_of(firmware), AREA_MM2);
     let mut text = String::new();
     edo::machine::gcode::write_gcode(moves, 2, &settings, &[], &mut text).unwrap();
     text
@@ -315,7 +316,7 @@ fn job_streams_the_offline_file(firmware: &str, faults: &str, seed: u64) {
         expected.len()
     );
     // Per-drive E of the file, in nl as the simulator turns travel into volume.
-    let flavor = writer_settings(&mix_of(firmware), AREA_MM2).unwrap().flavor;
+    let flavor = GcodeSettings::for_mix(&mix_of(firmware), AREA_MM2).flavor;
     let file_e = edo::machine::gcode::summed_drive_e(&text, 2, flavor);
     let built = extruded_nl(&record);
     for (k, (e, nl)) in file_e.iter().zip(&built).enumerate() {
@@ -341,6 +342,11 @@ fn rrf_job_runs_the_offline_file_once_in_order() {
 #[test]
 fn marlin_job_runs_the_offline_file_once_in_order() {
     job_streams_the_offline_file("marlin", "", 2);
+}
+
+#[test]
+fn klipper_job_runs_the_offline_file_once_in_order() {
+    job_streams_the_offline_file("klipper", "", 7);
 }
 
 #[test]
@@ -405,4 +411,9 @@ fn rrf_pause_resume_and_estop() {
 #[test]
 fn marlin_pause_resume_and_estop() {
     pause_resume_and_estop("marlin", 6);
+}
+
+#[test]
+fn klipper_pause_resume_and_estop() {
+    pause_resume_and_estop("klipper", 8);
 }

@@ -3,7 +3,7 @@
 //! (`docs/firmware.md`). The one place that knows both.
 //!
 //! - Each move becomes exactly the lines `edoctl plan --gcode --flavor F` writes for it
-//!   ([`GcodeLines`], the offline writer's own formatting), less comments; a job's first
+//!   ([`MoveWriter`], the offline writer's own formatting), less comments; a job's first
 //!   move is preceded by the file's preamble, and every connection starts with the same
 //!   lines (the resume prologue: tool, units, modes). Every line is tagged; a move is
 //!   accepted when its last line is (a move with no line, a layer mark, when every line
@@ -28,46 +28,23 @@ use std::collections::VecDeque;
 
 use tracing::{debug, info, warn};
 
-use crate::gcode_link::{
-    Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState, MixWriting,
-};
+use crate::gcode_link::{Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState};
 use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveAt};
 use crate::link::{LinkStats, MachineState, Micros, MoveRef, Status};
-use crate::machine::gcode::{Flavor, GcodeLines, GcodeSettings};
+use crate::machine::gcode::{GcodeSettings, MoveWriter};
 use crate::machine::{Move, MoveKind};
 
 use super::adapter::LinkAdapter;
 use super::edo_link::report_of;
 
-/// The offline writer's settings for a configured mix writing.
-pub fn writer_settings(mix: &MixWriting, barrel_area_mm2: f64) -> Result<GcodeSettings, String> {
-    let (flavor, direct) = match mix {
-        MixWriting::PerDriveE => (Flavor::Rrf, false),
-        MixWriting::MarlinM163 => (Flavor::Marlin, false),
-        MixWriting::MarlinDirect => (Flavor::Marlin, true),
-        MixWriting::Axes(_) => {
-            return Err(
-                "mix = \"axes\" needs the G-code writer's per-syringe axes flavor, which this \
-                 build does not have"
-                    .into(),
-            )
-        }
-    };
-    // The writer's other settings (if any) keep their defaults.
-    #[allow(clippy::needless_update)]
-    Ok(GcodeSettings {
-        flavor,
-        barrel_area_mm2,
-        marlin_direct_mixing: direct,
-        ..GcodeSettings::default()
-    })
-}
-
 /// The G-code lines of `text` as streamed: comments and empty lines dropped.
 pub fn streamed_lines(text: &str) -> impl Iterator<Item = &str> {
-    text.lines()
-        .map(|l| l.split(';').next().unwrap_or("").trim())
-        .filter(|l| !l.is_empty())
+    text.lines().filter_map(streamed)
+}
+
+/// A writer's line as streamed: without its comment; `None` if nothing is left.
+fn streamed(line: &str) -> Option<&str> {
+    Some(line.split(';').next().unwrap_or("").trim()).filter(|l| !l.is_empty())
 }
 
 /// A move (or the prologue, or an `M400`) sent and not yet accepted.
@@ -97,11 +74,11 @@ enum Stop {
 /// The G-code line link under the lifecycle.
 pub struct GcodeLink {
     host: LineHost,
-    settings: Result<GcodeSettings, String>,
+    settings: GcodeSettings,
     drives: usize,
     /// The writer of the job being streamed (its id), started with the job's first move
     /// after a (re)connection or a flush.
-    writer: Option<(u32, GcodeLines)>,
+    writer: Option<(u32, MoveWriter)>,
     next_tag: u64,
     /// Tags up to this one were accepted.
     accepted_upto: Option<u64>,
@@ -136,7 +113,7 @@ impl GcodeLink {
         let drives = drives.max(1);
         Self {
             host: LineHost::new(cfg.link.clone()),
-            settings: writer_settings(&cfg.mix, cfg.barrel_area_mm2),
+            settings: GcodeSettings::for_mix(&cfg.mix, cfg.barrel_area_mm2),
             drives,
             writer: None,
             next_tag: 1,
@@ -162,10 +139,10 @@ impl GcodeLink {
         }
     }
 
-    /// Queue `text`'s lines; the tag of the last, if any.
-    fn send_text(&mut self, text: &str) -> Result<Option<u64>, String> {
+    /// Queue `lines` (a writer's); the tag of the last sent, if any.
+    fn send_lines(&mut self, lines: &[String]) -> Result<Option<u64>, String> {
         let mut last = None;
-        for line in streamed_lines(text) {
+        for line in lines.iter().filter_map(|l| streamed(l)) {
             let tag = self.next_tag;
             self.next_tag += 1;
             self.host.send_line(line, tag).map_err(|e| e.to_string())?;
@@ -175,19 +152,18 @@ impl GcodeLink {
     }
 
     /// The prologue every connection starts with: the writer's preamble (tool set-up,
-    /// units, absolute positions, relative extrusion), without comments.
+    /// Klipper's syringe axes at 0, units, absolute positions, relative extrusion),
+    /// without comments.
     fn send_prologue(&mut self) {
-        let Ok(settings) = &self.settings else {
-            return;
-        };
-        let text = match GcodeLines::new(self.drives, settings) {
-            Ok(mut w) => w.preamble(&[]),
+        let mut lines = Vec::new();
+        match MoveWriter::new(self.drives, &self.settings) {
+            Ok(mut w) => w.preamble(&[], &mut lines),
             Err(e) => {
                 warn!(error = %e, "G-code prologue");
                 return;
             }
-        };
-        match self.send_text(&text) {
+        }
+        match self.send_lines(&lines) {
             Ok(last_tag) => self.pending.push_back(Pending {
                 mv: None,
                 sync: false,
@@ -478,26 +454,24 @@ impl GcodeLink {
         }
     }
 
-    /// The writer for `mv`: a job's first move after a (re)connection or a flush starts
-    /// its own, and the file's preamble goes first.
-    fn lines_of(&mut self, mv: &Move) -> Result<String, String> {
-        let settings = self.settings.clone()?;
+    /// The lines of `mv`. A job's first move after a (re)connection or a flush starts a
+    /// writer of its own, and its preamble goes first (as in the file; for Klipper it also
+    /// sets the syringe axes to 0, where the new writer's positions start).
+    fn lines_of(&mut self, mv: &Move) -> Result<Vec<String>, String> {
         let fresh = match &self.writer {
             Some((job, _)) => mv.job_id != crate::lifecycle::SERVICE_JOB_ID && *job != mv.job_id,
             None => true,
         };
-        let mut text = String::new();
+        let mut lines = Vec::new();
         if fresh {
-            let mut w = GcodeLines::new(self.drives, &settings).map_err(|e| e.to_string())?;
-            if mv.job_id != crate::lifecycle::SERVICE_JOB_ID {
-                text.push_str(&w.preamble(&[]));
-            }
+            let mut w = MoveWriter::new(self.drives, &self.settings).map_err(|e| e.to_string())?;
+            w.preamble(&[], &mut lines);
             self.writer = Some((mv.job_id, w));
         }
         if let Some((_, w)) = self.writer.as_mut() {
-            text.push_str(&w.of_move(mv));
+            w.move_lines(mv, &mut lines);
         }
-        Ok(text)
+        Ok(lines)
     }
 }
 
@@ -596,8 +570,8 @@ impl LinkAdapter for GcodeLink {
     }
 
     fn send_move(&mut self, mv: Move) -> Result<(), String> {
-        let text = self.lines_of(&mv)?;
-        let last_tag = self.send_text(&text)?;
+        let lines = self.lines_of(&mv)?;
+        let last_tag = self.send_lines(&lines)?;
         self.pending.push_back(Pending {
             sync: false,
             mv: Some(MoveRef {
