@@ -417,3 +417,52 @@ fn marlin_pause_resume_and_estop() {
 fn klipper_pause_resume_and_estop() {
     pause_resume_and_estop("klipper", 8);
 }
+
+/// `serial.port = "sim"` with `protocol = "gcode"`: edod starts `hil-sim --gcode` (the
+/// binary beside edod, built with the workspace) and the job runs on it.
+#[test]
+fn sim_port_starts_hil_sim_as_the_firmware() {
+    let Some(bin) = Path::new(env!("CARGO_BIN_EXE_edod"))
+        .parent()
+        .map(|d| d.join("hil-sim"))
+        .filter(|b| b.is_file())
+    else {
+        eprintln!("skipped: no hil-sim binary beside edod (cargo build -p hil-sim)");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let record = dir.path().join("sim.jsonl");
+    let d = Daemon::start(
+        dir.path(),
+        "sim",
+        "rrf",
+        &format!(
+            "[sim]\nspeed = 50.0\nbinary = {:?}\nrecord = {:?}\n",
+            bin.display().to_string(),
+            record.display().to_string()
+        ),
+    );
+    let mut c = d.client();
+    c.wait_connected();
+    let status = c.call("machine.status", json!({})).unwrap();
+    assert!(
+        status["identity"]
+            .as_str()
+            .is_some_and(|i| i.contains("RepRapFirmware")),
+        "{status}"
+    );
+    let id = c.call("job.submit", json!({"dry_run_moves": 120})).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    c.wait_state(id, "done");
+    drop(c);
+    drop(d);
+    let expected = move_lines(&offline(&planned_dry_run(120), "rrf"));
+    // edod's SIGKILL in Drop stops hil-sim (--exit-with-parent); its recorder was
+    // flushed as the job ended (the M400 after the last move was answered).
+    let t = Instant::now();
+    while ran(&record).len() < expected.len() && t.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_ran_once_in_order(&ran(&record), &expected, false);
+}

@@ -1,8 +1,9 @@
 //! The adapter between the job lifecycle and the edo link: the one place that knows both.
 //! It holds the sans-IO [`Host`] and turns its events into the lifecycle's
 //! protocol-neutral [`Event`]s, and the lifecycle's [`MachineCommand`]s and moves into
-//! link calls. The lifecycle never sees a frame, a priority lane or a session id; a
-//! G-code firmware link will be a second adapter of the same shape.
+//! link calls. The lifecycle never sees a frame, a priority lane or a session id; the
+//! G-code firmware link is the second adapter of the same shape
+//! ([`super::gcode_link`], both behind [`super::adapter::LinkAdapter`]).
 
 use tracing::{info, warn};
 

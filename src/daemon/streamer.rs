@@ -1,7 +1,8 @@
 //! The streamer: the pump. It is the one task that owns the serial port (tokio-serial),
 //! and it drives the sans-IO job lifecycle ([`Lifecycle`]) the way the lifecycle's
 //! module docs show: it feeds it the machine's events (through the link adapter,
-//! [`EdoLink`]), the operators' commands, the planner's output, the store's answers and
+//! [`LinkAdapter`]: [`EdoLink`] or [`GcodeLink`] as `machine.protocol` says), the
+//! operators' commands, the planner's output, the store's answers and
 //! the clock, and carries out what it asks: machine commands and moves go to the link,
 //! records to the store's writer thread, reads to its reader thread, replies to the
 //! API's waiting requests, notifications to the subscribers.
