@@ -73,13 +73,6 @@ fn main() -> ExitCode {
     if findings.iter().any(|f| f.error) {
         return ExitCode::FAILURE;
     }
-    if cfg.machine.protocol == edo::daemon::config::Protocol::Gcode {
-        eprintln!(
-            "edod: machine.protocol = \"gcode\": the configuration is valid, but edod's \
-             streamer does not drive the G-code link yet (docs/firmware.md, status)"
-        );
-        return ExitCode::FAILURE;
-    }
     let rt = match tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

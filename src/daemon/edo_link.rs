@@ -1,8 +1,9 @@
 //! The adapter between the job lifecycle and the edo link: the one place that knows both.
 //! It holds the sans-IO [`Host`] and turns its events into the lifecycle's
 //! protocol-neutral [`Event`]s, and the lifecycle's [`MachineCommand`]s and moves into
-//! link calls. The lifecycle never sees a frame, a priority lane or a session id; a
-//! G-code firmware link will be a second adapter of the same shape.
+//! link calls. The lifecycle never sees a frame, a priority lane or a session id; the
+//! G-code firmware link is the second adapter of the same shape
+//! ([`super::gcode_link`], both behind [`super::adapter::LinkAdapter`]).
 
 use tracing::{info, warn};
 
@@ -14,6 +15,8 @@ use crate::link::{
     Micros, MoveRef, PriorityCmd, Status,
 };
 use crate::machine::Move;
+
+use super::adapter::LinkAdapter;
 
 /// The edo link under the lifecycle.
 pub struct EdoLink {
@@ -74,42 +77,6 @@ impl EdoLink {
         }
     }
 
-    /// The port was (re)opened: start a new session.
-    pub fn reconnect(&mut self, now: Micros) {
-        self.seed = self.seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        self.host.reconnect(self.seed, now);
-    }
-
-    /// Feed bytes read from the port.
-    pub fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
-        self.host.handle_bytes(bytes, now);
-    }
-
-    /// Run the link's timers.
-    pub fn handle_timeout(&mut self, now: Micros) {
-        self.host.handle_timeout(now);
-    }
-
-    /// When the link's timers are next due.
-    pub fn next_timeout(&self) -> Option<Micros> {
-        self.host.next_timeout()
-    }
-
-    /// Bytes to write to the port.
-    pub fn poll_transmit(&mut self, now: Micros) -> Option<Vec<u8>> {
-        self.host.poll_transmit(now).map(|t| t.bytes)
-    }
-
-    /// The next lifecycle event from the link, if any.
-    pub fn poll_event(&mut self, now: Micros) -> Option<Event> {
-        loop {
-            let e = self.host.poll_event()?;
-            if let Some(e) = self.translate(e, now) {
-                return Some(e);
-            }
-        }
-    }
-
     fn translate(&mut self, e: HostEvent, now: Micros) -> Option<Event> {
         Some(match e {
             HostEvent::Connected(i) => {
@@ -155,12 +122,50 @@ impl EdoLink {
             }
         })
     }
+}
+
+impl LinkAdapter for EdoLink {
+    /// The port was (re)opened: start a new session.
+    fn reconnect(&mut self, now: Micros) {
+        self.seed = self.seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        self.host.reconnect(self.seed, now);
+    }
+
+    /// Feed bytes read from the port.
+    fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
+        self.host.handle_bytes(bytes, now);
+    }
+
+    /// Run the link's timers.
+    fn handle_timeout(&mut self, now: Micros) {
+        self.host.handle_timeout(now);
+    }
+
+    /// When the link's timers are next due.
+    fn next_timeout(&self) -> Option<Micros> {
+        self.host.next_timeout()
+    }
+
+    /// Bytes to write to the port.
+    fn poll_transmit(&mut self, now: Micros) -> Option<Vec<u8>> {
+        self.host.poll_transmit(now).map(|t| t.bytes)
+    }
+
+    /// The next lifecycle event from the link, if any.
+    fn poll_event(&mut self, now: Micros) -> Option<Event> {
+        loop {
+            let e = self.host.poll_event()?;
+            if let Some(e) = self.translate(e, now) {
+                return Some(e);
+            }
+        }
+    }
 
     /// Carry out a machine command: the stops and the resume go ahead of every move
     /// queued (the priority lane); clearing faults and a status query are in order with
     /// the moves, and are dropped while the link is not connected (the lifecycle asks
     /// again after a reconnection).
-    pub fn command(&mut self, c: MachineCommand, now: Micros) {
+    fn command(&mut self, c: MachineCommand, _flushing: bool, now: Micros) {
         match c {
             MachineCommand::EmergencyStop => {
                 self.host.priority(PriorityCmd::EmergencyStop, now);
@@ -182,34 +187,36 @@ impl EdoLink {
 
     /// Whether the link takes another move now: connected, and fewer than `ahead`
     /// waiting in it.
-    pub fn has_room(&self, ahead: usize) -> bool {
+    fn has_room(&self, ahead: usize) -> bool {
         self.host.state() == HostState::Connected && self.host.pending() < ahead
     }
 
     /// Queue a move; why not, if it cannot go.
-    pub fn send_move(&mut self, mv: Move) -> Result<(), String> {
+    fn send_move(&mut self, mv: Move) -> Result<(), String> {
         self.host.send_move(mv).map_err(|e| e.to_string())
     }
 
     /// Moves waiting in the link and moves sent and not acknowledged.
-    pub fn in_link(&self) -> (usize, u64) {
+    fn in_link(&self) -> (usize, u64) {
         (self.host.pending(), self.host.moves_in_flight())
     }
 
     /// The machine's identity, once it answered.
-    pub fn identity(&self) -> Option<&str> {
+    fn identity(&self) -> Option<&str> {
         self.info.as_ref().map(|i| i.identity.as_str())
     }
 
     /// Its last status.
-    pub fn status(&self) -> &Status {
+    fn status(&self) -> &Status {
         &self.status
     }
 
     /// The link's counters.
-    pub fn stats(&self) -> LinkStats {
+    fn stats(&self) -> LinkStats {
         self.host.stats()
     }
+
+    fn port_lost(&mut self) {}
 }
 
 /// The link's settings for a line of `baud`.

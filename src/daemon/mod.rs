@@ -29,10 +29,12 @@
 //! - [`supervise`]: signals, systemd notify (READY, STATUS, WATCHDOG), the simulated
 //!   machine child, graceful stop.
 
+pub mod adapter;
 pub mod api;
 pub mod config;
 pub mod connections;
 pub mod edo_link;
+pub mod gcode_link;
 pub mod instance;
 pub mod planner;
 pub mod port_watch;

@@ -1,7 +1,8 @@
 //! The streamer: the pump. It is the one task that owns the serial port (tokio-serial),
 //! and it drives the sans-IO job lifecycle ([`Lifecycle`]) the way the lifecycle's
 //! module docs show: it feeds it the machine's events (through the link adapter,
-//! [`EdoLink`]), the operators' commands, the planner's output, the store's answers and
+//! [`LinkAdapter`]: [`EdoLink`] or [`GcodeLink`] as `machine.protocol` says), the
+//! operators' commands, the planner's output, the store's answers and
 //! the clock, and carries out what it asks: machine commands and moves go to the link,
 //! records to the store's writer thread, reads to its reader thread, replies to the
 //! API's waiting requests, notifications to the subscribers.
@@ -18,15 +19,17 @@ use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::{mpsc, oneshot};
 use tokio_serial::{SerialPortBuilderExt, SerialStream};
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
+use super::adapter::LinkAdapter;
 use super::edo_link::{link_config, EdoLink};
+use super::gcode_link::GcodeLink;
 use super::planner;
 use super::port_watch::{PortLog, PortWatch, PortWatchOptions};
 use super::store::now_ms;
 use super::{ApiError, Control, EStopTiming, MachineSnapshot, Reply, Shared, StateChange};
 use crate::lifecycle::{
-    Action, Answer, Command, Event, JobState, Level, Lifecycle, MachineCommand, Options,
+    Action, Answer, Command, Event, JobState, Level, Lifecycle, MachineCommand, Options, Phase,
     PlannerOutput, Progress, Refusal, RefusalKind, RequestId, ServiceMoves, StateNote, Underrun,
 };
 use crate::link::Micros;
@@ -140,6 +143,48 @@ pub fn lifecycle_options(cfg: &super::Config, wall_ms_at_zero: i64) -> Options {
     }
 }
 
+/// The machine link `cfg` asks for: edo's framed link, or G-code lines to a firmware.
+fn machine_link(cfg: &super::Config) -> Box<dyn LinkAdapter> {
+    let baud = cfg.serial.baud;
+    match cfg.gcode_link() {
+        Ok(Some(g)) => {
+            let syringes = &cfg.machine.syringes;
+            let capacity_nl = syringes
+                .first()
+                .map_or(0, |s| (s.capacity_ml * 1e6).round().clamp(0.0, 4e9) as u32);
+            Box::new(GcodeLink::new(&g, syringes.len(), capacity_nl))
+        }
+        Ok(None) | Err(_) => Box::new(EdoLink::new(link_config(baud), session_seed(), Micros(0))),
+    }
+}
+
+/// Open the serial port without toggling DTR (`docs/firmware.md`, "Opening the port
+/// without resetting the board"): DTR is never driven low on open, and `HUPCL` is
+/// cleared so that closing the port, or edod dying, does not drop it either.
+fn open_port(path: &str, baud: u32) -> tokio_serial::Result<SerialStream> {
+    let port = tokio_serial::new(path, baud)
+        .dtr_on_open(true)
+        .open_native_async()?;
+    clear_hupcl(&port);
+    Ok(port)
+}
+
+fn clear_hupcl(port: &SerialStream) {
+    use nix::sys::termios::{tcgetattr, tcsetattr, ControlFlags, SetArg};
+    use std::os::fd::{AsRawFd, BorrowedFd};
+    // SAFETY: the descriptor belongs to `port`, which outlives this borrow.
+    let fd = unsafe { BorrowedFd::borrow_raw(port.as_raw_fd()) };
+    match tcgetattr(fd) {
+        Ok(mut t) => {
+            t.control_flags.remove(ControlFlags::HUPCL);
+            if let Err(e) = tcsetattr(fd, SetArg::TCSANOW, &t) {
+                debug!(error = %e, "cannot clear HUPCL");
+            }
+        }
+        Err(e) => debug!(error = %e, "cannot read the port's termios"),
+    }
+}
+
 /// The serial port and its health (when to try opening it again, what went wrong).
 struct Port {
     path: PathBuf,
@@ -152,7 +197,8 @@ struct Port {
 pub struct Streamer {
     shared: Arc<Shared>,
     port: Port,
-    link: EdoLink,
+    /// The machine link: edo's ([`EdoLink`]) or G-code's ([`GcodeLink`]).
+    link: Box<dyn LinkAdapter>,
     lc: Lifecycle,
     /// Time zero of the link's and the lifecycle's clock.
     epoch: Instant,
@@ -192,7 +238,7 @@ impl Streamer {
                     epoch,
                 ),
             },
-            link: EdoLink::new(link_config(baud), session_seed(), Micros(0)),
+            link: machine_link(&shared.config),
             lc: Lifecycle::new(opts, service_index, service_reserved_until),
             shared,
             epoch,
@@ -279,7 +325,7 @@ impl Streamer {
             return;
         }
         let path = self.port.path.display().to_string();
-        match tokio_serial::new(&path, self.port.baud).open_native_async() {
+        match open_port(&path, self.port.baud) {
             Ok(mut p) => {
                 let _ = p.set_exclusive(false);
                 info!(port = %path, "serial port open");
@@ -297,6 +343,7 @@ impl Streamer {
 
     fn port_lost(&mut self, why: &str) {
         self.port.stream = None;
+        self.link.port_lost();
         self.port.watch.lost(why, Instant::now());
         self.handle(Event::PortLost { why: why.into() });
     }
@@ -355,7 +402,8 @@ impl Streamer {
             match a {
                 Action::Machine(c) => {
                     let now = self.now();
-                    self.link.command(c, now);
+                    let flushing = matches!(self.lc.phase(), Some(Phase::Flushing { .. }));
+                    self.link.command(c, flushing, now);
                 }
                 Action::StartPlanner {
                     job_id,

@@ -65,6 +65,9 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
     if let Some(r) = &cfg.sim.record {
         cmd.arg("--record").arg(r);
     }
+    if let Ok(Some(g)) = cfg.gcode_link() {
+        cmd.args(gcode_sim_args(&g));
+    }
     let mut child = cmd
         .spawn()
         .with_context(|| format!("cannot start the simulated machine {}", bin.display()))?;
@@ -88,6 +91,41 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
     tokio::spawn(async move { while let Ok(Some(_)) = lines.next_line().await {} });
     info!(link = %link.display(), "simulated machine started");
     Ok((child, link))
+}
+
+/// hil-sim's options for the firmware `g` describes (`hil-sim --gcode FIRMWARE`).
+fn gcode_sim_args(g: &super::config::GcodeLink) -> Vec<String> {
+    use crate::gcode_link::{Dialect, MixWriting, Window};
+    let firmware = match g.link.dialect {
+        Dialect::Rrf => "rrf",
+        Dialect::Marlin => "marlin",
+        Dialect::Klipper => "klipper",
+    };
+    let mut args = vec!["--gcode".to_string(), firmware.to_string()];
+    let mix = match &g.mix {
+        MixWriting::PerDriveE => "per-drive-e",
+        MixWriting::MarlinM163 => "m163",
+        MixWriting::MarlinDirect => "direct",
+        MixWriting::Axes(letters) => {
+            args.push("--gcode-axes".into());
+            args.push(
+                letters
+                    .iter()
+                    .map(char::to_string)
+                    .collect::<Vec<_>>()
+                    .join(","),
+            );
+            "axes"
+        }
+    };
+    args.push("--gcode-mix".into());
+    args.push(mix.into());
+    if g.link.window == Window::AdvancedOk {
+        args.push("--gcode-advanced-ok".into());
+    }
+    args.push("--gcode-rx-buffer".into());
+    args.push(g.link.rx_buffer_bytes.to_string());
+    args
 }
 
 fn bind(cfg: &Config) -> Result<UnixListener> {

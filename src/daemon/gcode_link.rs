@@ -1,0 +1,617 @@
+//! The adapter between the job lifecycle and the G-code line link
+//! ([`crate::gcode_link::LineHost`]): RepRapFirmware, Marlin and Klipper
+//! (`docs/firmware.md`). The one place that knows both.
+//!
+//! - Each move becomes exactly the lines `edoctl plan --gcode --flavor F` writes for it
+//!   ([`MoveWriter`], the offline writer's own formatting), less comments; a job's first
+//!   move is preceded by the file's preamble, and every connection starts with the same
+//!   lines (the resume prologue: tool, units, modes). Every line is tagged; a move is
+//!   accepted when its last line is (a move with no line, a layer mark, when every line
+//!   before it is).
+//! - The firmware does not report execution. A move the firmware accepted (`ok`) is in
+//!   its queue or planner and runs unless the machine resets or halts; a move is reported
+//!   to the lifecycle as executed once as many moves were accepted after it as the
+//!   firmware's queue and planner hold (Marlin 4 + 16, RRF 1 + 40, Klipper 20 + 32: a
+//!   stock build), or once an `M400` sent after it is answered (sent whenever nothing
+//!   else is left to send: at a job's end, a flush, an underrun). So the checkpoint never
+//!   runs ahead of the machine, and after a reset the job resumes from the first move
+//!   that may not have run.
+//! - E-stop: `M112` ahead of every queued line ([`LineHost::emergency_stop`]); the
+//!   firmware halts and only a reset brings it back. The lifecycle's flush (before a job
+//!   restarts or a cancel parks) drops the lines not yet sent and waits for the ones in
+//!   flight instead: their moves run, and then the checkpoint is final.
+//! - Pause stops feeding (the firmware finishes what it accepted); resume feeds again.
+//! - A start-up banner, a Klipper restart or RRF's port vanishing is a machine reset: the
+//!   job is interrupted, as on the edo link, and the handshake starts again.
+
+use std::collections::VecDeque;
+
+use tracing::{debug, info, warn};
+
+use crate::gcode_link::{Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState};
+use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveAt};
+use crate::link::{LinkStats, MachineState, Micros, MoveRef, Status};
+use crate::machine::gcode::{GcodeSettings, MoveWriter};
+use crate::machine::{Move, MoveKind};
+
+use super::adapter::LinkAdapter;
+use super::edo_link::report_of;
+
+/// The G-code lines of `text` as streamed: comments and empty lines dropped.
+pub fn streamed_lines(text: &str) -> impl Iterator<Item = &str> {
+    text.lines().filter_map(streamed)
+}
+
+/// A writer's line as streamed: without its comment; `None` if nothing is left.
+fn streamed(line: &str) -> Option<&str> {
+    Some(line.split(';').next().unwrap_or("").trim()).filter(|l| !l.is_empty())
+}
+
+/// A move (or the prologue, or an `M400`) sent and not yet accepted.
+#[derive(Debug)]
+struct Pending {
+    /// The move (`None`: prologue lines or `M400`).
+    mv: Option<MoveRef>,
+    /// An `M400`: once accepted, every move before it ran.
+    sync: bool,
+    /// Where it ends, if it moves the nozzle.
+    to: Option<crate::machine::PositionUm>,
+    /// Tag of its last line (`None`: it has none).
+    last_tag: Option<u64>,
+}
+
+/// How the firmware stands, as far as the host can tell.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Stop {
+    /// Running normally.
+    None,
+    /// The lifecycle's flush: nothing new goes out; acknowledged once nothing is in flight.
+    Flushing { acked: bool },
+    /// `M112` went out or the firmware halted by itself: only a reset brings it back.
+    Halted,
+}
+
+/// The G-code line link under the lifecycle.
+pub struct GcodeLink {
+    host: LineHost,
+    settings: GcodeSettings,
+    drives: usize,
+    /// The writer of the job being streamed (its id), started with the job's first move
+    /// after a (re)connection or a flush.
+    writer: Option<(u32, MoveWriter)>,
+    next_tag: u64,
+    /// Tags up to this one were accepted.
+    accepted_upto: Option<u64>,
+    pending: VecDeque<Pending>,
+    /// Moves accepted and not known to have run, in order.
+    accepted: VecDeque<Pending>,
+    /// Moves the firmware's queue and planner hold at most.
+    held_at_most: usize,
+    status: Status,
+    info: Option<FirmwareInfo>,
+    events: VecDeque<Event>,
+    stop: Stop,
+    paused: bool,
+    /// The e-stop's `M112` is queued: acknowledged once written.
+    estop_to_ack: bool,
+    /// A link lost is being recovered (the last accepted line asked for).
+    recovering: bool,
+    /// The port closed: the reset it causes is the streamer's `PortLost`.
+    port_closed: bool,
+    /// The port was just opened: what it reads until then is from before (a boot banner
+    /// printed while nobody listened) and is dropped; the handshake starts then.
+    settle_until: Option<Micros>,
+}
+
+/// How long after opening the port its input is dropped before the handshake, µs.
+const SETTLE_US: u64 = 300_000;
+
+impl GcodeLink {
+    /// A link to the firmware configured by `cfg` for `drives` syringes holding
+    /// `capacity_nl` each.
+    pub fn new(cfg: &super::config::GcodeLink, drives: usize, capacity_nl: u32) -> Self {
+        let drives = drives.max(1);
+        Self {
+            host: LineHost::new(cfg.link.clone()),
+            settings: GcodeSettings::for_mix(&cfg.mix, cfg.barrel_area_mm2),
+            drives,
+            writer: None,
+            next_tag: 1,
+            accepted_upto: None,
+            pending: VecDeque::new(),
+            accepted: VecDeque::new(),
+            held_at_most: {
+                let f = crate::gcode_link::FirmwareConfig::for_dialect(cfg.link.dialect);
+                f.command_slots + f.planner_blocks
+            },
+            status: Status {
+                remaining_nl: vec![capacity_nl; drives],
+                ..Status::default()
+            },
+            info: None,
+            events: VecDeque::new(),
+            stop: Stop::None,
+            paused: false,
+            estop_to_ack: false,
+            recovering: false,
+            port_closed: false,
+            settle_until: None,
+        }
+    }
+
+    /// Queue `lines` (a writer's); the tag of the last sent, if any.
+    fn send_lines(&mut self, lines: &[String]) -> Result<Option<u64>, String> {
+        let mut last = None;
+        for line in lines.iter().filter_map(|l| streamed(l)) {
+            let tag = self.next_tag;
+            self.next_tag += 1;
+            self.host.send_line(line, tag).map_err(|e| e.to_string())?;
+            last = Some(tag);
+        }
+        Ok(last)
+    }
+
+    /// The prologue every connection starts with: the writer's preamble (tool set-up,
+    /// Klipper's syringe axes at 0, units, absolute positions, relative extrusion),
+    /// without comments.
+    fn send_prologue(&mut self) {
+        let mut lines = Vec::new();
+        match MoveWriter::new(self.drives, &self.settings) {
+            Ok(mut w) => w.preamble(&[], &mut lines),
+            Err(e) => {
+                warn!(error = %e, "G-code prologue");
+                return;
+            }
+        }
+        match self.send_lines(&lines) {
+            Ok(last_tag) => self.pending.push_back(Pending {
+                mv: None,
+                sync: false,
+                to: None,
+                last_tag,
+            }),
+            Err(e) => warn!(error = %e, "G-code prologue refused"),
+        }
+    }
+
+    /// Every pending move whose lines were all accepted moves to `accepted`; those the
+    /// firmware cannot hold any more, or before an accepted `M400`, ran.
+    fn drain_accepted(&mut self) {
+        let mut moved = false;
+        while let Some(p) = self.pending.front() {
+            if p.last_tag.is_some_and(|t| Some(t) > self.accepted_upto) {
+                break;
+            }
+            let Some(p) = self.pending.pop_front() else {
+                break;
+            };
+            if p.sync {
+                while let Some(a) = self.accepted.pop_front() {
+                    moved |= self.ran(a);
+                }
+            } else if p.mv.is_some() {
+                self.accepted.push_back(p);
+            }
+        }
+        while self.accepted.len() > self.held_at_most {
+            if let Some(a) = self.accepted.pop_front() {
+                moved |= self.ran(a);
+            }
+        }
+        moved |= self.update_state();
+        if moved {
+            self.events
+                .push_back(Event::MachineStatus(report_of(&self.status)));
+        }
+        self.check_flushed();
+    }
+
+    /// Move `p` ran; whether it was a move.
+    fn ran(&mut self, p: Pending) -> bool {
+        let Some(m) = p.mv else {
+            return false;
+        };
+        self.status.last_executed = Some(m);
+        self.status.executed_total += 1;
+        if let Some(to) = p.to {
+            self.status.position = to;
+        }
+        true
+    }
+
+    /// Nothing is left to send and moves were accepted and not known run: `M400`, whose
+    /// `ok` says they ran.
+    fn sync_if_idle(&mut self) {
+        let idle = self.pending.is_empty()
+            && self.host.queued_len() == 0
+            && self.host.in_flight_len() == 0
+            && self.host.state() == LinkState::Streaming;
+        if !idle || self.accepted.is_empty() || matches!(self.stop, Stop::Halted) {
+            return;
+        }
+        let tag = self.next_tag;
+        if self.host.send_line("M400", tag).is_ok() {
+            self.next_tag += 1;
+            self.pending.push_back(Pending {
+                mv: None,
+                sync: true,
+                to: None,
+                last_tag: Some(tag),
+            });
+        }
+    }
+
+    /// The machine state from what is pending; whether it changed.
+    fn update_state(&mut self) -> bool {
+        // The prologue is not the machine's work: only moves count.
+        let moves = self.pending.iter().filter(|p| p.mv.is_some()).count() + self.accepted.len();
+        let state = match self.stop {
+            Stop::Halted => MachineState::EStopped,
+            Stop::Flushing { acked: true } => MachineState::EStopped,
+            _ if self.paused && self.host.in_flight_len() == 0 => MachineState::Held,
+            _ if moves > 0 => MachineState::Running,
+            _ => MachineState::Idle,
+        };
+        let queued = u16::try_from(moves).unwrap_or(u16::MAX);
+        let changed = state != self.status.state || queued != self.status.queued;
+        self.status.state = state;
+        self.status.queued = queued;
+        changed
+    }
+
+    /// The flush is done once nothing is in flight: acknowledged as the e-stop.
+    fn check_flushed(&mut self) {
+        if self.stop == (Stop::Flushing { acked: false })
+            && self.host.in_flight_len() == 0
+            && self.host.queued_len() == 0
+            && self.accepted.is_empty()
+        {
+            self.stop = Stop::Flushing { acked: true };
+            self.pending.clear();
+            self.update_state();
+            self.events
+                .push_back(Event::CommandAcked(MachineCommand::EmergencyStop));
+        }
+    }
+
+    /// Forget what was sent: the firmware's queue is gone (reset) or the session starts
+    /// again.
+    fn forget(&mut self) {
+        self.pending.clear();
+        self.accepted.clear();
+        self.writer = None;
+        self.accepted_upto = None;
+        self.update_state();
+    }
+
+    fn connect(&mut self, now: Micros) {
+        self.forget();
+        self.info = None;
+        let _ = self.host.connect(now);
+    }
+
+    fn translate(&mut self, e: LineEvent, now: Micros) {
+        match e {
+            LineEvent::Connected(i) => {
+                info!(firmware = ?i.firmware_name, identity = ?i.identity, "G-code firmware connected");
+                if i.dialect == Dialect::Marlin && i.capability("EMERGENCY_PARSER") != Some(true) {
+                    warn!("Marlin without EMERGENCY_PARSER: M112 waits behind its queue (docs/firmware.md)");
+                }
+                self.info = Some(i);
+                self.stop = Stop::None;
+                self.paused = false;
+                self.send_prologue();
+                self.update_state();
+                self.events
+                    .push_back(Event::MachineConnected(report_of(&self.status)));
+            }
+            LineEvent::Accepted { tag, .. } => {
+                self.accepted_upto = Some(tag);
+                self.drain_accepted();
+            }
+            LineEvent::MaybeRepeated { tag, line_number } => {
+                warn!(
+                    tag,
+                    line_number,
+                    "no ok in time: line sent again; it runs twice if only its ok was lost"
+                );
+            }
+            LineEvent::Echo { text } => debug!(%text, "firmware"),
+            LineEvent::Action { text } => info!(%text, "firmware host action"),
+            LineEvent::Busy { text } => debug!(%text, "firmware busy"),
+            LineEvent::Error { text } => warn!(%text, "firmware error"),
+            LineEvent::ProtocolError { what } => warn!(%what, "G-code link"),
+            LineEvent::Halted { text, .. } => self.on_halted(text),
+            LineEvent::Reset { banner, .. } => self.on_reset(&banner, now),
+            LineEvent::LinkLost { silent_us, .. } => {
+                warn!(silent_ms = silent_us / 1000, "G-code link lost");
+                self.events.push_back(Event::LinkSilent);
+                self.recovering = self.host.recover_last_accepted(now).is_ok();
+                if !self.recovering {
+                    self.connect(now);
+                }
+            }
+            LineEvent::Stopped { reason, .. } => {
+                warn!(%reason, "G-code link stopped");
+                self.events
+                    .push_back(Event::MachineFault(MachineFault::Other(reason)));
+                self.connect(now);
+            }
+            LineEvent::LastAccepted(last) => self.on_last_accepted(last, now),
+        }
+    }
+
+    fn on_halted(&mut self, text: String) {
+        let asked = self.stop == Stop::Halted;
+        self.stop = Stop::Halted;
+        self.forget();
+        if asked {
+            info!(%text, "firmware halted on the e-stop");
+        } else {
+            warn!(%text, "firmware halted");
+            self.events
+                .push_back(Event::MachineFault(MachineFault::Other(format!(
+                    "firmware halted: {text}"
+                ))));
+        }
+        self.events
+            .push_back(Event::MachineStatus(report_of(&self.status)));
+    }
+
+    fn on_reset(&mut self, banner: &str, now: Micros) {
+        if std::mem::take(&mut self.port_closed) {
+            return;
+        }
+        warn!(%banner, "firmware restarted: its queue is lost");
+        let last_executed = self.status.last_executed.map(|m| MoveAt {
+            job_id: m.job_id,
+            index: m.index,
+        });
+        self.events.push_back(Event::MachineReset { last_executed });
+        self.stop = Stop::None;
+        self.connect(now);
+    }
+
+    /// After a lost link: the moves up to the firmware's last accepted line ran; the
+    /// session starts again.
+    fn on_last_accepted(&mut self, last: LastAccepted, now: Micros) {
+        self.recovering = false;
+        match last {
+            LastAccepted::Known {
+                tag: Some(tag),
+                exact,
+                ..
+            } => {
+                // RRF names the last line parsed, which may be one it dropped: count it
+                // as not run (it is sent again; at most that line runs twice).
+                let upto = if exact { Some(tag) } else { tag.checked_sub(1) };
+                self.accepted_upto = upto.max(self.accepted_upto);
+                self.drain_accepted();
+                // The firmware runs what it accepted while the link is down.
+                while let Some(a) = self.accepted.pop_front() {
+                    self.ran(a);
+                }
+                self.events
+                    .push_back(Event::MachineStatus(report_of(&self.status)));
+                info!(tag, exact, "G-code link: last accepted line known");
+            }
+            other => warn!(?other, "G-code link: last accepted line not known"),
+        }
+        self.connect(now);
+    }
+
+    /// The e-stop proper: `M112` ahead of everything; the firmware halts.
+    fn emergency_stop(&mut self) {
+        let _ = self.host.emergency_stop();
+        self.stop = Stop::Halted;
+        self.estop_to_ack = true;
+        self.forget();
+    }
+
+    /// The lifecycle's flush: the lines not sent are dropped, the ones in flight run.
+    fn flush(&mut self) {
+        if self.stop == Stop::Halted || self.host.state() != LinkState::Streaming {
+            self.forget();
+            self.events
+                .push_back(Event::CommandAcked(MachineCommand::EmergencyStop));
+            if self.stop != Stop::Halted {
+                self.stop = Stop::Flushing { acked: true };
+            }
+            self.update_state();
+            return;
+        }
+        // A move any of whose lines was not sent is dropped, and every move after it.
+        let dropped = self.host.drop_queued();
+        // Only the `M400` that makes the checkpoint final goes out now.
+        self.host.set_paused(false);
+        if let Some(first) = dropped.first() {
+            let keep = self
+                .pending
+                .iter()
+                .position(|p| p.last_tag.is_some_and(|t| t >= *first))
+                .unwrap_or(self.pending.len());
+            self.pending.truncate(keep);
+        }
+        self.writer = None;
+        self.stop = Stop::Flushing { acked: false };
+        self.check_flushed();
+    }
+
+    fn resume(&mut self) {
+        self.paused = false;
+        self.host.set_paused(false);
+        match self.stop {
+            Stop::Halted => warn!(
+                "the firmware halted (M112): reset the machine (Marlin: its reset button; RRF: \
+                 M999 or reset; Klipper: FIRMWARE_RESTART); edod reconnects when it restarts"
+            ),
+            _ => {
+                self.stop = Stop::None;
+                self.update_state();
+                self.events
+                    .push_back(Event::CommandAcked(MachineCommand::Resume));
+            }
+        }
+    }
+
+    /// The lines of `mv`. A job's first move after a (re)connection or a flush starts a
+    /// writer of its own, and its preamble goes first (as in the file; for Klipper it also
+    /// sets the syringe axes to 0, where the new writer's positions start).
+    fn lines_of(&mut self, mv: &Move) -> Result<Vec<String>, String> {
+        let fresh = match &self.writer {
+            Some((job, _)) => mv.job_id != crate::lifecycle::SERVICE_JOB_ID && *job != mv.job_id,
+            None => true,
+        };
+        let mut lines = Vec::new();
+        if fresh {
+            let mut w = MoveWriter::new(self.drives, &self.settings).map_err(|e| e.to_string())?;
+            w.preamble(&[], &mut lines);
+            self.writer = Some((mv.job_id, w));
+        }
+        if let Some((_, w)) = self.writer.as_mut() {
+            w.move_lines(mv, &mut lines);
+        }
+        Ok(lines)
+    }
+}
+
+fn end_of(mv: &Move) -> Option<crate::machine::PositionUm> {
+    match &mv.kind {
+        MoveKind::Travel { to, .. } | MoveKind::Extrude { to, .. } => Some(*to),
+        _ => None,
+    }
+}
+
+impl LinkAdapter for GcodeLink {
+    fn reconnect(&mut self, now: Micros) {
+        self.port_closed = false;
+        self.forget();
+        self.settle_until = Some(now.plus_us(SETTLE_US));
+    }
+
+    fn port_lost(&mut self) {
+        self.port_closed = true;
+        self.host.port_closed();
+        self.forget();
+    }
+
+    fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
+        if self.settle_until.is_some() {
+            debug!(bytes = bytes.len(), "dropped: read before the handshake");
+            return;
+        }
+        self.host.handle_bytes(bytes, now);
+    }
+
+    fn handle_timeout(&mut self, now: Micros) {
+        if self.settle_until.is_some_and(|t| now >= t) {
+            self.settle_until = None;
+            self.connect(now);
+        }
+        self.host.handle_timeout(now);
+    }
+
+    fn next_timeout(&self) -> Option<Micros> {
+        self.settle_until.or(self.host.next_timeout())
+    }
+
+    fn poll_transmit(&mut self, now: Micros) -> Option<Vec<u8>> {
+        let mut out = self.host.poll_transmit(now);
+        if out.is_none() {
+            self.sync_if_idle();
+            out = self.host.poll_transmit(now);
+        }
+        if out.is_some() && std::mem::take(&mut self.estop_to_ack) {
+            // M112 is acted on as it arrives (Marlin's emergency parser, RRF's urgent
+            // scan, Klipper below 20 pending lines); RRF says nothing back.
+            self.events
+                .push_back(Event::CommandAcked(MachineCommand::EmergencyStop));
+        }
+        out
+    }
+
+    fn poll_event(&mut self, now: Micros) -> Option<Event> {
+        while let Some(e) = self.host.poll_event() {
+            self.translate(e, now);
+        }
+        if self.port_closed && self.host.state() == LinkState::Reset {
+            self.port_closed = false;
+        }
+        self.events.pop_front()
+    }
+
+    fn command(&mut self, c: MachineCommand, flushing: bool, _now: Micros) {
+        match c {
+            MachineCommand::EmergencyStop if flushing => self.flush(),
+            MachineCommand::EmergencyStop => self.emergency_stop(),
+            MachineCommand::FeedHold => {
+                self.paused = true;
+                self.host.set_paused(true);
+                self.update_state();
+                self.events
+                    .push_back(Event::CommandAcked(MachineCommand::FeedHold));
+            }
+            MachineCommand::Resume => self.resume(),
+            MachineCommand::ClearFaults => {}
+            MachineCommand::QueryStatus => {
+                self.update_state();
+                self.events
+                    .push_back(Event::MachineStatus(report_of(&self.status)));
+            }
+        }
+    }
+
+    fn has_room(&self, ahead: usize) -> bool {
+        self.host.state() == LinkState::Streaming
+            && self.info.is_some()
+            && self.stop == Stop::None
+            && !self.paused
+            && self.host.queued_len() < ahead.clamp(1, 16)
+    }
+
+    fn send_move(&mut self, mv: Move) -> Result<(), String> {
+        let lines = self.lines_of(&mv)?;
+        let last_tag = self.send_lines(&lines)?;
+        self.pending.push_back(Pending {
+            sync: false,
+            mv: Some(MoveRef {
+                job_id: mv.job_id,
+                index: mv.index,
+            }),
+            to: end_of(&mv),
+            last_tag,
+        });
+        self.drain_accepted();
+        Ok(())
+    }
+
+    fn in_link(&self) -> (usize, u64) {
+        (self.host.queued_len(), self.host.in_flight_len() as u64)
+    }
+
+    fn identity(&self) -> Option<&str> {
+        let i = self.info.as_ref()?;
+        i.firmware_name
+            .as_deref()
+            .or(i.identity.as_deref())
+            .or(Some(match i.dialect {
+                Dialect::Marlin => "Marlin",
+                Dialect::Rrf => "RepRapFirmware",
+                Dialect::Klipper => "Klipper",
+            }))
+    }
+
+    fn status(&self) -> &Status {
+        &self.status
+    }
+
+    fn stats(&self) -> LinkStats {
+        let s = self.host.stats();
+        LinkStats {
+            bytes_sent: s.bytes_sent,
+            bytes_received: s.bytes_received,
+            frames_retransmitted: s.lines_resent + s.lines_repeated,
+            ..LinkStats::default()
+        }
+    }
+}
