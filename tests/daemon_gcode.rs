@@ -477,16 +477,15 @@ fn motion(line: &str) -> String {
         .join(" ")
 }
 
-/// edod killed with SIGKILL mid-job on Marlin, restarted: the job is interrupted (not
+/// edod killed with SIGKILL mid-job on `firmware`, restarted: the job is interrupted (not
 /// resumed silently); resumed, it runs to the end. Today it resumes from its last stored
 /// checkpoint (`docs/firmware.md`): nothing is skipped, and the moves the firmware ran
 /// after that checkpoint run again, in one run right after the resume's service moves.
-#[test]
-fn marlin_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
+fn sigkill_mid_job_interrupts_and_resumes_skipping_nothing(firmware: &str, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
-    let (sim, record) = sim(dir.path(), "marlin", 9);
+    let (sim, record) = sim(dir.path(), firmware, seed);
     let port = sim.path().display().to_string();
-    let mut d = Daemon::start(dir.path(), &port, "marlin", "");
+    let mut d = Daemon::start(dir.path(), &port, firmware, "");
     let mut c = d.client();
     c.wait_connected();
     let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
@@ -513,7 +512,7 @@ fn marlin_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
     drop(c);
     drop(d);
     sim.stop().unwrap();
-    let expected: Vec<String> = move_lines(&offline(&planned_job(), "marlin"))
+    let expected: Vec<String> = move_lines(&offline(&planned_job(), firmware))
         .iter()
         .map(|l| motion(l))
         .collect();
@@ -527,7 +526,17 @@ fn marlin_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
     // Home, prime, the lifted travel and the descent to where the job stopped.
     assert!(service <= 4, "{service} service moves");
     eprintln!(
-        "ran {before} before SIGKILL, resumed at {resumed_at}: {} repeated",
+        "{firmware}: ran {before} before SIGKILL, resumed at {resumed_at}: {} repeated",
         before - resumed_at
     );
+}
+
+#[test]
+fn marlin_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
+    sigkill_mid_job_interrupts_and_resumes_skipping_nothing("marlin", 9);
+}
+
+#[test]
+fn klipper_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
+    sigkill_mid_job_interrupts_and_resumes_skipping_nothing("klipper", 10);
 }
