@@ -93,6 +93,24 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
     Ok((child, link))
 }
 
+/// What the operator must know before resuming a job that edod's own stop interrupted
+/// on a G-code firmware (`docs/firmware.md`, "What edod learns ...").
+fn gcode_restart_advice(dialect: crate::gcode_link::Dialect) -> &'static str {
+    match dialect {
+        crate::gcode_link::Dialect::Klipper => {
+            "Klipper ran the lines it had accepted after edod stopped and cannot say which: \
+             the moves after each job's checkpoint (up to the lines in flight and Klipper's \
+             lookahead) may have run; check the part, or Klipper's gcode_move position \
+             through its API, before resuming (docs/firmware.md)"
+        }
+        _ => {
+            "the firmware ran the lines it had accepted after edod stopped: resuming repeats \
+             the moves between each job's last checkpoint and those lines; check the part \
+             before resuming (docs/firmware.md)"
+        }
+    }
+}
+
 /// hil-sim's options for the firmware `g` describes (`hil-sim --gcode FIRMWARE`).
 fn gcode_sim_args(g: &super::config::GcodeLink) -> Vec<String> {
     use crate::gcode_link::{Dialect, MixWriting, Window};
@@ -225,6 +243,9 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     }
     if !opened.interrupted.is_empty() {
         warn!(jobs = ?opened.interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
+        if let Ok(Some(g)) = cfg.gcode_link() {
+            warn!(jobs = ?opened.interrupted, "{}", gcode_restart_advice(g.link.dialect));
+        }
     }
     let listener = bind(&cfg)?;
     let (control_tx, control_rx) = mpsc::channel(64);
