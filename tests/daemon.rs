@@ -1899,6 +1899,12 @@ fn a_full_state_disk_holds_state_changes_and_loses_no_operator_decision() {
     assert_eq!(progress(&mut c), held, "the machine holds");
     let e = c.call("job.resume", json!({"id": a})).unwrap_err();
     assert_eq!(e["code"], json!(-32007), "{e}");
+    // machine.status and edoctl status say why.
+    let m = c.call("machine.status", json!({})).unwrap();
+    let problem = m["store_problem"].as_str().unwrap_or_default().to_string();
+    assert!(problem.starts_with("job store cannot write: "), "{m}");
+    let status = String::from_utf8(d.edoctl_ok(["status"])).unwrap();
+    assert!(status.contains(&problem), "{status}");
     let e = c.call("job.cancel", json!({"id": b})).unwrap_err();
     assert_eq!(e["code"], json!(-32007), "{e}");
     let e = c
@@ -1915,6 +1921,9 @@ fn a_full_state_disk_holds_state_changes_and_loses_no_operator_decision() {
     file_size_limit(&d, "unlimited");
     c.wait_state(a, "paused");
     c.wait_state(b, "cancelled");
+    c.wait("the store writes again", |c| {
+        c.call("machine.status", json!({})).unwrap()["store_problem"].is_null()
+    });
     let r = c.call("job.resume", json!({"id": a})).unwrap();
     assert_eq!(r["stored"], json!(true), "{r}");
     c.wait_state(a, "done");

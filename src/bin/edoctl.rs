@@ -225,6 +225,11 @@ fn status(c: &mut Client, out: &Output) -> anyhow::Result<()> {
         if let Some(why) = &s.disconnected_reason {
             human.push_str(&format!("\n  why: {why}"));
         }
+        if let Some(problem) = &s.store_problem {
+            human.push_str(&format!(
+                "\n  {problem}: jobs hold until edod's state directory has room"
+            ));
+        }
         if let Some(held) = s.queue_held_by {
             human.push_str(&format!(
                 "\n  queue waits: job {held} is interrupted; resume or cancel it, or \

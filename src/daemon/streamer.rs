@@ -660,6 +660,10 @@ impl Streamer {
             // stopped or be running on): null, not the last report.
             state: identity.filter(|_| connected).map(|_| s.state),
             queue_held_by: self.lc.queue_held_by(),
+            store_problem: self
+                .lc
+                .store_problem()
+                .map(|c| format!("job store cannot write: {c}")),
             last_executed: s.last_executed,
             executed_total: s.executed_total,
             remaining_nl: s.remaining_nl.clone(),
@@ -676,6 +680,7 @@ impl Streamer {
             old.connected != snap.connected
                 || old.disconnected_reason != snap.disconnected_reason
                 || old.queue_held_by != snap.queue_held_by
+                || old.store_problem != snap.store_problem
                 || old.state != snap.state
                 || old.faults != snap.faults
                 || old.active_job != snap.active_job

@@ -324,6 +324,12 @@ impl Lifecycle {
         self.jobs.first_in(JobState::Interrupted)
     }
 
+    /// Why the job store cannot write (a full disk: "disk full"), while it cannot; a
+    /// store only waiting for another process's lock is not a problem here.
+    pub fn store_problem(&self) -> Option<&str> {
+        self.store_cannot_write()
+    }
+
     /// The oldest queued job.
     pub fn first_queued(&self) -> Option<u32> {
         self.jobs.first_queued()

@@ -37,6 +37,10 @@ pub struct MachineSnapshot {
     pub position_mm: [f64; 3],
     /// Job being streamed.
     pub active_job: Option<u32>,
+    /// Why the job store cannot write (`"job store cannot write: disk full"`), while it
+    /// cannot: no job starts or continues until it can (docs/api.md, Full disk).
+    #[serde(default)]
+    pub store_problem: Option<String>,
     /// The interrupted job the queue waits for (resume or cancel it, or
     /// `job.start_next`); null when the queue runs.
     #[serde(default)]
