@@ -37,6 +37,8 @@ pub struct GcodeOptions {
     pub advanced_ok: bool,
     /// The firmware's receive buffer (default: the model's).
     pub rx_buffer_bytes: Option<usize>,
+    /// Marlin `BUFSIZE`, the command queue (default: the model's).
+    pub command_slots: Option<usize>,
 }
 
 impl GcodeOptions {
@@ -53,6 +55,7 @@ impl GcodeOptions {
             mix,
             advanced_ok: false,
             rx_buffer_bytes: None,
+            command_slots: None,
         }
     }
 
@@ -63,6 +66,9 @@ impl GcodeOptions {
         c.emergency_parser = true;
         if let Some(rx) = self.rx_buffer_bytes {
             c.rx_buffer_bytes = rx;
+        }
+        if let Some(slots) = self.command_slots {
+            c.command_slots = slots.max(1);
         }
         c
     }
