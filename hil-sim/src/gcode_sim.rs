@@ -24,7 +24,7 @@ use crate::faults::Faults;
 use crate::gcode_machine::GcodeMachine;
 use crate::model::{Executed, MachineModel};
 use crate::record::{write_line, RecordLine};
-use crate::sim::{move_kind_name, um_to_mm, Command, PtyPort, SimConfig, Summary};
+use crate::sim::{move_kind_name, um_to_mm, Command, PtyPort, SimConfig, Summary, UART_BANK_BYTES};
 
 /// The G-code mode's settings (`--gcode`, `--gcode-mix`, ...).
 #[derive(Debug, Clone, PartialEq)]
@@ -218,7 +218,7 @@ pub fn run(
 impl<'a> GcodeSim<'a> {
     fn new(cfg: &'a SimConfig, opts: GcodeOptions) -> anyhow::Result<(Self, PathBuf)> {
         let mut rng = SimRng::new(cfg.seed);
-        let (port, ready) = PtyPort::open(cfg.link.as_deref(), cfg.baud)?;
+        let (port, ready) = PtyPort::open(cfg.link.as_deref(), cfg.baud, UART_BANK_BYTES)?;
         let recorder = match &cfg.record {
             Some(p) => Some(BufWriter::new(
                 File::create(p).with_context(|| format!("create record {}", p.display()))?,
