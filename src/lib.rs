@@ -49,6 +49,8 @@ pub mod lifecycle;
 pub mod link;
 #[cfg(feature = "daemon")]
 pub mod linktest;
+#[cfg(feature = "daemon")]
+pub mod linktest_gcode;
 pub mod machine;
 pub mod material;
 pub mod mesh;

@@ -24,7 +24,7 @@ use crate::faults::Faults;
 use crate::gcode_machine::GcodeMachine;
 use crate::model::{Executed, MachineModel};
 use crate::record::{write_line, RecordLine};
-use crate::sim::{move_kind_name, um_to_mm, Command, PtyPort, SimConfig, Summary};
+use crate::sim::{move_kind_name, um_to_mm, Command, PtyPort, SimConfig, Summary, UART_BANK_BYTES};
 
 /// The G-code mode's settings (`--gcode`, `--gcode-mix`, ...).
 #[derive(Debug, Clone, PartialEq)]
@@ -37,6 +37,8 @@ pub struct GcodeOptions {
     pub advanced_ok: bool,
     /// The firmware's receive buffer (default: the model's).
     pub rx_buffer_bytes: Option<usize>,
+    /// Marlin `BUFSIZE`, the command queue (default: the model's).
+    pub command_slots: Option<usize>,
 }
 
 impl GcodeOptions {
@@ -53,6 +55,7 @@ impl GcodeOptions {
             mix,
             advanced_ok: false,
             rx_buffer_bytes: None,
+            command_slots: None,
         }
     }
 
@@ -63,6 +66,9 @@ impl GcodeOptions {
         c.emergency_parser = true;
         if let Some(rx) = self.rx_buffer_bytes {
             c.rx_buffer_bytes = rx;
+        }
+        if let Some(slots) = self.command_slots {
+            c.command_slots = slots.max(1);
         }
         c
     }
@@ -212,7 +218,7 @@ pub fn run(
 impl<'a> GcodeSim<'a> {
     fn new(cfg: &'a SimConfig, opts: GcodeOptions) -> anyhow::Result<(Self, PathBuf)> {
         let mut rng = SimRng::new(cfg.seed);
-        let (port, ready) = PtyPort::open(cfg.link.as_deref(), cfg.baud)?;
+        let (port, ready) = PtyPort::open(cfg.link.as_deref(), cfg.baud, UART_BANK_BYTES)?;
         let recorder = match &cfg.record {
             Some(p) => Some(BufWriter::new(
                 File::create(p).with_context(|| format!("create record {}", p.display()))?,

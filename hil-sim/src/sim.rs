@@ -164,11 +164,27 @@ pub(crate) struct PtyPort {
     /// Bytes the line may carry now, each way.
     rx_credit: f64,
     tx_credit: f64,
+    /// Most line credit banked while idle, bytes.
+    bank_bytes: f64,
 }
 
+/// Line credit the edo simulator banks while idle: its frames (up to 512 bytes) are read
+/// at once after a pause.
+pub(crate) const EDO_BANK_BYTES: f64 = 512.0;
+
+/// Line credit the G-code simulator banks: about one tick of line time at 250 000 baud,
+/// so a line that follows a pause still takes its bytes' time, as on a UART, and one
+/// line at a time pays for the idle line between `ok` and the next line.
+pub(crate) const UART_BANK_BYTES: f64 = 16.0;
+
 impl PtyPort {
-    /// A fresh pty at `baud`, and the path the host should open.
-    pub(crate) fn open(link: Option<&Path>, baud: u32) -> anyhow::Result<(Self, PathBuf)> {
+    /// A fresh pty at `baud` banking at most `bank_bytes` of line credit, and the path
+    /// the host should open.
+    pub(crate) fn open(
+        link: Option<&Path>,
+        baud: u32,
+        bank_bytes: f64,
+    ) -> anyhow::Result<(Self, PathBuf)> {
         let pty = open_pty(link)?;
         let ready = link.map_or_else(|| pty.slave_path.clone(), Path::to_path_buf);
         let port = PtyPort {
@@ -178,6 +194,7 @@ impl PtyPort {
             byte_us: 10_000_000.0 / f64::from(baud.max(1)),
             rx_credit: 0.0,
             tx_credit: 0.0,
+            bank_bytes,
         };
         Ok((port, ready))
     }
@@ -210,7 +227,7 @@ impl PtyPort {
     }
 
     /// Host -> machine, throttled to the line: `dt_us` of line time is credited (at most
-    /// 512 bytes banked) and up to the credit is read into `buf`. Returns how many bytes
+    /// the bank) and up to the credit is read into `buf`. Returns how many bytes
     /// were read: 0 when stalled, unplugged, or nothing came (a hang-up, EIO, is not an
     /// error: the host may reopen).
     pub(crate) fn read(
@@ -220,7 +237,8 @@ impl PtyPort {
         stalled: bool,
         sum: &mut Summary,
     ) -> anyhow::Result<usize> {
-        self.rx_credit = (self.rx_credit + dt_us as f64 / self.byte_us).min(512.0);
+        let new = dt_us as f64 / self.byte_us;
+        self.rx_credit = (self.rx_credit + new).min(self.bank_bytes.max(new));
         let want = (self.rx_credit as usize).min(buf.len());
         let Some(p) = self.pty.as_mut() else {
             return Ok(0);
@@ -248,7 +266,8 @@ impl PtyPort {
         dt_us: u64,
         sum: &mut Summary,
     ) -> anyhow::Result<()> {
-        self.tx_credit = (self.tx_credit + dt_us as f64 / self.byte_us).min(512.0);
+        let new = dt_us as f64 / self.byte_us;
+        self.tx_credit = (self.tx_credit + new).min(self.bank_bytes.max(new));
         let Some(p) = self.pty.as_mut() else {
             tx.clear();
             return Ok(());
@@ -515,7 +534,7 @@ impl<'a> Sim<'a> {
     fn new(cfg: &'a SimConfig) -> anyhow::Result<(Self, PathBuf)> {
         let faults = cfg.faults.clone();
         let mut rng = SimRng::new(cfg.seed);
-        let (port, ready_path) = PtyPort::open(cfg.link.as_deref(), cfg.baud)?;
+        let (port, ready_path) = PtyPort::open(cfg.link.as_deref(), cfg.baud, EDO_BANK_BYTES)?;
         let recorder = match &cfg.record {
             Some(p) => Some(BufWriter::new(
                 File::create(p).with_context(|| format!("create record {}", p.display()))?,

@@ -45,6 +45,17 @@ enum Commands {
         /// Line speed (also the basis of the utilisation figure).
         #[arg(long, default_value_t = 250_000, value_name = "B")]
         baud: u32,
+        /// The protocol on the port: edo's framed link, or G-code lines
+        /// (docs/firmware.md).
+        #[arg(long, value_enum, default_value = "edo")]
+        protocol: LinkProtocol,
+        /// With --protocol gcode: the firmware (rrf, marlin, klipper).
+        #[arg(long, value_name = "F", required_if_eq("protocol", "gcode"))]
+        firmware: Option<String>,
+        /// With --protocol gcode: lines in flight ("auto", "advanced-ok" or a number;
+        /// a window over 1 only for boards on native USB, docs/firmware.md).
+        #[arg(long, value_name = "W", default_value = "auto")]
+        window: String,
     },
     /// Submit a job file (and its mesh) to edod.
     Submit {
@@ -244,6 +255,58 @@ fn status(c: &mut Client, out: &Output) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `edoctl link-test --protocol`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum LinkProtocol {
+    Edo,
+    Gcode,
+}
+
+/// `link-test --protocol gcode`: dry-run moves through the G-code line protocol.
+fn gcode_link_test(
+    port: PathBuf,
+    moves: u32,
+    baud: u32,
+    (firmware, window): (&str, &str),
+    json: bool,
+) -> anyhow::Result<ExitCode> {
+    use edo::gcode_link::{Dialect, Window};
+    let firmware = match firmware {
+        "rrf" => Dialect::Rrf,
+        "marlin" => Dialect::Marlin,
+        "klipper" => Dialect::Klipper,
+        other => anyhow::bail!("--firmware {other:?}: rrf, marlin or klipper"),
+    };
+    let window = match window {
+        "auto" => Window::Auto,
+        "advanced-ok" => Window::AdvancedOk,
+        n => Window::Lines(
+            n.parse::<u16>()
+                .ok()
+                .filter(|n| (1..=64).contains(n))
+                .ok_or_else(|| anyhow::anyhow!("--window {n:?}: auto, advanced-ok or 1 to 64"))?,
+        ),
+    };
+    let report = edo::linktest_gcode::run(&edo::linktest_gcode::GcodeLinkTestConfig {
+        port,
+        firmware,
+        moves,
+        baud,
+        window,
+        stall_timeout: Duration::from_secs(30),
+    })?;
+    if json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        print!("{report}");
+    }
+    Ok(if report.is_clean() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
 fn link_test(port: PathBuf, moves: u32, baud: u32, json: bool) -> anyhow::Result<ExitCode> {
     let report = edo::linktest::run(&edo::linktest::LinkTestConfig {
         port,
@@ -272,9 +335,27 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Commands::Plan(args) => edo::cli::plan::run(args).map(|()| ExitCode::SUCCESS),
         Commands::Demo(args) => edo::cli::demo::run(args, cli.json),
-        Commands::LinkTest { port, moves, baud } => {
-            link_test(port.clone(), *moves, *baud, cli.json)
-        }
+        Commands::LinkTest {
+            port,
+            moves,
+            baud,
+            protocol: LinkProtocol::Edo,
+            ..
+        } => link_test(port.clone(), *moves, *baud, cli.json),
+        Commands::LinkTest {
+            port,
+            moves,
+            baud,
+            firmware,
+            window,
+            ..
+        } => gcode_link_test(
+            port.clone(),
+            *moves,
+            *baud,
+            (firmware.as_deref().unwrap_or_default(), window),
+            cli.json,
+        ),
         _ => daemon(&cli),
     };
     match result {
