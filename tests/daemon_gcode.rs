@@ -478,10 +478,16 @@ fn motion(line: &str) -> String {
 }
 
 /// edod killed with SIGKILL mid-job on `firmware`, restarted: the job is interrupted (not
-/// resumed silently); resumed, it runs to the end. Today it resumes from its last stored
-/// checkpoint (`docs/firmware.md`): nothing is skipped, and the moves the firmware ran
-/// after that checkpoint run again, in one run right after the resume's service moves.
-fn sigkill_mid_job_interrupts_and_resumes_skipping_nothing(firmware: &str, seed: u64) {
+/// resumed silently); resumed, it runs to the end, nothing skipped, the resume's service
+/// moves between. Marlin and RRF name their last accepted line and edod the move it
+/// belongs to (`docs/firmware.md`): at most `repeats_allowed` moves run twice (Marlin
+/// none, RRF one); Klipper resumes from the last stored checkpoint. Returns how many
+/// moves ran twice.
+fn sigkill_mid_job_interrupts_and_resumes(
+    firmware: &str,
+    seed: u64,
+    repeats_allowed: usize,
+) -> usize {
     let dir = tempfile::tempdir().unwrap();
     let (sim, record) = sim(dir.path(), firmware, seed);
     let port = sim.path().display().to_string();
@@ -517,26 +523,42 @@ fn sigkill_mid_job_interrupts_and_resumes_skipping_nothing(firmware: &str, seed:
         .map(|l| motion(l))
         .collect();
     let ran: Vec<String> = ran(&record).iter().map(|l| motion(l)).collect();
-    assert_eq!(&ran[..before], &expected[..before], "first run");
-    // The tail after the resume's service moves is the file from the checkpoint on.
-    let resumed_at = (0..=before)
-        .find(|&s| ran.ends_with(&expected[s..]) && ran.len() - (expected.len() - s) >= before)
-        .expect("the job's end runs in order after the resume");
-    let service = ran.len() - (expected.len() - resumed_at) - before;
+    // The first run: the file's lines up to where the resume's service moves start.
+    let first = ran
+        .iter()
+        .zip(&expected)
+        .take_while(|(a, b)| a == b)
+        .count();
+    assert!(first >= before, "first run: {first} of {before} lines");
+    // The tail after the resume's service moves is the file from the resumed move on.
+    let resumed_at = (0..=first)
+        .find(|&s| ran.ends_with(&expected[s..]) && ran.len() - (expected.len() - s) >= first)
+        .expect("the job's end runs in order after the resume, nothing skipped");
+    let service = ran.len() - (expected.len() - resumed_at) - first;
     // Home, prime, the lifted travel and the descent to where the job stopped.
     assert!(service <= 4, "{service} service moves");
+    let repeated = first - resumed_at;
     eprintln!(
-        "{firmware}: ran {before} before SIGKILL, resumed at {resumed_at}: {} repeated",
-        before - resumed_at
+        "{firmware}: ran {first} before the resume, resumed at {resumed_at}: {repeated} repeated"
     );
+    assert!(
+        repeated <= repeats_allowed,
+        "{firmware}: {repeated} moves ran twice"
+    );
+    repeated
 }
 
 #[test]
-fn marlin_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
-    sigkill_mid_job_interrupts_and_resumes_skipping_nothing("marlin", 9);
+fn marlin_sigkill_mid_job_resumes_running_every_move_once() {
+    sigkill_mid_job_interrupts_and_resumes("marlin", 9, 0);
+}
+
+#[test]
+fn rrf_sigkill_mid_job_resumes_running_at_most_one_move_twice() {
+    sigkill_mid_job_interrupts_and_resumes("rrf", 11, 1);
 }
 
 #[test]
 fn klipper_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
-    sigkill_mid_job_interrupts_and_resumes_skipping_nothing("klipper", 10);
+    sigkill_mid_job_interrupts_and_resumes("klipper", 10, usize::MAX);
 }

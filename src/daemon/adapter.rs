@@ -9,6 +9,8 @@ use crate::lifecycle::{Event, MachineCommand};
 use crate::link::{LinkStats, Micros, Status};
 use crate::machine::Move;
 
+use super::store::GcodeMarkWrite;
+
 /// A machine link under the lifecycle. Driven like the sans-IO cores it wraps: bytes in,
 /// bytes out, events out, the caller's clock.
 pub trait LinkAdapter: Send {
@@ -43,4 +45,9 @@ pub trait LinkAdapter: Send {
     fn status(&self) -> &Status;
     /// The link's counters.
     fn stats(&self) -> LinkStats;
+    /// A change to the store's G-code marks, to hand to the store's writer before the
+    /// next bytes go out (`docs/firmware.md`; only the G-code link has any).
+    fn poll_store_mark(&mut self) -> Option<GcodeMarkWrite> {
+        None
+    }
 }

@@ -23,6 +23,11 @@
 //! - Pause stops feeding (the firmware finishes what it accepted); resume feeds again.
 //! - A start-up banner, a Klipper restart or RRF's port vanishing is a machine reset: the
 //!   job is interrupted, as on the edo link, and the handshake starts again.
+//! - After edod's SIGKILL (Marlin, RRF): the store's marks say where each connection's
+//!   line numbers stand in the job's moves ([`GcodeMark`], handed over with
+//!   [`LinkAdapter::poll_store_mark`]); at the next start [`ResumeLines`] replays them and
+//!   the firmware's last accepted line, asked before the first handshake, names the last
+//!   move that ran.
 
 use std::collections::VecDeque;
 
@@ -36,6 +41,7 @@ use crate::machine::{Move, MoveKind};
 
 use super::adapter::LinkAdapter;
 use super::edo_link::report_of;
+use super::store::{GcodeMark, GcodeMarkKind, GcodeMarkWrite};
 
 /// The G-code lines of `text` as streamed: comments and empty lines dropped.
 pub fn streamed_lines(text: &str) -> impl Iterator<Item = &str> {
@@ -101,6 +107,106 @@ pub struct GcodeLink {
     /// The port was just opened: what it reads until then is from before (a boot banner
     /// printed while nobody listened) and is dropped; the handshake starts then.
     settle_until: Option<Micros>,
+    /// Marks for the store: where this connection's line numbers stand in the job's
+    /// moves (`None` on Klipper, which has no line numbers).
+    marks: Option<Marks>,
+    /// After edod's restart: the interrupted job's moves by line number, to learn from
+    /// the firmware's last accepted line which ran.
+    resume: Option<ResumeLines>,
+}
+
+/// The store's G-code marks to write, and what the adapter needs to write them.
+#[derive(Debug, Default)]
+struct Marks {
+    out: VecDeque<GcodeMarkWrite>,
+    /// The store holds no mark (as far as was handed over).
+    clear: bool,
+    /// The last move of the writer's job sent.
+    last_sent: Option<MoveRef>,
+}
+
+impl Marks {
+    fn clear(&mut self) {
+        self.last_sent = None;
+        if !std::mem::replace(&mut self.clear, true) {
+            self.out.push_back(GcodeMarkWrite::Clear);
+        }
+    }
+
+    fn push(&mut self, w: GcodeMarkWrite) {
+        self.clear = false;
+        self.out.push_back(w);
+    }
+}
+
+/// An interrupted job's moves by line number, replayed from the stored marks
+/// ([`ResumeLines::replay`]): what edod's SIGKILL left for the next run to learn which
+/// of them the firmware ran.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ResumeLines {
+    job_id: u32,
+    /// Each move from the writer's mark on, in order: the number of its last line (or of
+    /// the line before it, if it has none) and its index.
+    moves: Vec<(u32, u32)>,
+}
+
+impl ResumeLines {
+    /// The lines the marks of `job_id` say went out for `moves` (the job's moves, from
+    /// its first): a fresh writer's preamble at the writer mark, then each move's lines
+    /// from the mark's move on, with an `M400` at each `M400` mark. `None` if no writer
+    /// mark is stored for the job; an error if a mark is not where the replay puts it.
+    pub fn replay(
+        job_id: u32,
+        marks: &[GcodeMark],
+        moves: impl IntoIterator<Item = Result<Move, String>>,
+        drives: usize,
+        settings: &GcodeSettings,
+    ) -> Result<Option<Self>, String> {
+        let mine = || marks.iter().filter(|m| m.job_id == job_id);
+        let Some(anchor) = mine().find(|m| m.kind == GcodeMarkKind::Writer) else {
+            return Ok(None);
+        };
+        let mut m400s = mine()
+            .filter(|m| m.kind == GcodeMarkKind::M400 && m.line_number > anchor.line_number)
+            .peekable();
+        let mut w = MoveWriter::new(drives.max(1), settings).map_err(|e| e.to_string())?;
+        let mut lines = Vec::new();
+        w.preamble(&[], &mut lines);
+        let count = |lines: &[String]| lines.iter().filter_map(|l| streamed(l)).count() as u32;
+        let mut next_line = anchor.line_number + count(&lines);
+        let mut out = Vec::new();
+        for mv in moves {
+            let mv = mv?;
+            if mv.index < anchor.move_index {
+                continue;
+            }
+            while let Some(m) = m400s.next_if(|m| m.move_index <= mv.index) {
+                if m.line_number != next_line || m.move_index != mv.index {
+                    return Err(format!(
+                        "the M400 mark at line {} before move {} is not where the replay                          puts it (line {next_line}, move {})",
+                        m.line_number, m.move_index, mv.index
+                    ));
+                }
+                next_line += 1;
+            }
+            lines.clear();
+            w.move_lines(&mv, &mut lines);
+            next_line += count(&lines);
+            out.push((next_line.saturating_sub(1), mv.index));
+        }
+        Ok(Some(Self { job_id, moves: out }))
+    }
+
+    /// The job.
+    pub fn job_id(&self) -> u32 {
+        self.job_id
+    }
+
+    /// The last move all of whose lines are at or before line `line`.
+    pub fn last_move_through(&self, line: u32) -> Option<u32> {
+        let upto = self.moves.partition_point(|&(last, _)| last <= line);
+        upto.checked_sub(1).map(|k| self.moves[k].1)
+    }
 }
 
 /// How long after opening the port its input is dropped before the handshake, µs.
@@ -136,7 +242,20 @@ impl GcodeLink {
             recovering: false,
             port_closed: false,
             settle_until: None,
+            marks: cfg.link.dialect.numbers_lines().then(Marks::default),
+            resume: None,
         }
+    }
+
+    /// After edod's restart: `resume` says which of the interrupted job's moves ran once
+    /// the firmware names its last accepted line, asked before the first handshake.
+    pub fn with_resume(mut self, resume: Option<ResumeLines>) -> Self {
+        self.resume = resume.filter(|_| self.marks.is_some());
+        if let Some(m) = self.marks.as_mut().filter(|_| self.resume.is_some()) {
+            // The stored marks stay until the firmware answered (or did not).
+            m.clear = true;
+        }
+        self
     }
 
     /// Queue `lines` (a writer's); the tag of the last sent, if any.
@@ -230,8 +349,19 @@ impl GcodeLink {
             return;
         }
         let tag = self.next_tag;
+        let line_number = self.host.next_line_number();
         if self.host.send_line("M400", tag).is_ok() {
             self.next_tag += 1;
+            if let Some(m) = self.marks.as_mut() {
+                if let Some(last) = m.last_sent {
+                    m.push(GcodeMarkWrite::Add(GcodeMark {
+                        job_id: last.job_id,
+                        line_number,
+                        move_index: last.index.saturating_add(1),
+                        kind: GcodeMarkKind::M400,
+                    }));
+                }
+            }
             self.pending.push_back(Pending {
                 mv: None,
                 sync: true,
@@ -280,11 +410,20 @@ impl GcodeLink {
         self.pending.clear();
         self.accepted.clear();
         self.writer = None;
+        if let Some(m) = self.marks.as_mut() {
+            m.clear();
+        }
         self.accepted_upto = None;
         self.update_state();
     }
 
     fn connect(&mut self, now: Micros) {
+        if self.resume.take().is_some() {
+            if let Some(m) = self.marks.as_mut() {
+                // Line numbers start again: the previous run's marks no longer hold.
+                m.clear = false;
+            }
+        }
         self.forget();
         self.info = None;
         let _ = self.host.connect(now);
@@ -376,6 +515,11 @@ impl GcodeLink {
     /// session starts again.
     fn on_last_accepted(&mut self, last: LastAccepted, now: Micros) {
         self.recovering = false;
+        if let Some(r) = self.resume.take() {
+            self.resume_from(&r, &last);
+            self.resume = Some(r);
+            return self.connect(now);
+        }
         match last {
             LastAccepted::Known {
                 tag: Some(tag),
@@ -398,6 +542,46 @@ impl GcodeLink {
             other => warn!(?other, "G-code link: last accepted line not known"),
         }
         self.connect(now);
+    }
+
+    /// After edod's restart: the moves of the interrupted job up to the firmware's last
+    /// accepted line ran (RRF: up to the line before it, which it may have dropped); the
+    /// lifecycle learns it from the connection's report and resumes after them.
+    fn resume_from(&mut self, r: &ResumeLines, last: &LastAccepted) {
+        let LastAccepted::Known {
+            line_number, exact, ..
+        } = *last
+        else {
+            warn!(?last, job = r.job_id(), "G-code link: last accepted line not known after edod's restart: the job resumes from its checkpoint");
+            return;
+        };
+        let through = if exact {
+            Some(line_number)
+        } else {
+            line_number.checked_sub(1)
+        };
+        let Some(index) = through.and_then(|l| r.last_move_through(l)) else {
+            info!(
+                line_number,
+                job = r.job_id(),
+                "G-code link: no move of the interrupted job ran in the last connection"
+            );
+            return;
+        };
+        if exact {
+            info!(
+                line_number,
+                job = r.job_id(),
+                ran_through = index,
+                "G-code link: the firmware accepted the interrupted job's moves up to this one"
+            );
+        } else {
+            warn!(line_number, job = r.job_id(), ran_through = index, may_run_twice = index.saturating_add(1), "G-code link: RepRapFirmware's last line may be one it dropped: the move after the last known run is sent again and runs twice if it did run");
+        }
+        self.status.last_executed = Some(MoveRef {
+            job_id: r.job_id(),
+            index,
+        });
     }
 
     /// The e-stop proper: `M112` ahead of everything; the firmware halts.
@@ -433,6 +617,9 @@ impl GcodeLink {
             self.pending.truncate(keep);
         }
         self.writer = None;
+        if let Some(m) = self.marks.as_mut() {
+            m.clear();
+        }
         self.stop = Stop::Flushing { acked: false };
         self.check_flushed();
     }
@@ -468,10 +655,42 @@ impl GcodeLink {
             w.preamble(&[], &mut lines);
             self.writer = Some((mv.job_id, w));
         }
+        self.mark(mv, fresh);
         if let Some((_, w)) = self.writer.as_mut() {
             w.move_lines(mv, &mut lines);
         }
         Ok(lines)
+    }
+}
+
+impl GcodeLink {
+    /// The store's marks for `mv`, about to be written (`fresh`: by a new writer): a job's
+    /// new writer marks its first line; a service move written by a job's writer leaves
+    /// the lines after it no longer the job's moves alone.
+    fn mark(&mut self, mv: &Move, fresh: bool) {
+        let line_number = self.host.next_line_number();
+        let Some(m) = self.marks.as_mut() else {
+            return;
+        };
+        let at = MoveRef {
+            job_id: mv.job_id,
+            index: mv.index,
+        };
+        if mv.job_id == crate::lifecycle::SERVICE_JOB_ID {
+            if !fresh && m.last_sent.is_some() {
+                m.clear();
+            }
+        } else if fresh {
+            m.last_sent = Some(at);
+            m.push(GcodeMarkWrite::Writer(GcodeMark {
+                job_id: mv.job_id,
+                line_number,
+                move_index: mv.index,
+                kind: GcodeMarkKind::Writer,
+            }));
+        } else if m.last_sent.is_some() {
+            m.last_sent = Some(at);
+        }
     }
 }
 
@@ -506,7 +725,12 @@ impl LinkAdapter for GcodeLink {
     fn handle_timeout(&mut self, now: Micros) {
         if self.settle_until.is_some_and(|t| now >= t) {
             self.settle_until = None;
-            self.connect(now);
+            // After edod's restart, the firmware's last accepted line first: the
+            // handshake starts numbering again.
+            self.recovering = self.resume.is_some() && self.host.recover_last_accepted(now).is_ok();
+            if !self.recovering {
+                self.connect(now);
+            }
         }
         self.host.handle_timeout(now);
     }
@@ -605,6 +829,10 @@ impl LinkAdapter for GcodeLink {
         &self.status
     }
 
+    fn poll_store_mark(&mut self) -> Option<GcodeMarkWrite> {
+        self.marks.as_mut()?.out.pop_front()
+    }
+
     fn stats(&self) -> LinkStats {
         let s = self.host.stats();
         LinkStats {
@@ -613,5 +841,89 @@ impl LinkAdapter for GcodeLink {
             frames_retransmitted: s.lines_resent + s.lines_repeated,
             ..LinkStats::default()
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gcode_link::MixWriting;
+    use crate::machine::PositionUm;
+
+    /// Moves of job 7 whose Marlin mix changes now and then (so `M163`/`M164` lines come
+    /// between some of them).
+    fn job_moves(n: u32) -> Vec<Move> {
+        (0..n)
+            .map(|index| Move {
+                job_id: 7,
+                index,
+                kind: MoveKind::Extrude {
+                    to: PositionUm {
+                        x_um: 1000 * index as i32,
+                        y_um: 0,
+                        z_um: 200,
+                    },
+                    feed_um_s: 10_000,
+                    volumes_nl: if index % 10 < 5 {
+                        vec![300, 0]
+                    } else {
+                        vec![0, 300]
+                    },
+                    width_factor_ppt: 1000,
+                },
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_replay_puts_each_line_number_in_the_move_it_belongs_to() {
+        let settings = GcodeSettings::for_mix(&MixWriting::MarlinM163, 78.5);
+        let moves = job_moves(40);
+        // What went out: a fresh writer at move 12 from line 9, an M400 before move 20.
+        let mut w = MoveWriter::new(2, &settings).unwrap();
+        let mut lines = Vec::new();
+        w.preamble(&[], &mut lines);
+        let mut line = 9 + streamed_lines(&lines.join("\n")).count() as u32;
+        let mut last_line_of = Vec::new();
+        for mv in &moves[12..] {
+            if mv.index == 20 {
+                line += 1;
+            }
+            lines.clear();
+            w.move_lines(mv, &mut lines);
+            line += streamed_lines(&lines.join("\n")).count() as u32;
+            last_line_of.push((line - 1, mv.index));
+        }
+        assert!(
+            last_line_of.windows(2).any(|p| p[1].0 - p[0].0 > 1),
+            "some moves carry a mix"
+        );
+        let mark = |line_number, move_index, kind| GcodeMark {
+            job_id: 7,
+            line_number,
+            move_index,
+            kind,
+        };
+        let m400_line = last_line_of[7].0 + 1;
+        let marks = [
+            mark(9, 12, GcodeMarkKind::Writer),
+            mark(m400_line, 20, GcodeMarkKind::M400),
+        ];
+        let r = ResumeLines::replay(7, &marks, moves.iter().cloned().map(Ok), 2, &settings)
+            .unwrap()
+            .unwrap();
+        assert_eq!(r.moves, last_line_of);
+        assert_eq!(r.last_move_through(9), None, "the preamble only");
+        for &(last, index) in &last_line_of {
+            assert_eq!(r.last_move_through(last), Some(index));
+        }
+        assert_eq!(r.last_move_through(m400_line), Some(19));
+        // Another job's marks say nothing of this one; a misplaced M400 is refused.
+        assert_eq!(
+            ResumeLines::replay(8, &marks, moves.iter().cloned().map(Ok), 2, &settings),
+            Ok(None)
+        );
+        let wrong = [marks[0], mark(m400_line + 1, 20, GcodeMarkKind::M400)];
+        assert!(ResumeLines::replay(7, &wrong, moves.into_iter().map(Ok), 2, &settings).is_err());
     }
 }

@@ -145,17 +145,24 @@ pub fn lifecycle_options(cfg: &super::Config, wall_ms_at_zero: i64) -> Options {
 
 /// The machine link `cfg` asks for: edo's framed link, or G-code lines to a firmware.
 fn machine_link(cfg: &super::Config) -> Box<dyn LinkAdapter> {
-    let baud = cfg.serial.baud;
-    match cfg.gcode_link() {
-        Ok(Some(g)) => {
-            let syringes = &cfg.machine.syringes;
-            let capacity_nl = syringes
-                .first()
-                .map_or(0, |s| (s.capacity_ml * 1e6).round().clamp(0.0, 4e9) as u32);
-            Box::new(GcodeLink::new(&g, syringes.len(), capacity_nl))
-        }
-        Ok(None) | Err(_) => Box::new(EdoLink::new(link_config(baud), session_seed(), Micros(0))),
+    match machine_link_gcode(cfg) {
+        Some(g) => Box::new(g),
+        None => Box::new(EdoLink::new(
+            link_config(cfg.serial.baud),
+            session_seed(),
+            Micros(0),
+        )),
     }
+}
+
+/// The G-code link `cfg` asks for, if it asks for one.
+fn machine_link_gcode(cfg: &super::Config) -> Option<GcodeLink> {
+    let g = cfg.gcode_link().ok().flatten()?;
+    let syringes = &cfg.machine.syringes;
+    let capacity_nl = syringes
+        .first()
+        .map_or(0, |s| (s.capacity_ml * 1e6).round().clamp(0.0, 4e9) as u32);
+    Some(GcodeLink::new(&g, syringes.len(), capacity_nl))
 }
 
 /// Open the serial port without toggling DTR (`docs/firmware.md`, "Opening the port
@@ -251,6 +258,18 @@ impl Streamer {
         }
     }
 
+    /// After edod's restart over G-code: what tells the interrupted job's moves by line
+    /// number ([`GcodeLink::with_resume`]).
+    pub fn with_gcode_resume(mut self, resume: Option<super::gcode_link::ResumeLines>) -> Self {
+        if resume.is_some() {
+            self.link = match machine_link_gcode(&self.shared.config) {
+                Some(g) => Box::new(g.with_resume(resume)),
+                None => self.link,
+            };
+        }
+        self
+    }
+
     fn now(&self) -> Micros {
         Micros(self.epoch.elapsed().as_micros() as u64)
     }
@@ -341,6 +360,13 @@ impl Streamer {
         }
     }
 
+    /// The link's G-code marks to the store's writer (`docs/firmware.md`).
+    fn hand_marks_over(&mut self) {
+        while let Some(m) = self.link.poll_store_mark() {
+            self.shared.store.writer.gcode_mark(m);
+        }
+    }
+
     fn port_lost(&mut self, why: &str) {
         self.port.stream = None;
         self.link.port_lost();
@@ -350,7 +376,10 @@ impl Streamer {
 
     async fn write_out(&mut self) {
         let now = self.now();
+        self.hand_marks_over();
         while let Some(bytes) = self.link.poll_transmit(now) {
+            // A mark goes to the store's writer before the line it names.
+            self.hand_marks_over();
             let Some(p) = self.port.stream.as_mut() else {
                 return;
             };

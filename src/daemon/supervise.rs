@@ -95,8 +95,13 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
 
 /// What the operator must know before resuming a job that edod's own stop interrupted
 /// on a G-code firmware (`docs/firmware.md`, "What edod learns ...").
-fn gcode_restart_advice(dialect: crate::gcode_link::Dialect) -> &'static str {
+/// `known`: the previous run's marks were replayed, so the firmware's last accepted line
+/// will say which moves ran.
+fn gcode_restart_advice(dialect: crate::gcode_link::Dialect, known: bool) -> &'static str {
     match dialect {
+        _ if known => {
+            "the firmware ran the lines it had accepted after edod stopped: edod asks it for              the last one before connecting and resumes each job after the moves it ran              (RepRapFirmware: the move after them may run twice, logged by index); if the              firmware cannot say, the job resumes from its last checkpoint and repeats the              moves after it (docs/firmware.md)"
+        }
         crate::gcode_link::Dialect::Klipper => {
             "Klipper ran the lines it had accepted after edod stopped and cannot say which: \
              the moves after each job's checkpoint (up to the lines in flight and Klipper's \
@@ -214,6 +219,54 @@ impl Notifier {
     }
 }
 
+/// After edod's restart over G-code: the interrupted job's moves by line number,
+/// replayed (off the runtime) from the marks the previous run stored, so the firmware's
+/// last accepted line says which ran (`docs/firmware.md`). Plans the job once more.
+async fn gcode_resume_lines(
+    cfg: &Config,
+    opened: &store::Opened,
+) -> Option<super::gcode_link::ResumeLines> {
+    let g = cfg.gcode_link().ok().flatten()?;
+    let job_id = opened
+        .gcode_marks
+        .iter()
+        .find(|m| m.kind == store::GcodeMarkKind::Writer)?
+        .job_id;
+    if !opened.interrupted.contains(&job_id) {
+        return None;
+    }
+    let (cfg, marks) = (cfg.clone(), opened.gcode_marks.clone());
+    let reader = opened.stores.reader.clone();
+    let replayed = tokio::task::spawn_blocking(move || {
+        let (job, mesh) = reader
+            .source_blocking(job_id)
+            .map_err(|e| format!("job {job_id}: {e}"))?;
+        let drives = cfg.machine.syringes.len();
+        let mut source = super::planner::source_of(&job, mesh.as_deref(), drives, &cfg)?;
+        let moves = std::iter::from_fn(move || source.next_layer()).flat_map(|layer| match layer {
+            Ok(moves) => moves.into_iter().map(Ok).collect::<Vec<_>>(),
+            Err(e) => vec![Err(e)],
+        });
+        let settings = crate::machine::gcode::GcodeSettings::for_mix(&g.mix, g.barrel_area_mm2);
+        super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &settings)
+    })
+    .await;
+    match replayed {
+        Ok(Ok(r)) => r,
+        Ok(Err(e)) => {
+            warn!(
+                job = job_id,
+                "G-code marks not usable, the job resumes from its checkpoint: {e}"
+            );
+            None
+        }
+        Err(e) => {
+            warn!(job = job_id, "G-code marks not replayed: {e}");
+            None
+        }
+    }
+}
+
 /// Run the daemon until SIGTERM or SIGINT.
 pub async fn run(cfg: Config) -> Result<()> {
     run_until(cfg, std::future::pending()).await
@@ -241,10 +294,12 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     for (job, what) in &opened.quarantined {
         warn!(job, "stored job unreadable, marked failed: {what}");
     }
+    let resume = gcode_resume_lines(&cfg, &opened).await;
     if !opened.interrupted.is_empty() {
         warn!(jobs = ?opened.interrupted, "jobs interrupted by the previous stop; resume them with job.resume");
         if let Ok(Some(g)) = cfg.gcode_link() {
-            warn!(jobs = ?opened.interrupted, "{}", gcode_restart_advice(g.link.dialect));
+            let advice = gcode_restart_advice(g.link.dialect, resume.is_some());
+            warn!(jobs = ?opened.interrupted, "{advice}");
         }
     }
     let listener = bind(&cfg)?;
@@ -267,6 +322,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
             opened.service_reserved_until,
             events_rx,
         )
+        .with_gcode_resume(resume)
         .run(control_rx),
     );
     let api = tokio::spawn(api::serve(listener, Arc::clone(&shared)));

@@ -472,6 +472,13 @@ impl LineHost {
         self.queued.len()
     }
 
+    /// The line number the next line taken by [`LineHost::send_line`] goes out with
+    /// (while streaming; counted, not sent, on Klipper).
+    pub fn next_line_number(&self) -> u32 {
+        let queued = u32::try_from(self.queued.len()).unwrap_or(u32::MAX);
+        self.top.max(2).saturating_add(queued)
+    }
+
     /// Lines sent and not yet acknowledged.
     pub fn in_flight_len(&self) -> usize {
         self.in_flight.len()

@@ -23,7 +23,10 @@ use std::path::Path;
 use tokio::sync::mpsc;
 
 pub use reader::Reader;
-pub use sql::{now_ms, JobRecord, JobSpec, Store, StoreError, BUSY_TIMEOUT, DB_FILE};
+pub use sql::{
+    now_ms, GcodeMark, GcodeMarkKind, GcodeMarkWrite, JobRecord, JobSpec, Store, StoreError,
+    BUSY_TIMEOUT, DB_FILE,
+};
 pub use writer::Writer;
 
 use crate::lifecycle::Event;
@@ -50,6 +53,8 @@ pub struct Opened {
     pub service_index: u32,
     /// The end of the service indices reserved for it.
     pub service_reserved_until: u32,
+    /// Where the previous run's G-code line numbers stood in a job's moves.
+    pub gcode_marks: Vec<GcodeMark>,
 }
 
 /// [`open`] on a thread of its own, awaited (for the runtime).
@@ -85,6 +90,7 @@ pub fn open(
     let quarantined = store.quarantine_unreadable()?;
     let interrupted = store.interrupt_unfinished("edod restarted")?;
     let (service_index, service_reserved_until) = store.reserve_service_indices(service_block)?;
+    let gcode_marks = store.gcode_marks()?;
     let thread_error = |source| StoreError::Io {
         path: dir.display().to_string(),
         source,
@@ -97,5 +103,6 @@ pub fn open(
         quarantined,
         service_index,
         service_reserved_until,
+        gcode_marks,
     })
 }

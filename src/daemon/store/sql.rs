@@ -216,7 +216,60 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
 -- Meshes apart from the jobs table: a job's row is updated at every checkpoint, and
 -- SQLite rewrites a whole row (its overflow pages too) on every update.
 CREATE TABLE IF NOT EXISTS job_meshes (id INTEGER PRIMARY KEY, mesh BLOB NOT NULL);
+-- G-code link: where the line numbers of the current connection stand in a job's moves
+-- (docs/firmware.md); a few rows, replaced at each connection.
+CREATE TABLE IF NOT EXISTS gcode_marks (
+    job_id INTEGER NOT NULL,
+    line_number INTEGER NOT NULL,
+    move_index INTEGER NOT NULL,
+    kind TEXT NOT NULL
+);
 ";
+
+/// Where a G-code connection's line numbers stand in a job's moves, so that after edod's
+/// SIGKILL the firmware's last accepted line can be turned back into a move
+/// (`docs/firmware.md`, "What edod learns after ...").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GcodeMark {
+    /// The job.
+    pub job_id: u32,
+    /// The line number.
+    pub line_number: u32,
+    /// The job's move the line comes before.
+    pub move_index: u32,
+    /// What the line is.
+    pub kind: GcodeMarkKind,
+}
+
+/// What a [`GcodeMark`]'s line is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GcodeMarkKind {
+    /// The first line of a fresh writer (its preamble, then move `move_index` on).
+    Writer,
+    /// An `M400` sent between the job's moves, before move `move_index`.
+    M400,
+}
+
+impl GcodeMarkKind {
+    fn as_str(self) -> &'static str {
+        match self {
+            GcodeMarkKind::Writer => "writer",
+            GcodeMarkKind::M400 => "m400",
+        }
+    }
+}
+
+/// A change to the stored [`GcodeMark`]s.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GcodeMarkWrite {
+    /// Forget them all: line numbers start again, or the moves after the last mark are
+    /// no longer the job's in order (a flush, a reset, a service move).
+    Clear,
+    /// A fresh writer for a job: replaces every mark.
+    Writer(GcodeMark),
+    /// Add one.
+    Add(GcodeMark),
+}
 
 /// The database file in the state directory.
 pub const DB_FILE: &str = "edod.db";
@@ -226,7 +279,8 @@ pub const DB_FILE: &str = "edod.db";
 ///
 /// 1: the job id high-water mark is kept in `meta` (`job_id_high_water`) apart from the
 /// jobs table, so ids stay unique even if that table is lost.
-pub const SCHEMA_VERSION: i64 = 1;
+/// 2: `gcode_marks` ([`GcodeMark`]), created empty.
+pub const SCHEMA_VERSION: i64 = 2;
 
 /// `meta` key of the highest job id ever given.
 const HIGH_WATER: &str = "job_id_high_water";
@@ -335,6 +389,8 @@ impl Store {
                     ),
                     [],
                 )?;
+            }
+            if version < SCHEMA_VERSION {
                 tx.pragma_update(None, "user_version", SCHEMA_VERSION)?;
             }
             tx.commit()?;
@@ -602,6 +658,69 @@ impl Store {
         }
         tx.commit()?;
         Ok(missing)
+    }
+
+    /// Change the stored G-code marks ([`GcodeMarkWrite`]).
+    pub fn gcode_mark(&self, w: GcodeMarkWrite) -> Result<(), StoreError> {
+        let tx = write_tx(self.conn()?)?;
+        let add = match w {
+            GcodeMarkWrite::Clear => None,
+            GcodeMarkWrite::Writer(m) => Some(m),
+            GcodeMarkWrite::Add(m) => {
+                tx.execute(
+                    "INSERT INTO gcode_marks (job_id, line_number, move_index, kind)
+                     VALUES (?1, ?2, ?3, ?4)",
+                    params![m.job_id, m.line_number, m.move_index, m.kind.as_str()],
+                )?;
+                return Ok(tx.commit()?);
+            }
+        };
+        tx.execute("DELETE FROM gcode_marks", [])?;
+        if let Some(m) = add {
+            tx.execute(
+                "INSERT INTO gcode_marks (job_id, line_number, move_index, kind)
+                 VALUES (?1, ?2, ?3, ?4)",
+                params![m.job_id, m.line_number, m.move_index, m.kind.as_str()],
+            )?;
+        }
+        Ok(tx.commit()?)
+    }
+
+    /// The stored G-code marks, in line order; a row that cannot be read is left out.
+    pub fn gcode_marks(&self) -> Result<Vec<GcodeMark>, StoreError> {
+        let mut st = self.conn()?.prepare(
+            "SELECT job_id, line_number, move_index, kind FROM gcode_marks ORDER BY line_number",
+        )?;
+        let rows = st.query_map([], |r| {
+            Ok((
+                r.get::<_, i64>(0)?,
+                r.get::<_, i64>(1)?,
+                r.get::<_, i64>(2)?,
+                r.get::<_, String>(3)?,
+            ))
+        })?;
+        let mut marks = Vec::new();
+        for row in rows {
+            let (job, line, index, kind) = row?;
+            let kind = match kind.as_str() {
+                "writer" => GcodeMarkKind::Writer,
+                "m400" => GcodeMarkKind::M400,
+                _ => continue,
+            };
+            if let (Ok(job_id), Ok(line_number), Ok(move_index)) = (
+                u32::try_from(job),
+                u32::try_from(line),
+                u32::try_from(index),
+            ) {
+                marks.push(GcodeMark {
+                    job_id,
+                    line_number,
+                    move_index,
+                    kind,
+                });
+            }
+        }
+        Ok(marks)
     }
 
     /// Write one job's update; false if there is no such job.
@@ -1048,6 +1167,44 @@ mod tests {
     }
 
     #[test]
+    fn a_version_1_store_gains_gcode_marks_replaced_at_each_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        drop(Store::open(dir.path()).unwrap());
+        let c = Connection::open(dir.path().join(DB_FILE)).unwrap();
+        c.execute_batch("DROP TABLE gcode_marks; PRAGMA user_version = 1;")
+            .unwrap();
+        drop(c);
+        let s = Store::open_checked(dir.path()).unwrap();
+        assert_eq!(user_version(dir.path()), SCHEMA_VERSION);
+        assert!(s.gcode_marks().unwrap().is_empty());
+        let mark = |job_id, line_number, kind| GcodeMark {
+            job_id,
+            line_number,
+            move_index: 5,
+            kind,
+        };
+        s.gcode_mark(GcodeMarkWrite::Writer(mark(1, 2, GcodeMarkKind::Writer)))
+            .unwrap();
+        s.gcode_mark(GcodeMarkWrite::Add(mark(1, 40, GcodeMarkKind::M400)))
+            .unwrap();
+        assert_eq!(
+            s.gcode_marks().unwrap(),
+            [
+                mark(1, 2, GcodeMarkKind::Writer),
+                mark(1, 40, GcodeMarkKind::M400)
+            ]
+        );
+        s.gcode_mark(GcodeMarkWrite::Writer(mark(2, 9, GcodeMarkKind::Writer)))
+            .unwrap();
+        assert_eq!(
+            s.gcode_marks().unwrap(),
+            [mark(2, 9, GcodeMarkKind::Writer)]
+        );
+        s.gcode_mark(GcodeMarkWrite::Clear).unwrap();
+        assert!(s.gcode_marks().unwrap().is_empty());
+    }
+
+    #[test]
     fn a_newer_schema_is_refused_naming_the_file_and_its_version() {
         let dir = tempfile::tempdir().unwrap();
         drop(Store::open(dir.path()).unwrap());
@@ -1066,7 +1223,7 @@ mod tests {
             "{m}"
         );
         assert!(
-            m.contains("schema version 7, newer than this edod knows (1)"),
+            m.contains("schema version 7, newer than this edod knows (2)"),
             "{m}"
         );
         assert_eq!(user_version(dir.path()), 7, "left as it was");

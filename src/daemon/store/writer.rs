@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::{mpsc, oneshot};
 use tracing::warn;
 
-use super::sql::{JobSpec, Store, StoreError};
+use super::sql::{GcodeMarkWrite, JobSpec, Store, StoreError};
 use crate::lifecycle::{Event, JobState, Record};
 
 /// How long one try of the lifecycle's records waits for the write lock before the
@@ -56,6 +56,7 @@ enum Write {
         deadline: Instant,
         reply: oneshot::Sender<Deleted>,
     },
+    GcodeMark(GcodeMarkWrite),
 }
 
 /// A handle on the writer thread (cheap to clone; the thread ends with the last one).
@@ -91,6 +92,14 @@ impl Writer {
     pub fn persist(&self, seq: u64, record: Record) {
         if self.tx.send(Write::Persist { seq, record }).is_err() {
             warn!(seq, "job store writer stopped: record not written");
+        }
+    }
+
+    /// Change the stored G-code marks (never waits; written in order, ahead of the
+    /// records still waiting for a lock).
+    pub fn gcode_mark(&self, w: GcodeMarkWrite) {
+        if self.tx.send(Write::GcodeMark(w)).is_err() {
+            warn!("job store writer stopped: G-code mark not written");
         }
     }
 
@@ -200,6 +209,11 @@ impl Thread {
             } => {
                 let r = self.within(deadline, |s| s.delete_finished(id));
                 let _ = reply.send(r);
+            }
+            Write::GcodeMark(w) => {
+                if let Err(e) = self.store.gcode_mark(w) {
+                    warn!(error = %e, "job store: G-code mark not written");
+                }
             }
         }
     }
