@@ -18,6 +18,13 @@
 //!
 //! With `--port PATH --record FILE` it uses a machine that is already running (a hil-sim
 //! started with `--link PATH --record FILE`) instead of starting one.
+//!
+//! With `--firmware rrf|marlin|klipper` edod streams G-code to that firmware instead
+//! (`machine.protocol = "gcode"`, `docs/firmware.md`; the simulator runs as
+//! `hil-sim --gcode FIRMWARE`), and the recording is matched to the plan by the lines
+//! each move becomes ([`gcode`]).
+
+mod gcode;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -30,10 +37,13 @@ use serde_json::json;
 use super::client::{watch, Client};
 use crate::daemon::Config;
 use crate::job::Job;
+use crate::machine::gcode::GcodeSettings;
 use crate::machine::placement::{place_part, placed_settings};
 use crate::machine::record::{self, RecordLine};
 use crate::machine::MoveKind;
 use crate::pipeline::{LayerMoves, StreamState};
+
+pub use gcode::Firmware;
 
 /// The bundled job.
 pub const DEMO_JOB: &str = include_str!("../../config/examples/tooth-crown.toml");
@@ -61,6 +71,10 @@ pub struct DemoArgs {
     /// The recording of the machine given with --port.
     #[arg(long, value_name = "FILE", requires = "port")]
     pub record: Option<PathBuf>,
+    /// Stream G-code to this firmware (the simulator runs as `hil-sim --gcode FIRMWARE`;
+    /// with --port, a machine started so) instead of over edo's own link.
+    #[arg(long, value_name = "FIRMWARE", value_enum)]
+    pub firmware: Option<Firmware>,
 }
 
 /// Designed-versus-built composition error: the largest volume-fraction difference
@@ -127,6 +141,16 @@ pub struct DemoSummary {
     pub total_time_s: f64,
     /// The previews and summary.
     pub out_dir: PathBuf,
+    /// `--firmware`: the firmware streamed to over G-code (absent on edo's link).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub firmware: Option<String>,
+    /// `--firmware`: the planned moves' motion lines (`G0`, `G1`, `G4`, `G28`) and the
+    /// commands that moved the machine ran; `executed_as_planned` then means those ran
+    /// one for one, in order.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gcode_lines_planned: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gcode_lines_executed: Option<u64>,
 }
 
 /// Run the demo; the exit status is failure unless the job finished and the machine
@@ -156,6 +180,7 @@ fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Res
     let job = Job::from_toml(DEMO_JOB, "tooth-crown.toml (bundled)")?;
     let (cfg, record_path) = demo_config(args, work)?;
     let machine = cfg.machine.clone();
+    let writing = gcode_writing(&cfg)?;
     let (final_job, print_time_s) = print_on_edod(cfg, &job, args, json_out)?;
 
     let record_text = std::fs::read_to_string(&record_path)
@@ -163,15 +188,10 @@ fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Res
     let recording = record::parse(&record_text).context("the machine's recording")?;
     let job_id = final_job["id"].as_u64().unwrap_or(0);
     let planned = plan_offline(&job, &machine)?;
-    let executed: Vec<&RecordLine> = recording
-        .iter()
-        .filter(|l| u64::from(l.job_id) == job_id)
-        .collect();
-    let mismatch = compare(&planned.layers, &executed);
-    let (built, built_per_road, predicted) = composition_errors(&planned.layers, &executed);
+    let executed = Executed::of(&planned.layers, recording, job_id as u32, writing)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let coverage = previews(&job, &planned, &recording, job_id as u32, &args.out)?;
+    let coverage = previews(&job, &planned, &executed.records, job_id as u32, &args.out)?;
     let kept = args.out.join("record.jsonl");
     if record_path != kept {
         std::fs::write(&kept, &record_text)
@@ -181,14 +201,82 @@ fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Res
         job: job.name.clone(),
         job_id,
         state: final_job["state"].as_str().unwrap_or("unknown").to_string(),
+        print_time_s,
+        total_time_s: started.elapsed().as_secs_f64(),
+        out_dir: args.out.clone(),
+        firmware: args.firmware.map(|f| f.display_name().to_string()),
+        ..summarize(&planned, &executed, &coverage)
+    };
+    let path = args.out.join("summary.json");
+    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(summary)
+}
+
+/// What the machine executed of the job, as records of the planned moves.
+struct Executed {
+    /// The job's records (on the G-code link: matched to the planned moves by lines).
+    records: Vec<RecordLine>,
+    moves: u64,
+    mismatch: Option<String>,
+    /// G-code link: motion lines planned and ran.
+    lines: Option<(u64, u64)>,
+}
+
+impl Executed {
+    /// The job `job_id`'s part of `recording`, compared with `planned`; `writing`: the
+    /// G-code link's lines (`None`: edo's link).
+    fn of(
+        planned: &[LayerMoves],
+        recording: Vec<RecordLine>,
+        job_id: u32,
+        writing: Option<(GcodeSettings, usize)>,
+    ) -> Result<Self> {
+        if let Some((settings, drives)) = writing {
+            let m = gcode::match_lines(planned, &recording, drives, &settings, job_id)?;
+            return Ok(Executed {
+                records: m.records,
+                moves: m.moves_executed,
+                mismatch: m.mismatch,
+                lines: Some((m.lines_planned, m.lines_executed)),
+            });
+        }
+        let records: Vec<RecordLine> = recording
+            .into_iter()
+            .filter(|l| l.job_id == job_id)
+            .collect();
+        let refs: Vec<&RecordLine> = records.iter().collect();
+        let mismatch = compare(planned, &refs);
+        Ok(Executed {
+            moves: records.len() as u64,
+            records,
+            mismatch,
+            lines: None,
+        })
+    }
+}
+
+/// The summary's figures from the plan, the execution and the coverage (the job's
+/// identity, state, times and output directory are the caller's).
+fn summarize(
+    planned: &Planned,
+    executed: &Executed,
+    coverage: &crate::toolpath::coverage::Coverage,
+) -> DemoSummary {
+    let records: Vec<&RecordLine> = executed.records.iter().collect();
+    let (built, built_per_road, predicted) = composition_errors(&planned.layers, &records);
+    DemoSummary {
+        job: String::new(),
+        job_id: 0,
+        state: String::new(),
         layers: planned.layers.len(),
         moves_planned: planned.moves,
-        moves_executed: executed.len() as u64,
-        executed_as_planned: mismatch.is_none(),
-        mismatch,
+        moves_executed: executed.moves,
+        executed_as_planned: executed.mismatch.is_none(),
+        mismatch: executed.mismatch.clone(),
         composition_error_built: built,
         composition_error_built_per_road: built_per_road,
-        extrude_move_nl: median_extrusion_nl(&executed),
+        extrude_move_nl: median_extrusion_nl(&records),
         composition_error_predicted: predicted,
         void_fraction: coverage.void_fraction(),
         overlap_fraction: coverage.overlap_fraction(),
@@ -199,22 +287,37 @@ fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Res
             .iter()
             .map(|&nl| nl as f64 / 1000.0)
             .collect(),
-        print_time_s,
-        machine_time_s: executed.last().map_or(0.0, |l| l.t_s)
-            - executed.first().map_or(0.0, |l| l.t_s),
-        total_time_s: started.elapsed().as_secs_f64(),
-        out_dir: args.out.clone(),
-    };
-    let path = args.out.join("summary.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&summary)? + "\n")
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(summary)
+        print_time_s: 0.0,
+        machine_time_s: records.last().map_or(0.0, |l| l.t_s)
+            - records.first().map_or(0.0, |l| l.t_s),
+        total_time_s: 0.0,
+        out_dir: PathBuf::new(),
+        firmware: None,
+        gcode_lines_planned: executed.lines.map(|l| l.0),
+        gcode_lines_executed: executed.lines.map(|l| l.1),
+    }
+}
+
+/// The G-code link's writing (settings and syringes) with `machine.protocol = "gcode"`.
+fn gcode_writing(cfg: &Config) -> Result<Option<(GcodeSettings, usize)>> {
+    let link = cfg
+        .gcode_link()
+        .map_err(|(key, why)| anyhow::anyhow!("{key}: {why}"))?;
+    Ok(link.map(|g| {
+        (
+            GcodeSettings::for_mix(&g.mix, g.barrel_area_mm2),
+            cfg.machine.syringes.len(),
+        )
+    }))
 }
 
 /// edod's configuration for the demo, and the recording the machine writes: hil-sim
 /// started by edod (recording into `work`), or the machine of `--port`.
 fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
-    let mut cfg = Config::from_toml("", "demo")?;
+    let mut cfg = match args.firmware {
+        None => Config::from_toml("", "demo")?,
+        Some(f) => Config::from_toml(&f.machine_toml(), "demo")?,
+    };
     let record_path = match (&args.port, &args.record) {
         (Some(port), Some(rec)) => {
             cfg.serial.port = port.display().to_string();
@@ -302,8 +405,12 @@ fn submit_and_watch(
         .and_then(|i| u32::try_from(i).ok())
         .context("edod returned no job id")?;
     if !json_out {
+        let over = match args.firmware {
+            Some(f) => format!(", G-code to {}", f.display_name()),
+            None => String::new(),
+        };
         eprintln!(
-            "edoctl demo: printing {:?} on the simulated machine ({}x speed)",
+            "edoctl demo: printing {:?} on the simulated machine ({}x speed{over})",
             job.name, args.speed
         );
     }
@@ -607,9 +714,17 @@ fn human(s: &DemoSummary) -> String {
         .iter()
         .map(|v| format!("{v:.1}"))
         .collect();
+    // Over G-code: the firmware, and the motion lines matched.
+    let (over, lines) = match (&s.firmware, s.gcode_lines_planned, s.gcode_lines_executed) {
+        (Some(f), Some(p), Some(e)) => (
+            format!(", streamed as G-code to {f} (simulated)"),
+            format!(" (G-code motion lines planned {p}, ran {e})"),
+        ),
+        _ => (String::new(), String::new()),
+    };
     format!(
-        "{job}: {state} ({layers} layers)\n\
-         \x20 moves planned {planned}, executed {executed}: {as_planned}\n\
+        "{job}: {state} ({layers} layers){over}\n\
+         \x20 moves planned {planned}, executed {executed}{lines}: {as_planned}\n\
          \x20 composition designed vs built, per road: mean {rmean:.4}, max {rmax:.4}\n\
          \x20   per move: mean {bmean:.4}, max {bmax:.4} (moves of {move_nl:.0} nl carry whole nl per syringe; planner predicted mean {pmean:.4}, max {pmax:.4})\n\
          \x20 planned roads: void {void}, overlap {overlap}, outside {outside}\n\
