@@ -467,14 +467,41 @@ fn sim_port_starts_hil_sim_as_the_firmware() {
     assert_ran_once_in_order(&ran(&record), &expected, false);
 }
 
-/// A line without its plunger words (E, axes) and feed: where it goes. A resumed
-/// job's writer starts its E rounding afresh, so E (and a plunger move's F) may differ
-/// in the last digit.
-fn motion(line: &str) -> String {
-    line.split_whitespace()
-        .filter(|w| !w.starts_with(['E', 'A', 'B', 'F']))
-        .collect::<Vec<_>>()
-        .join(" ")
+/// Each line without its plunger words (E, axes) and feed, its X Y Z made absolute
+/// (lines leave out what did not change): where it goes. A resumed job's writer
+/// starts afresh, so its first line spells out what the file's leaves out, and its E
+/// (and a plunger move's F) may differ in the last digit.
+fn motions(lines: &[String]) -> Vec<String> {
+    let mut at: [Option<String>; 3] = [None, None, None];
+    lines
+        .iter()
+        .map(|line| {
+            let mut words = line.split_whitespace();
+            let command = words.next().unwrap_or_default();
+            if command == "G28" {
+                at = [None, None, None];
+            }
+            let mut rest = Vec::new();
+            for w in words {
+                match w.chars().next() {
+                    Some('X') => at[0] = Some(w.to_string()),
+                    Some('Y') => at[1] = Some(w.to_string()),
+                    Some('Z') => at[2] = Some(w.to_string()),
+                    Some('E' | 'A' | 'B' | 'F') => {}
+                    _ => rest.push(w),
+                }
+            }
+            let moves = line
+                .split_whitespace()
+                .any(|w| w.starts_with(['X', 'Y', 'Z']));
+            let mut out = vec![command.to_string()];
+            if moves {
+                out.extend(at.iter().flatten().cloned());
+            }
+            out.extend(rest.into_iter().map(str::to_string));
+            out.join(" ")
+        })
+        .collect()
 }
 
 /// edod killed with SIGKILL mid-job on `firmware`, restarted: the job is interrupted (not
@@ -518,11 +545,8 @@ fn sigkill_mid_job_interrupts_and_resumes(
     drop(c);
     drop(d);
     sim.stop().unwrap();
-    let expected: Vec<String> = move_lines(&offline(&planned_job(), firmware))
-        .iter()
-        .map(|l| motion(l))
-        .collect();
-    let ran: Vec<String> = ran(&record).iter().map(|l| motion(l)).collect();
+    let expected = motions(&move_lines(&offline(&planned_job(), firmware)));
+    let ran = motions(&ran(&record));
     // The first run: the file's lines up to where the resume's service moves start.
     let first = ran
         .iter()

@@ -100,7 +100,11 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
 fn gcode_restart_advice(dialect: crate::gcode_link::Dialect, known: bool) -> &'static str {
     match dialect {
         _ if known => {
-            "the firmware ran the lines it had accepted after edod stopped: edod asks it for              the last one before connecting and resumes each job after the moves it ran              (RepRapFirmware: the move after them may run twice, logged by index); if the              firmware cannot say, the job resumes from its last checkpoint and repeats the              moves after it (docs/firmware.md)"
+            "the firmware ran the lines it had accepted after edod stopped: edod asks it for \
+             the last one before connecting and resumes each job after the moves it ran \
+             (RepRapFirmware: the move after them may run twice, logged by index); if the \
+             firmware cannot say, the job resumes from its last checkpoint and repeats the \
+             moves after it (docs/firmware.md)"
         }
         crate::gcode_link::Dialect::Klipper => {
             "Klipper ran the lines it had accepted after edod stopped and cannot say which: \

@@ -161,20 +161,41 @@ impl Drive {
     }
 }
 
-fn e(units: i64) -> String {
+/// `units` of `10^-digits`, written shortest: no trailing zeros, no point when whole
+/// (`1200` at 3 digits is `1.2`, `0` is `0`).
+fn fixed(units: i64, digits: u32) -> String {
     let sign = if units < 0 { "-" } else { "" };
     let u = units.unsigned_abs();
-    format!("{sign}{}.{:06}", u / 1_000_000, u % 1_000_000)
+    let scale = 10u64.pow(digits);
+    let (whole, mut frac) = (u / scale, u % scale);
+    if frac == 0 {
+        return format!("{sign}{whole}");
+    }
+    let mut width = digits as usize;
+    while frac % 10 == 0 {
+        frac /= 10;
+        width -= 1;
+    }
+    format!("{sign}{whole}.{frac:0width$}")
+}
+
+/// Plunger travel in 10⁻⁶ mm units, as mm.
+fn e(units: i64) -> String {
+    fixed(units, 6)
 }
 
 fn mm(um: i32) -> String {
-    let sign = if um < 0 { "-" } else { "" };
-    let u = um.unsigned_abs();
-    format!("{sign}{}.{:03}", u / 1000, u % 1000)
+    fixed(i64::from(um), 3)
 }
 
+/// A feed in µm/s as mm/min to 0.1.
 fn f_mm_min(um_s: u32) -> String {
-    format!("{:.1}", f64::from(um_s) * 60.0 / 1000.0)
+    fixed((f64::from(um_s) * 0.6).round() as i64, 1)
+}
+
+/// A plunger feed in mm/min to 0.1.
+fn f_plunger(mm_min: f64) -> String {
+    fixed((mm_min * 10.0).round() as i64, 1)
 }
 
 /// Write the G-code for `moves` (one job, in order) over `drives` syringes into `out`.
@@ -219,6 +240,56 @@ pub struct MoveWriter {
     /// Retract/prime E, rounded on its own so it never disturbs the extrusion sums.
     aux: Vec<Drive>,
     mix: MarlinMix,
+    /// What the firmware holds from the lines written so far, so a line carries only
+    /// the words that change it (modal G-code, as slicers write it).
+    modal: Modal,
+}
+
+/// The modal state a line leaves in the firmware: the position, the feed and (Klipper)
+/// each syringe axis' position, each `None` until a line sets it (and after `G28`).
+#[derive(Clone, Default)]
+struct Modal {
+    xyz_um: [Option<i32>; 3],
+    feed: Option<String>,
+    axes_units: Vec<Option<i64>>,
+}
+
+impl Modal {
+    /// The ` X.. Y.. Z..` words that move to `to`; all three when none changes (a line
+    /// without them would read as a plunger-only move).
+    fn xyz_words(&mut self, to: &PositionUm) -> String {
+        let target = [to.x_um, to.y_um, to.z_um];
+        let mut words = String::new();
+        for (k, c) in ['X', 'Y', 'Z'].into_iter().enumerate() {
+            if self.xyz_um[k] != Some(target[k]) {
+                let _ = write!(words, " {c}{}", mm(target[k]));
+            }
+        }
+        if words.is_empty() {
+            for (k, c) in ['X', 'Y', 'Z'].into_iter().enumerate() {
+                let _ = write!(words, " {c}{}", mm(target[k]));
+            }
+        }
+        self.xyz_um = target.map(Some);
+        words
+    }
+
+    /// ` F..` when the feed changes, else nothing.
+    fn feed_word(&mut self, feed: String) -> String {
+        if self.feed.as_deref() == Some(feed.as_str()) {
+            return String::new();
+        }
+        let word = format!(" F{feed}");
+        self.feed = Some(feed);
+        word
+    }
+
+    /// After `G28`: the position is the firmware's, and its homing may leave another
+    /// feed.
+    fn forget(&mut self) {
+        self.xyz_um = [None; 3];
+        self.feed = None;
+    }
 }
 
 impl MoveWriter {
@@ -244,6 +315,10 @@ impl MoveWriter {
             ext: vec![Drive::default(); drives],
             aux: vec![Drive::default(); drives],
             mix: MarlinMix::new(drives),
+            modal: Modal {
+                axes_units: vec![None; drives],
+                ..Modal::default()
+            },
         })
     }
 
@@ -314,7 +389,10 @@ impl MoveWriter {
     /// The command of one move into `s` (a Marlin mix it needs goes to `out` first).
     fn command(&mut self, m: &Move, s: &mut String, out: &mut Vec<String>) {
         match &m.kind {
-            MoveKind::Home => s.push_str("G28"),
+            MoveKind::Home => {
+                self.modal.forget();
+                s.push_str("G28");
+            }
             MoveKind::LayerMark { layer, z_um } => {
                 let _ = write!(s, ";LAYER:{layer} Z{}", mm(*z_um));
             }
@@ -322,14 +400,9 @@ impl MoveWriter {
                 let _ = write!(s, "G4 P{duration_ms}");
             }
             MoveKind::Travel { to, feed_um_s } => {
-                let _ = write!(
-                    s,
-                    "G0 X{} Y{} Z{} F{}",
-                    mm(to.x_um),
-                    mm(to.y_um),
-                    mm(to.z_um),
-                    f_mm_min(*feed_um_s)
-                );
+                s.push_str("G0");
+                s.push_str(&self.modal.xyz_words(to));
+                s.push_str(&self.modal.feed_word(f_mm_min(*feed_um_s)));
             }
             MoveKind::Retract {
                 volumes_nl,
@@ -348,13 +421,21 @@ impl MoveWriter {
         }
     }
 
-    /// Klipper: every drive's axis at its plunger position (extrusion and retract/prime
-    /// rounded apart, so the extrusion moves' increments sum exactly).
-    fn axis_positions(&self, s: &mut String) {
+    /// Klipper: each drive's axis at its plunger position (extrusion and retract/prime
+    /// rounded apart, so the extrusion moves' increments sum exactly), the axes that
+    /// move; all of them when none does and `words_before` is false (a line needs one).
+    fn axis_positions(&mut self, words_before: bool, s: &mut String) {
+        let at: Vec<i64> = (0..self.axes.len())
+            .map(|d| self.ext[d].printed_units + self.aux[d].printed_units)
+            .collect();
+        let moving = |d: usize| self.modal.axes_units.get(d).copied().flatten() != Some(at[d]);
+        let any = (0..at.len()).any(moving);
         for (d, c) in self.axes.iter().enumerate() {
-            let units = self.ext[d].printed_units + self.aux[d].printed_units;
-            let _ = write!(s, " {c}{}", e(units));
+            if moving(d) || (!any && !words_before) {
+                let _ = write!(s, " {c}{}", e(at[d]));
+            }
         }
+        self.modal.axes_units = at.into_iter().map(Some).collect();
     }
 
     /// A plunger-only move (retract: `sign` −1, prime: +1): E over the duration, as a
@@ -373,16 +454,19 @@ impl MoveWriter {
         match self.settings.flavor {
             Flavor::Rrf => {
                 let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
-                let _ = write!(s, "G1 E{} F{feed:.1} ; {what}", es.join(":"));
+                let f = self.modal.feed_word(f_plunger(feed));
+                let _ = write!(s, "G1 E{}{f} ; {what}", es.join(":"));
             }
             Flavor::Marlin => {
                 let total: i64 = units.iter().sum();
-                let _ = write!(s, "G1 E{} F{feed:.1} ; {what}", e(total));
+                let f = self.modal.feed_word(f_plunger(feed));
+                let _ = write!(s, "G1 E{}{f} ; {what}", e(total));
             }
             Flavor::Klipper => {
                 s.push_str("G1");
-                self.axis_positions(s);
-                let _ = write!(s, " F{feed:.1} ; {what}");
+                self.axis_positions(false, s);
+                let f = self.modal.feed_word(f_plunger(feed));
+                let _ = write!(s, "{f} ; {what}");
             }
         }
     }
@@ -404,12 +488,13 @@ impl MoveWriter {
                 self.ext[d].add(travel_mm)
             })
             .collect();
-        let xyz = format!("G1 X{} Y{} Z{}", mm(to.x_um), mm(to.y_um), mm(to.z_um));
+        let xyz = format!("G1{}", self.modal.xyz_words(to));
+        let f = self.modal.feed_word(f_mm_min(feed_um_s));
         let total: i64 = units.iter().sum();
         match self.settings.flavor {
             Flavor::Rrf => {
                 let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
-                let _ = write!(s, "{xyz} E{} F{}", es.join(":"), f_mm_min(feed_um_s));
+                let _ = write!(s, "{xyz} E{}{f}", es.join(":"));
             }
             Flavor::Marlin if self.settings.marlin_direct_mixing => {
                 let _ = write!(s, "{xyz} E{}", e(total));
@@ -418,7 +503,7 @@ impl MoveWriter {
                         let _ = write!(s, " {}{}", MARLIN_MIX_AXES[d], e(*u));
                     }
                 }
-                let _ = write!(s, " F{}", f_mm_min(feed_um_s));
+                s.push_str(&f);
             }
             Flavor::Marlin => {
                 if let Some(weights) = self.mix.next(&units) {
@@ -427,12 +512,12 @@ impl MoveWriter {
                     }
                     self.line("M164 S0".into(), out);
                 }
-                let _ = write!(s, "{xyz} E{} F{}", e(total), f_mm_min(feed_um_s));
+                let _ = write!(s, "{xyz} E{}{f}", e(total));
             }
             Flavor::Klipper => {
                 s.push_str(&xyz);
-                self.axis_positions(s);
-                let _ = write!(s, " F{}", f_mm_min(feed_um_s));
+                self.axis_positions(true, s);
+                s.push_str(&f);
             }
         }
     }
@@ -587,7 +672,7 @@ pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
             }
             continue;
         }
-        if !code.starts_with("G1 X") {
+        if !extruding_line(code) {
             continue;
         }
         let mut es: Vec<f64> = Vec::new();
@@ -625,6 +710,16 @@ pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
     sums
 }
 
+/// A `G1` that moves the toolhead (an X, Y or Z word): an extrusion in a file this
+/// module wrote, where plunger-only `G1` lines are retracts and primes.
+fn extruding_line(code: &str) -> bool {
+    code.starts_with("G1 ")
+        && code
+            .split_whitespace()
+            .skip(1)
+            .any(|w| w.starts_with(['X', 'Y', 'Z']))
+}
+
 /// Klipper: the axis letters from the `GCODE_AXIS=` lines, then each axis' travel summed
 /// over the extruding `G1 X` lines (positions are absolute; retract/prime lines move the
 /// position without counting).
@@ -641,7 +736,7 @@ fn summed_axis_travel(gcode: &str, drives: usize) -> Vec<f64> {
         if !code.starts_with("G1 ") {
             continue;
         }
-        let extruding = code.starts_with("G1 X");
+        let extruding = extruding_line(code);
         for w in code.split_whitespace().skip(1) {
             let mut chars = w.chars();
             let Some(c) = chars.next() else { continue };
@@ -695,6 +790,68 @@ mod tests {
     }
 
     #[test]
+    fn numbers_are_written_shortest() {
+        assert_eq!(e(0), "0");
+        assert_eq!(e(12), "0.000012");
+        assert_eq!(e(-120), "-0.00012");
+        assert_eq!(e(2_500_000), "2.5");
+        assert_eq!(mm(200), "0.2");
+        assert_eq!(mm(-10_250), "-10.25");
+        assert_eq!(mm(-5), "-0.005");
+        assert_eq!(f_mm_min(10_000), "600");
+        assert_eq!(f_mm_min(403), "24.2");
+        assert_eq!(f_plunger(0.96), "1");
+    }
+
+    /// A line carries the words that change the firmware's state; after `G28`, a
+    /// retract's feed, or a move that goes nowhere, the words come back.
+    #[test]
+    fn lines_leave_out_what_the_firmware_already_holds() {
+        let travel = |x_um, z_um| MoveKind::Travel {
+            to: PositionUm {
+                x_um,
+                y_um: 0,
+                z_um,
+            },
+            feed_um_s: 40_000,
+        };
+        let moves = vec![
+            mv(0, MoveKind::Home),
+            mv(1, travel(1000, 200)),
+            mv(2, extrude(2000, vec![1000, 0])),
+            mv(3, extrude(3000, vec![1000, 0])),
+            mv(
+                4,
+                MoveKind::Retract {
+                    volumes_nl: vec![50, 50],
+                    duration_ms: 100,
+                },
+            ),
+            mv(5, extrude(4000, vec![0, 1000])),
+            mv(6, extrude(4000, vec![0, 1000])),
+            mv(7, MoveKind::Home),
+            mv(8, travel(1000, 400)),
+        ];
+        let mut text = String::new();
+        write_gcode(&moves, 2, &GcodeSettings::default(), &[], &mut text).unwrap();
+        let lines: Vec<&str> = text.lines().skip_while(|l| *l != "G28").collect();
+        assert_eq!(
+            lines,
+            vec![
+                "G28",
+                "G0 X1 Y0 Z0.2 F2400",
+                "G1 X2 E0.006061:0 F600",
+                "G1 X3 E0.00606:0",
+                "G1 E-0.000303:-0.000303 F1 ; retract",
+                "G1 X4 E0:0.006061 F600",
+                "G1 X4 Y0 Z0.2 E0:0.00606",
+                "G28",
+                "G0 X1 Y0 Z0.4 F2400",
+            ]
+        );
+    }
+
+    #[test]
     fn klipper_writes_absolute_axis_positions_per_syringe() {
         let moves = vec![
             mv(0, MoveKind::Home),
@@ -721,11 +878,15 @@ mod tests {
         assert!(lines.contains(&"MANUAL_STEPPER STEPPER=syringe_u SET_POSITION=0"));
         assert!(lines.contains(&"MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=V"));
         // 300 nl in a 100 mm² barrel: 0.003 mm; the retract pulls 0.0005 back and the
-        // prime pushes it again; the second move adds 0.003 to U only.
-        assert!(lines.contains(&"G1 X1.000 Y0.000 Z0.200 U0.003000 V0.001000 F600.0"));
-        assert!(lines.contains(&"G1 U0.002500 V0.000500 F1.0 ; retract"));
-        assert!(lines.contains(&"G1 U0.003000 V0.001000 F1.0 ; prime"));
-        assert!(lines.contains(&"G1 X2.000 Y0.000 Z0.200 U0.006000 V0.001000 F600.0"));
+        // prime pushes it again; the second move adds 0.003 to U only. Words that do
+        // not change what the firmware holds are left out (modal).
+        assert!(
+            lines.contains(&"G1 X1 Y0 Z0.2 U0.003 V0.001 F600"),
+            "{lines:?}"
+        );
+        assert!(lines.contains(&"G1 U0.0025 V0.0005 F1 ; retract"));
+        assert!(lines.contains(&"G1 U0.003 V0.001 ; prime"));
+        assert!(lines.contains(&"G1 X2 U0.006 F600"));
         assert_eq!(stats.extrude_e_mm, vec![0.006, 0.001]);
         assert_eq!(
             summed_drive_e(&text, 2, Flavor::Klipper),
