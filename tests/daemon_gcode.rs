@@ -17,6 +17,9 @@ use edo::machine::gcode::GcodeSettings;
 use edo::machine::Move;
 use serde_json::{json, Value};
 
+#[path = "peers/octoprint.rs"]
+mod peer;
+
 struct Daemon {
     child: Child,
     socket: PathBuf,
@@ -26,12 +29,23 @@ impl Daemon {
     /// edod for `firmware` on `port` (a path, or `"sim"`), state in `dir`; `extra` is
     /// appended to the configuration.
     fn start(dir: &Path, port: &str, firmware: &str, extra: &str) -> Daemon {
+        // Busy: above hil-sim's keepalive interval in the busy tests (`KEEPALIVE_MS`).
+        Daemon::start_timed(dir, port, firmware, (300, 300), extra)
+    }
+
+    /// [`Daemon::start`] with the `ok` and busy timeouts (ms).
+    fn start_timed(
+        dir: &Path,
+        port: &str,
+        firmware: &str,
+        (ok_ms, busy_ms): (u64, u64),
+        extra: &str,
+    ) -> Daemon {
         let socket = dir.join("edod.sock");
         let busy = match firmware {
-            // Above hil-sim's keepalive interval in the busy tests (`KEEPALIVE_MS`).
-            "marlin" => "busy_timeout_ms = 300\n",
-            "klipper" => "axes = [\"A\", \"B\"]\n",
-            _ => "",
+            "marlin" => format!("busy_timeout_ms = {busy_ms}\n"),
+            "klipper" => "axes = [\"A\", \"B\"]\n".to_string(),
+            _ => String::new(),
         };
         let config = dir.join("edod.toml");
         std::fs::write(
@@ -39,7 +53,7 @@ impl Daemon {
             format!(
                 "[serial]\nport = {port:?}\nbaud = 250000\n\
                  [machine]\nprotocol = \"gcode\"\n\
-                 [machine.gcode]\nfirmware = \"{firmware}\"\nok_timeout_ms = 300\n{busy}\
+                 [machine.gcode]\nfirmware = \"{firmware}\"\nok_timeout_ms = {ok_ms}\n{busy}\
                  slow_command_timeout_s = 2\n\
                  [api]\nsocket = {:?}\n[state]\ndir = {:?}\n\
                  [planner]\ndry_run_moves_per_layer = 100\n{extra}",
@@ -782,5 +796,61 @@ fn klipper_unplug_mid_job_resumes_skipping_nothing() {
         hil_sim::Command::Unplug,
         &["serial port lost"],
         held_at_most("klipper"),
+    );
+}
+
+/// A real peer through edod: OctoPrint's virtual printer (`tests/peers/`, a Marlin model
+/// written by others) as edod's machine (`firmware = "marlin"`, the port its pty), with
+/// its own faults on ([`peer::FAULTS`]: every 20th line a checksum error, its simulated
+/// errors, `busy` keepalives every 0.5 s). [`JOB`] runs to the end, and the commands the
+/// printer ran are edod's connection prologue, then the offline file's (`edoctl plan
+/// --gcode --flavor marlin`, less comments), each once and in order, less the handshake
+/// and the `M400`s edod adds. Skipped unless `EDO_OCTOPRINT_PY` names the python of a
+/// venv with octoprint (`tests/peers/run_octoprint_peer.sh`).
+#[test]
+fn octoprint_virtual_printer_through_edod_runs_the_offline_file() {
+    let Some(python) = peer::python() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (_shim, ready) = peer::start_shim(&python, dir.path(), peer::FAULTS);
+    eprintln!("{ready}");
+    let port = dir.path().join("tty").display().to_string();
+    // Its busy keepalives come every 0.5 s; its missing line number is found by the
+    // timeout and the probe.
+    let d = Daemon::start_timed(dir.path(), &port, "marlin", (2000, 2000), "");
+    let mut c = d.client();
+    c.wait_connected();
+    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    c.wait_state(id, "done");
+    let status = c.call("machine.status", json!({})).unwrap();
+    drop(c);
+    drop(d);
+    eprintln!("{status}");
+    let file = offline(&planned_job(), "marlin");
+    let mut expected: Vec<String> = Vec::new();
+    let settings = GcodeSettings::for_mix(&mix_of("marlin"), AREA_MM2);
+    let mut prologue = Vec::new();
+    edo::machine::gcode::MoveWriter::new(2, &settings)
+        .unwrap()
+        .preamble(&[], &mut prologue);
+    expected.extend(streamed_lines(&prologue.join("\n")).map(str::to_string));
+    expected.extend(streamed_lines(&file).map(str::to_string));
+    let received = std::fs::read_to_string(dir.path().join("received.log")).unwrap();
+    let ran: Vec<&str> = received
+        .lines()
+        // Less the handshake's M115, the probe's M105, the M400s and the empty lines the
+        // probe's leading newline makes.
+        .filter(|l| !matches!(*l, "M115" | "M105" | "M400" | ""))
+        .collect();
+    assert!(
+        status["frames_retransmitted"].as_u64().unwrap_or(0) >= 10,
+        "its faults were on: {status}"
+    );
+    assert_eq!(
+        ran, expected,
+        "the printer ran the file's commands, each once"
     );
 }
