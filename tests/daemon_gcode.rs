@@ -17,6 +17,9 @@ use edo::machine::gcode::GcodeSettings;
 use edo::machine::Move;
 use serde_json::{json, Value};
 
+#[path = "peers/octoprint.rs"]
+mod peer;
+
 struct Daemon {
     child: Child,
     socket: PathBuf,
@@ -26,11 +29,23 @@ impl Daemon {
     /// edod for `firmware` on `port` (a path, or `"sim"`), state in `dir`; `extra` is
     /// appended to the configuration.
     fn start(dir: &Path, port: &str, firmware: &str, extra: &str) -> Daemon {
+        // Busy: above hil-sim's keepalive interval in the busy tests (`KEEPALIVE_MS`).
+        Daemon::start_timed(dir, port, firmware, (300, 300), extra)
+    }
+
+    /// [`Daemon::start`] with the `ok` and busy timeouts (ms).
+    fn start_timed(
+        dir: &Path,
+        port: &str,
+        firmware: &str,
+        (ok_ms, busy_ms): (u64, u64),
+        extra: &str,
+    ) -> Daemon {
         let socket = dir.join("edod.sock");
         let busy = match firmware {
-            "marlin" => "busy_timeout_ms = 300\n",
-            "klipper" => "axes = [\"A\", \"B\"]\n",
-            _ => "",
+            "marlin" => format!("busy_timeout_ms = {busy_ms}\n"),
+            "klipper" => "axes = [\"A\", \"B\"]\n".to_string(),
+            _ => String::new(),
         };
         let config = dir.join("edod.toml");
         std::fs::write(
@@ -38,7 +53,7 @@ impl Daemon {
             format!(
                 "[serial]\nport = {port:?}\nbaud = 250000\n\
                  [machine]\nprotocol = \"gcode\"\n\
-                 [machine.gcode]\nfirmware = \"{firmware}\"\nok_timeout_ms = 300\n{busy}\
+                 [machine.gcode]\nfirmware = \"{firmware}\"\nok_timeout_ms = {ok_ms}\n{busy}\
                  slow_command_timeout_s = 2\n\
                  [api]\nsocket = {:?}\n[state]\ndir = {:?}\n\
                  [planner]\ndry_run_moves_per_layer = 100\n{extra}",
@@ -158,15 +173,31 @@ fn dialect(firmware: &str) -> Dialect {
     }
 }
 
+/// Marlin's `busy:` keepalive interval in hil-sim, ms: 2 s (`M113 S2`) scaled to the
+/// tests' 300 ms `ok` and busy timeouts, as the stock 10 s and 5 s are to 2 s.
+const KEEPALIVE_MS: u64 = 100;
+
 /// hil-sim as `firmware`, in this process; its recorder.
 fn sim(dir: &Path, firmware: &str, seed: u64) -> (hil_sim::SimHandle, PathBuf) {
+    sim_with_keepalive(dir, firmware, seed, None)
+}
+
+/// [`sim`] with Marlin's keepalive interval (`None`: the model's 2 s).
+fn sim_with_keepalive(
+    dir: &Path,
+    firmware: &str,
+    seed: u64,
+    keepalive_ms: Option<u64>,
+) -> (hil_sim::SimHandle, PathBuf) {
     let record = dir.join("run.jsonl");
+    let mut gcode = hil_sim::GcodeOptions::new(dialect(firmware), 2);
+    gcode.keepalive_interval_ms = keepalive_ms;
     let h = hil_sim::spawn(hil_sim::SimConfig {
         link: Some(dir.join("tty")),
         speed: 50.0,
         seed,
         record: Some(record.clone()),
-        gcode: Some(hil_sim::GcodeOptions::new(dialect(firmware), 2)),
+        gcode: Some(gcode),
         ..hil_sim::SimConfig::default()
     })
     .unwrap();
@@ -287,10 +318,14 @@ fn assert_ran_once_in_order(ran: &[String], expected: &[String], repeats_allowed
 }
 
 /// A graded job on `firmware` with `faults`: done, every line of the offline file ran
-/// once and in order, and the per-drive volumes are the file's E totals.
+/// once and in order, and the per-drive volumes are the file's E totals. RRF: a line
+/// may run twice, right after itself, and no more lines than edod sent again after a
+/// timeout (`frames_retransmitted`: RRF has no resend requests). Busy periods run with
+/// Marlin's keepalives at [`KEEPALIVE_MS`].
 fn job_streams_the_offline_file(firmware: &str, faults: &str, seed: u64) {
     let dir = tempfile::tempdir().unwrap();
-    let (sim, record) = sim(dir.path(), firmware, seed);
+    let keepalive = faults.contains("busy=").then_some(KEEPALIVE_MS);
+    let (sim, record) = sim_with_keepalive(dir.path(), firmware, seed, keepalive);
     let d = Daemon::start(dir.path(), &sim.path().display().to_string(), firmware, "");
     let mut c = d.client();
     c.wait_connected();
@@ -304,12 +339,18 @@ fn job_streams_the_offline_file(firmware: &str, faults: &str, seed: u64) {
     let done = c.wait_state(id, "done");
     let planned = planned_job();
     assert_eq!(done["total_moves"].as_u64(), Some(planned.len() as u64));
+    let status = c.call("machine.status", json!({})).unwrap();
     drop(c);
     drop(d);
     let summary = sim.stop().unwrap();
     let text = offline(&planned, firmware);
     let expected = move_lines(&text);
     let repeats = assert_ran_once_in_order(&ran(&record), &expected, firmware == "rrf");
+    let sent_again = status["frames_retransmitted"].as_u64().unwrap_or(0);
+    assert!(
+        repeats as u64 <= sent_again,
+        "{repeats} lines ran twice, {sent_again} sent again"
+    );
     assert!(
         expected.len() > 50,
         "{} move lines: too small a job",
@@ -329,9 +370,21 @@ fn job_streams_the_offline_file(firmware: &str, faults: &str, seed: u64) {
         assert!(want > 1000.0, "drive {k} extrudes {want} nl");
     }
     eprintln!(
-        "{firmware} {faults:?}: {} lines, {repeats} repeated, {summary:?}",
+        "{firmware} {faults:?}: {} lines, {repeats} repeated, {sent_again} sent again, {summary:?}",
         expected.len()
     );
+    // Each fault asked for happened (the seeds are fixed; a rate too low tests nothing).
+    for (fault, count) in [
+        ("corrupt-", summary.bits_flipped),
+        ("drop-ok=", summary.frames_dropped),
+        ("resend=", summary.resend_requests),
+        ("busy=", summary.busy_periods),
+    ] {
+        assert!(
+            !faults.contains(fault) || count > 0,
+            "{fault} never happened: {summary:?}"
+        );
+    }
 }
 
 #[test]
@@ -355,9 +408,47 @@ fn rrf_corrupted_lines_and_lost_oks_lose_and_reorder_nothing() {
 }
 
 #[test]
-
 fn marlin_corrupted_lines_and_lost_oks_run_every_line_once() {
     job_streams_the_offline_file("marlin", "corrupt-line=0.03,drop-ok=0.01", 4);
+}
+
+// The fault matrix (`docs/firmware.md`, "What is promised"): every line fault hil-sim
+// puts on a firmware's link at once, through edod. Reset and unplug mid-job: below.
+
+/// Marlin: lines corrupted on the way to the firmware (line errors, `Resend:`) and
+/// replies corrupted on the way back, `ok`s lost (the probe), resend requests out of
+/// the blue, busy periods longer than the `ok` timeout (the keepalives hold the link):
+/// every line runs once, in order.
+#[test]
+fn marlin_every_line_fault_at_once_runs_every_line_once_in_order() {
+    job_streams_the_offline_file(
+        "marlin",
+        "corrupt-line=0.03,corrupt-reply=0.02,drop-ok=0.01,resend=0.02,busy=0.004,busy-for=800",
+        12,
+    );
+}
+
+/// RRF: the same, less resend requests (RRF sends none: a bad line is dropped
+/// silently). RRF has no busy protocol: its `ok` timeout must exceed the longest wait
+/// for an `ok`, so the busy periods here are shorter than it (300 ms); a corrupted
+/// `ok` is a lost one. Nothing is lost or reordered; a line runs twice only right after
+/// itself, where edod sent it again.
+#[test]
+fn rrf_every_line_fault_at_once_loses_and_reorders_nothing() {
+    job_streams_the_offline_file(
+        "rrf",
+        "corrupt-line=0.03,corrupt-reply=0.02,drop-ok=0.01,busy=0.01,busy-for=200",
+        13,
+    );
+}
+
+/// Klipper: its pseudo-terminal corrupts and loses nothing and Klipper sends no resend
+/// requests, so of the line faults only busy periods apply (shorter than the link's
+/// patience: 4 `ok` timeouts in a row mean Klipper stopped reading). Every line once,
+/// in order.
+#[test]
+fn klipper_busy_periods_run_every_line_once_in_order() {
+    job_streams_the_offline_file("klipper", "busy=0.01,busy-for=600", 14);
 }
 
 /// A dry run on `firmware`: paused mid-job (no line runs once the firmware finished what
@@ -504,6 +595,24 @@ fn motions(lines: &[String]) -> Vec<String> {
         .collect()
 }
 
+/// hil-sim as `firmware` and edod on it in `dir`, [`JOB`] submitted and past its 200th
+/// move: the simulator, its recorder, edod, a client and the job's id.
+fn job_streaming(
+    dir: &Path,
+    firmware: &str,
+    seed: u64,
+) -> (hil_sim::SimHandle, PathBuf, Daemon, Client, u64) {
+    let (sim, record) = sim(dir, firmware, seed);
+    let d = Daemon::start(dir, &sim.path().display().to_string(), firmware, "");
+    let mut c = d.client();
+    c.wait_connected();
+    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    c.wait("streaming", |c| c.executed(id) > 200);
+    (sim, record, d, c, id)
+}
+
 /// edod killed with SIGKILL mid-job on `firmware`, restarted: the job is interrupted (not
 /// resumed silently); resumed, it runs to the end, nothing skipped, the resume's service
 /// moves between. Marlin and RRF name their last accepted line and edod the move it
@@ -516,15 +625,7 @@ fn sigkill_mid_job_interrupts_and_resumes(
     repeats_allowed: usize,
 ) -> usize {
     let dir = tempfile::tempdir().unwrap();
-    let (sim, record) = sim(dir.path(), firmware, seed);
-    let port = sim.path().display().to_string();
-    let mut d = Daemon::start(dir.path(), &port, firmware, "");
-    let mut c = d.client();
-    c.wait_connected();
-    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
-        .as_u64()
-        .unwrap();
-    c.wait("streaming", |c| c.executed(id) > 200);
+    let (sim, record, mut d, c, id) = job_streaming(dir.path(), firmware, seed);
     drop(c);
     d.sigkill();
     // The firmware runs what it accepted.
@@ -545,8 +646,21 @@ fn sigkill_mid_job_interrupts_and_resumes(
     drop(c);
     drop(d);
     sim.stop().unwrap();
+    resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed)
+}
+
+/// The recording of [`JOB`] run on `firmware`, interrupted after at least `before` lines
+/// ran and resumed: the file's start, the resume's service moves, then the file from the
+/// move resumed at to its end; nothing skipped, at most `repeats_allowed` of the file's
+/// move lines ran twice. Returns how many did.
+fn resumed_job_skipped_nothing(
+    record: &Path,
+    firmware: &str,
+    before: usize,
+    repeats_allowed: usize,
+) -> usize {
     let expected = motions(&move_lines(&offline(&planned_job(), firmware)));
-    let ran = motions(&ran(&record));
+    let ran = motions(&ran(record));
     // The first run: the file's lines up to where the resume's service moves start.
     let first = ran
         .iter()
@@ -585,4 +699,182 @@ fn rrf_sigkill_mid_job_resumes_running_at_most_one_move_twice() {
 #[test]
 fn klipper_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
     sigkill_mid_job_interrupts_and_resumes("klipper", 10, usize::MAX);
+}
+
+/// Moves the firmware's queue and planner hold on a stock build (`docs/firmware.md`,
+/// "Which lines the firmware accepted"): after a machine reset the job resumes from its
+/// checkpoint, which trails the accepted moves by at most this many.
+fn held_at_most(firmware: &str) -> usize {
+    match firmware {
+        "marlin" => 4 + 16,
+        "rrf" => 1 + 40,
+        _ => 20 + 32,
+    }
+}
+
+/// `fault` (hil-sim's `reset` or `unplug`) mid-job on `firmware`: the job is interrupted
+/// for one of `reasons`, and edod connects again; resumed, it runs to the end, nothing
+/// skipped, the resume's service moves between, at most `repeats_allowed` moves twice.
+fn fault_mid_job_interrupts_and_resumes(
+    firmware: &str,
+    seed: u64,
+    fault: hil_sim::Command,
+    reasons: &[&str],
+    repeats_allowed: usize,
+) -> usize {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, d, mut c, id) = job_streaming(dir.path(), firmware, seed);
+    let before = ran(&record).len();
+    sim.command(fault);
+    let j = c.wait_state(id, "interrupted");
+    let reason = j["reason"].as_str().unwrap_or_default();
+    assert!(reasons.iter().any(|r| reason.contains(r)), "{j}");
+    // Connected again, and not halted (Klipper's `Disconnect` halts it until `Ready`).
+    c.wait("machine connected, not halted", |c| {
+        let m = c.call("machine.status", json!({})).unwrap();
+        m["connected"] == json!(true) && m["state"] != json!("EStopped")
+    });
+    c.call("job.resume", json!({"id": id})).unwrap();
+    c.wait_state(id, "done");
+    drop(c);
+    drop(d);
+    let summary = sim.stop().unwrap();
+    eprintln!("{firmware} {reason:?}: {summary:?}");
+    resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed)
+}
+
+/// A machine reset loses the firmware's queue and planner: the job is interrupted, not
+/// resumed silently; resumed, it starts from its checkpoint (the first move that may not
+/// have run): nothing is skipped, at most the moves the firmware held run twice.
+#[test]
+fn marlin_reset_mid_job_resumes_skipping_nothing() {
+    fault_mid_job_interrupts_and_resumes(
+        "marlin",
+        15,
+        hil_sim::Command::Reset,
+        &["machine reset"],
+        held_at_most("marlin"),
+    );
+}
+
+/// RRF's reset re-enumerates its native USB port: edod sees the port vanish.
+#[test]
+fn rrf_reset_mid_job_resumes_skipping_nothing() {
+    fault_mid_job_interrupts_and_resumes(
+        "rrf",
+        16,
+        hil_sim::Command::Reset,
+        &["machine reset", "serial port lost"],
+        held_at_most("rrf"),
+    );
+}
+
+/// Klipper restarting (`Disconnect`, then `Ready`): its queue and lookahead are lost.
+/// edod takes `Disconnect` for a halt it did not ask for (a machine fault) and `Ready`
+/// for the restart.
+#[test]
+fn klipper_restart_mid_job_resumes_skipping_nothing() {
+    fault_mid_job_interrupts_and_resumes(
+        "klipper",
+        17,
+        hil_sim::Command::Reset,
+        &["machine reset", "Klipper state: Disconnect"],
+        held_at_most("klipper"),
+    );
+}
+
+/// Marlin, cable pulled mid-job: the firmware runs what it accepted; on the port's
+/// return the probe names the last line it accepted and the job resumes after it:
+/// every move exactly once.
+#[test]
+fn marlin_unplug_mid_job_resumes_running_every_move_once() {
+    fault_mid_job_interrupts_and_resumes(
+        "marlin",
+        18,
+        hil_sim::Command::Unplug,
+        &["serial port lost"],
+        0,
+    );
+}
+
+/// RRF, cable pulled mid-job: `M409`'s `lineNumber` names the last line parsed (maybe
+/// one it dropped): at most that one move runs twice.
+#[test]
+fn rrf_unplug_mid_job_resumes_running_at_most_one_move_twice() {
+    fault_mid_job_interrupts_and_resumes(
+        "rrf",
+        19,
+        hil_sim::Command::Unplug,
+        &["serial port lost"],
+        1,
+    );
+}
+
+/// Klipper, its pty gone mid-job: nothing says what ran; the job is interrupted and
+/// resumed from its checkpoint: nothing skipped, at most what Klipper held runs twice.
+#[test]
+fn klipper_unplug_mid_job_resumes_skipping_nothing() {
+    fault_mid_job_interrupts_and_resumes(
+        "klipper",
+        20,
+        hil_sim::Command::Unplug,
+        &["serial port lost"],
+        held_at_most("klipper"),
+    );
+}
+
+/// A real peer through edod: OctoPrint's virtual printer (`tests/peers/`, a Marlin model
+/// written by others) as edod's machine (`firmware = "marlin"`, the port its pty), with
+/// its own faults on ([`peer::FAULTS`]: every 20th line a checksum error, its simulated
+/// errors, `busy` keepalives every 0.5 s). [`JOB`] runs to the end, and the commands the
+/// printer ran are edod's connection prologue, then the offline file's (`edoctl plan
+/// --gcode --flavor marlin`, less comments), each once and in order, less the handshake
+/// and the `M400`s edod adds. Skipped unless `EDO_OCTOPRINT_PY` names the python of a
+/// venv with octoprint (`tests/peers/run_octoprint_peer.sh`).
+#[test]
+fn octoprint_virtual_printer_through_edod_runs_the_offline_file() {
+    let Some(python) = peer::python() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (_shim, ready) = peer::start_shim(&python, dir.path(), peer::FAULTS);
+    eprintln!("{ready}");
+    let port = dir.path().join("tty").display().to_string();
+    // Its busy keepalives come every 0.5 s; its missing line number is found by the
+    // timeout and the probe.
+    let d = Daemon::start_timed(dir.path(), &port, "marlin", (2000, 2000), "");
+    let mut c = d.client();
+    c.wait_connected();
+    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
+        .as_u64()
+        .unwrap();
+    c.wait_state(id, "done");
+    let status = c.call("machine.status", json!({})).unwrap();
+    drop(c);
+    drop(d);
+    eprintln!("{status}");
+    let file = offline(&planned_job(), "marlin");
+    let mut expected: Vec<String> = Vec::new();
+    let settings = GcodeSettings::for_mix(&mix_of("marlin"), AREA_MM2);
+    let mut prologue = Vec::new();
+    edo::machine::gcode::MoveWriter::new(2, &settings)
+        .unwrap()
+        .preamble(&[], &mut prologue);
+    expected.extend(streamed_lines(&prologue.join("\n")).map(str::to_string));
+    expected.extend(streamed_lines(&file).map(str::to_string));
+    let received = std::fs::read_to_string(dir.path().join("received.log")).unwrap();
+    let ran: Vec<&str> = received
+        .lines()
+        // Less the handshake's M115, the probe's M105, the M400s and the empty lines the
+        // probe's leading newline makes.
+        .filter(|l| !matches!(*l, "M115" | "M105" | "M400" | ""))
+        .collect();
+    assert!(
+        status["frames_retransmitted"].as_u64().unwrap_or(0) >= 10,
+        "its faults were on: {status}"
+    );
+    assert_eq!(
+        ran, expected,
+        "the printer ran the file's commands, each once"
+    );
 }

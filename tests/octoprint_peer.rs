@@ -8,16 +8,19 @@
 //! python of a venv with octoprint installed (`.ci/run` sets it).
 
 use std::fs::{File, OpenOptions};
-use std::io::{BufRead, BufReader, ErrorKind, Read, Write};
+use std::io::{ErrorKind, Read, Write};
 use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use edo::gcode_link::{Dialect, LineEvent, LineHost, LineLinkConfig, LinkState, Micros};
 use edo::machine::gcode::{write_gcode, Flavor, GcodeSettings};
 use edo::pipeline::{job_layer_moves, ProcessSettings, StreamState};
 use edo::plan::plan_layers;
+use peer::start_shim;
+
+#[path = "peers/octoprint.rs"]
+mod peer;
 
 /// The first moves of the paper annulus' first layer as offline Marlin G-code
 /// (`M163`/`M164` mixes), as `edoctl plan --gcode --flavor marlin` writes them.
@@ -54,56 +57,6 @@ fn commands(gcode: &str) -> Vec<String> {
         .map(|l| l.split(';').next().unwrap_or("").trim().to_string())
         .filter(|l| !l.is_empty())
         .collect()
-}
-
-struct Shim {
-    child: Child,
-}
-
-impl Drop for Shim {
-    fn drop(&mut self) {
-        drop(self.child.stdin.take()); // the shim stops when its stdin closes
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while Instant::now() < deadline {
-            if let Ok(Some(_)) = self.child.try_wait() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn start_shim(python: &str, dir: &Path, faults: &[&str]) -> (Shim, String) {
-    let shim = format!(
-        "{}/tests/peers/octoprint_shim.py",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let mut child = Command::new(python)
-        .arg(shim)
-        .arg("--link")
-        .arg(dir.join("tty"))
-        .arg("--log")
-        .arg(dir.join("received.log"))
-        .args(faults)
-        .args(
-            std::env::var("EDO_OCTOPRINT_TRACE")
-                .map(|t| vec!["--trace".to_string(), t])
-                .unwrap_or_default(),
-        )
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut ready = String::new();
-    let stdout = child.stdout.take().unwrap();
-    BufReader::new(stdout).read_line(&mut ready).unwrap();
-    assert!(
-        ready.starts_with("ready "),
-        "the shim did not start: {ready:?}"
-    );
-    (Shim { child }, ready.trim().to_string())
 }
 
 fn open_port(path: &Path) -> File {
@@ -164,32 +117,13 @@ fn stream(port: &mut File, lines: &[String]) -> (Vec<u64>, edo::gcode_link::Line
 
 #[test]
 fn octoprint_virtual_printer_runs_the_offline_gcode_once_in_order() {
-    let Ok(python) = std::env::var("EDO_OCTOPRINT_PY") else {
-        eprintln!(
-            "skipped: EDO_OCTOPRINT_PY is not set (the python of a venv with octoprint; \
-             .ci/run sets it)"
-        );
+    let Some(python) = peer::python() else {
         return;
     };
     let gcode = offline_gcode(400);
     let lines = commands(&gcode);
     let dir = tempfile::tempdir().unwrap();
-    // Its fault injection: every 20th line answered with a checksum error, a resend
-    // request and the `ok` after it; OctoPrint's simulated errors at lines 100-115 (a
-    // resend, a missing line number, a checksum error); busy keepalives. Not its
-    // `resend_with_timeout`: it takes the line (`lastN`), runs nothing, asks for it again
-    // and ignores the copy: the line is lost whatever the host does.
-    let (_shim, ready) = start_shim(
-        &python,
-        dir.path(),
-        &[
-            "--resend-ratio",
-            "5",
-            "--busy",
-            "--simulated-errors",
-            "100:resend,110:missing_lineno,115:checksum_mismatch",
-        ],
-    );
+    let (_shim, ready) = start_shim(&python, dir.path(), peer::FAULTS);
     eprintln!("{ready}");
     let mut port = open_port(&dir.path().join("tty"));
     let (accepted, stats) = stream(&mut port, &lines);

@@ -39,6 +39,9 @@ pub struct GcodeOptions {
     pub rx_buffer_bytes: Option<usize>,
     /// Marlin `BUFSIZE`, the command queue (default: the model's).
     pub command_slots: Option<usize>,
+    /// Marlin: the `busy:` keepalive interval, ms (default: the model's 2 s, `M113 S2`);
+    /// tests scale it down with their timeouts.
+    pub keepalive_interval_ms: Option<u64>,
 }
 
 impl GcodeOptions {
@@ -56,6 +59,7 @@ impl GcodeOptions {
             advanced_ok: false,
             rx_buffer_bytes: None,
             command_slots: None,
+            keepalive_interval_ms: None,
         }
     }
 
@@ -69,6 +73,12 @@ impl GcodeOptions {
         }
         if let Some(slots) = self.command_slots {
             c.command_slots = slots.max(1);
+        }
+        if let Some(ms) = self
+            .keepalive_interval_ms
+            .filter(|_| c.keepalive_interval_us.is_some())
+        {
+            c.keepalive_interval_us = Some(ms.max(1) * 1000);
         }
         c
     }

@@ -69,6 +69,9 @@ struct Cli {
     /// The firmware's receive buffer in bytes (default: the model's).
     #[arg(long, value_name = "BYTES", requires = "gcode")]
     gcode_rx_buffer: Option<usize>,
+    /// Marlin: the `busy:` keepalive interval in ms (default 2000, as `M113 S2`).
+    #[arg(long, value_name = "MS", requires = "gcode")]
+    gcode_keepalive_ms: Option<u64>,
     /// Stop (as on SIGTERM) when the process that started hil-sim dies, even by SIGKILL
     /// (edod's built-in simulated machine uses this; Linux only).
     #[arg(long)]
@@ -121,6 +124,7 @@ fn gcode_options(cli: &Cli) -> anyhow::Result<Option<hil_sim::GcodeOptions>> {
     let mut opts = hil_sim::GcodeOptions::new(dialect, cli.syringes);
     opts.advanced_ok = cli.gcode_advanced_ok;
     opts.rx_buffer_bytes = cli.gcode_rx_buffer;
+    opts.keepalive_interval_ms = cli.gcode_keepalive_ms;
     if let Some(mix) = &cli.gcode_mix {
         opts.mix = match mix.as_str() {
             "per-drive-e" => MixWriting::PerDriveE,

@@ -104,6 +104,10 @@ pub struct GcodeLink {
     recovering: bool,
     /// The port closed: the reset it causes is the streamer's `PortLost`.
     port_closed: bool,
+    /// The port closed with moves sent and not known run (Marlin, RRF): on reopening,
+    /// the firmware's last accepted line is asked before the handshake (which starts
+    /// numbering again), and the moves up to it ran.
+    recover_after_open: bool,
     /// The port was just opened: what it reads until then is from before (a boot banner
     /// printed while nobody listened) and is dropped; the handshake starts then.
     settle_until: Option<Micros>,
@@ -241,6 +245,7 @@ impl GcodeLink {
             estop_to_ack: false,
             recovering: false,
             port_closed: false,
+            recover_after_open: false,
             settle_until: None,
             marks: cfg.link.dialect.numbers_lines().then(Marks::default),
             resume: None,
@@ -704,14 +709,24 @@ fn end_of(mv: &Move) -> Option<crate::machine::PositionUm> {
 impl LinkAdapter for GcodeLink {
     fn reconnect(&mut self, now: Micros) {
         self.port_closed = false;
-        self.forget();
+        if !self.recover_after_open {
+            self.forget();
+        }
         self.settle_until = Some(now.plus_us(SETTLE_US));
     }
 
     fn port_lost(&mut self) {
         self.port_closed = true;
         self.host.port_closed();
-        self.forget();
+        // A pulled cable does not stop the firmware: it runs what it accepted. Which
+        // lines that was, Marlin and RRF say once the port is back (the host keeps its
+        // history until the next handshake); a reset behind the port's loss shows as
+        // their line counter going back, and the job resumes from its checkpoint.
+        let sent = !self.pending.is_empty() || !self.accepted.is_empty();
+        self.recover_after_open = self.marks.is_some() && self.stop != Stop::Halted && sent;
+        if !self.recover_after_open {
+            self.forget();
+        }
     }
 
     fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
@@ -725,9 +740,10 @@ impl LinkAdapter for GcodeLink {
     fn handle_timeout(&mut self, now: Micros) {
         if self.settle_until.is_some_and(|t| now >= t) {
             self.settle_until = None;
-            // After edod's restart, the firmware's last accepted line first: the
-            // handshake starts numbering again.
-            self.recovering = self.resume.is_some() && self.host.recover_last_accepted(now).is_ok();
+            // After edod's restart or a lost port, the firmware's last accepted line
+            // first: the handshake starts numbering again.
+            let recover = std::mem::take(&mut self.recover_after_open) || self.resume.is_some();
+            self.recovering = recover && self.host.recover_last_accepted(now).is_ok();
             if !self.recovering {
                 self.connect(now);
             }
@@ -873,6 +889,102 @@ mod tests {
                 },
             })
             .collect()
+    }
+
+    /// One millisecond of an instant wire between `link` and `fw` (the cable in when
+    /// `plugged`); the firmware runs each move at once. Returns the moves (`G1`) it ran.
+    fn pump(
+        link: &mut GcodeLink,
+        fw: &mut crate::gcode_link::Firmware,
+        now: Micros,
+        plugged: bool,
+        events: &mut Vec<Event>,
+    ) -> usize {
+        link.handle_timeout(now);
+        while let Some(b) = link.poll_transmit(now) {
+            if plugged {
+                fw.handle_bytes(&b, now);
+            }
+        }
+        fw.handle_timeout(now);
+        let mut moves = 0;
+        while let Some(line) = fw.poll_line() {
+            if line.is_move {
+                moves += usize::from(line.text.starts_with("G1"));
+                fw.moves_done(1, now);
+            }
+        }
+        while let Some(b) = fw.poll_transmit() {
+            if plugged {
+                link.handle_bytes(&b, now);
+            }
+        }
+        while let Some(e) = link.poll_event(now) {
+            events.push(e);
+        }
+        moves
+    }
+
+    /// Marlin, the cable pulled mid-job: the firmware runs what it accepted while the
+    /// port is gone; on its return the adapter asks for the last accepted line before
+    /// the handshake and reports every move up to it as run, so the job resumes after
+    /// the firmware's last move (not from the checkpoint, which trails it by up to
+    /// `BUFSIZE + BLOCK_BUFFER_SIZE` moves: those ran twice before).
+    #[test]
+    fn a_pulled_cable_counts_the_moves_the_firmware_accepted_as_run() {
+        use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
+        let cfg = super::super::config::GcodeLink {
+            link: LineLinkConfig::for_dialect(Dialect::Marlin),
+            mix: MixWriting::MarlinM163,
+            barrel_area_mm2: 78.5,
+        };
+        let mut link = GcodeLink::new(&cfg, 2, 1_000_000);
+        let mut fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Marlin), Micros(0));
+        let mut events = Vec::new();
+        let mut t = 0u64;
+        link.reconnect(Micros(t));
+        let mut to_send = job_moves(60).into_iter();
+        let mut ran = 0;
+        // Stream until the firmware ran 40 moves: lines still in flight, no M400 yet.
+        while ran < 40 {
+            t += 1000;
+            assert!(t < 10_000_000, "stuck: {ran} moves ran");
+            while link.has_room(4) {
+                let Some(mv) = to_send.next() else { break };
+                link.send_move(mv).unwrap();
+            }
+            ran += pump(&mut link, &mut fw, Micros(t), true, &mut events);
+        }
+        let counted = link.status().last_executed.map(|m| m.index);
+        assert!(
+            counted.is_some_and(|i| i + 1 < 40),
+            "before the cable is pulled, the checkpoint trails the firmware: {counted:?}"
+        );
+        link.port_lost();
+        for _ in 0..100 {
+            t += 1000;
+            ran += pump(&mut link, &mut fw, Micros(t), false, &mut events);
+        }
+        events.clear();
+        link.reconnect(Micros(t));
+        let mut connected = false;
+        while !connected {
+            t += 1000;
+            assert!(t < 20_000_000, "did not connect again: {events:?}");
+            ran += pump(&mut link, &mut fw, Micros(t), true, &mut events);
+            connected = events
+                .iter()
+                .any(|e| matches!(e, Event::MachineConnected(_)));
+        }
+        let last = events.iter().find_map(|e| match e {
+            Event::MachineStatus(r) | Event::MachineConnected(r) => r.last_executed,
+            _ => None,
+        });
+        assert_eq!(
+            last.map(|m| (m.job_id, m.index)),
+            Some((7, ran as u32 - 1)),
+            "the firmware ran {ran} moves"
+        );
     }
 
     #[test]

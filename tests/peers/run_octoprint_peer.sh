@@ -21,4 +21,6 @@ if [ ! -x "$VENV/bin/python" ]; then
     rm -rf "$VENV"; exit 0
   fi
 fi
-EDO_OCTOPRINT_PY="$VENV/bin/python" cargo test --locked --test octoprint_peer -- --nocapture
+# Through LineHost (octoprint_peer) and through edod (daemon_gcode's octoprint test).
+EDO_OCTOPRINT_PY="$VENV/bin/python" cargo test --locked --test octoprint_peer --test daemon_gcode \
+  octoprint -- --nocapture
