@@ -470,22 +470,30 @@ fn roads_shorter_than_min_road_are_left_out() {
     assert_eq!(all.len() - kept.len(), short);
 }
 
-/// Merging edges into moves within `move_deviation_mm` (default 0.0125 mm) on the
-/// example jobs: fewer extrusion moves, the same volume per syringe within the chord
-/// loss, and with a mixing lead no worse a designed-versus-delivered composition.
+/// Merging edges into moves within the default `move_deviation_mm` on the example
+/// jobs: fewer extrusion moves, the same volume per syringe within the chord loss,
+/// coverage (void, overlap, outside) within 0.05 percentage points, and with a mixing
+/// lead no worse a designed-versus-delivered composition.
 #[test]
 fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
     for name in ["paper-annulus", "tooth-crown", "fibers", "non-star"] {
-        let (job, _, layers) = planned(name, 2);
+        let (job, slices, layers) = planned(name, 2);
         let mut runs = Vec::new();
-        for deviation in [0.0, 0.0125] {
+        let mut coverage = Vec::new();
+        let islands: Vec<_> = slices[..2].iter().map(|s| &s.layer.islands).collect();
+        for deviation in [0.0, edo::pipeline::DEFAULT_MOVE_DEVIATION_MM] {
             let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
             s.v_dead_ul = 1.0;
             s.move_deviation_mm = deviation;
             let mut state = StreamState::new();
             let (mut extrusions, mut index, mut error) = (0usize, 0, 0.0f64);
-            for layer in &layers {
+            let mut cov = [0.0; 3];
+            for (layer, islands) in layers.iter().zip(&islands) {
                 let out = layer_moves(layer, &s, 1, index, &mut state).unwrap();
+                let c = edo::toolpath::coverage::measure(islands, &out.paths, s.road_width(), 0.01);
+                cov[0] += c.void_fraction() / 2.0;
+                cov[1] += c.overlap_fraction() / 2.0;
+                cov[2] += c.outside_fraction() / 2.0;
                 index = out.next_index;
                 extrusions += out
                     .moves
@@ -496,6 +504,15 @@ fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
             }
             let nl: f64 = state.planned_nl().iter().sum();
             runs.push((extrusions, nl, error));
+            coverage.push(cov);
+        }
+        for (k, what) in ["void", "overlap", "outside"].iter().enumerate() {
+            let (before, after) = (coverage[0][k] * 100.0, coverage[1][k] * 100.0);
+            eprintln!("{name}: {what} {before:.3} -> {after:.3} %");
+            assert!(
+                (after - before).abs() <= 0.05,
+                "{name}: {what} {before:.3} % -> {after:.3} %"
+            );
         }
         let ((n0, v0, e0), (n1, v1, e1)) = (runs[0], runs[1]);
         eprintln!(
