@@ -633,10 +633,16 @@ impl GcodeLink {
         self.paused = false;
         self.host.set_paused(false);
         match self.stop {
-            Stop::Halted => warn!(
-                "the firmware halted (M112): reset the machine (Marlin: its reset button; RRF: \
-                 M999 or reset; Klipper: FIRMWARE_RESTART); edod reconnects when it restarts"
-            ),
+            Stop::Halted => {
+                // Only a reset brings the firmware back: the resume cannot be carried
+                // out, and the job waiting for it is interrupted, saying what to do.
+                let why = "the firmware halted (M112): reset the machine (Marlin: its reset \
+                           button; RRF: M999 or reset; Klipper: FIRMWARE_RESTART); edod \
+                           reconnects when it restarts";
+                warn!("{why}");
+                self.events
+                    .push_back(Event::MachineFault(MachineFault::Other(why.into())));
+            }
             _ => {
                 self.stop = Stop::None;
                 self.update_state();
@@ -891,6 +897,19 @@ mod tests {
             .collect()
     }
 
+    /// An adapter for Marlin (two syringes) and the Marlin model it talks to.
+    fn marlin_rig() -> (GcodeLink, crate::gcode_link::Firmware) {
+        use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
+        let cfg = super::super::config::GcodeLink {
+            link: LineLinkConfig::for_dialect(Dialect::Marlin),
+            mix: MixWriting::MarlinM163,
+            barrel_area_mm2: 78.5,
+        };
+        let link = GcodeLink::new(&cfg, 2, 1_000_000);
+        let fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Marlin), Micros(0));
+        (link, fw)
+    }
+
     /// One millisecond of an instant wire between `link` and `fw` (the cable in when
     /// `plugged`); the firmware runs each move at once. Returns the moves (`G1`) it ran.
     fn pump(
@@ -932,14 +951,7 @@ mod tests {
     /// `BUFSIZE + BLOCK_BUFFER_SIZE` moves: those ran twice before).
     #[test]
     fn a_pulled_cable_counts_the_moves_the_firmware_accepted_as_run() {
-        use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
-        let cfg = super::super::config::GcodeLink {
-            link: LineLinkConfig::for_dialect(Dialect::Marlin),
-            mix: MixWriting::MarlinM163,
-            barrel_area_mm2: 78.5,
-        };
-        let mut link = GcodeLink::new(&cfg, 2, 1_000_000);
-        let mut fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Marlin), Micros(0));
+        let (mut link, mut fw) = marlin_rig();
         let mut events = Vec::new();
         let mut t = 0u64;
         link.reconnect(Micros(t));
@@ -984,6 +996,48 @@ mod tests {
             last.map(|m| (m.job_id, m.index)),
             Some((7, ran as u32 - 1)),
             "the firmware ran {ran} moves"
+        );
+    }
+
+    /// After the e-stop's `M112` the firmware stays halted until the machine is reset: a
+    /// resume is not acknowledged (the lifecycle would wait for it for ever) but reported
+    /// as a fault that says to reset the machine.
+    #[test]
+    fn a_resume_while_the_firmware_is_halted_is_a_fault_saying_reset_it() {
+        let (mut link, mut fw) = marlin_rig();
+        let mut events = Vec::new();
+        let mut t = 0;
+        link.reconnect(Micros(t));
+        while !events
+            .iter()
+            .any(|e| matches!(e, Event::MachineConnected(_)))
+        {
+            t += 1000;
+            assert!(t < 10_000_000, "did not connect: {events:?}");
+            pump(&mut link, &mut fw, Micros(t), true, &mut events);
+        }
+        link.command(MachineCommand::EmergencyStop, false, Micros(t));
+        for _ in 0..10 {
+            t += 1000;
+            pump(&mut link, &mut fw, Micros(t), true, &mut events);
+        }
+        assert!(fw.is_halted());
+        events.clear();
+        link.command(MachineCommand::ClearFaults, false, Micros(t));
+        link.command(MachineCommand::Resume, false, Micros(t));
+        pump(&mut link, &mut fw, Micros(t + 1000), true, &mut events);
+        assert!(
+            !events
+                .iter()
+                .any(|e| matches!(e, Event::CommandAcked(MachineCommand::Resume))),
+            "{events:?}"
+        );
+        assert!(
+            events.iter().any(|e| matches!(
+                e,
+                Event::MachineFault(MachineFault::Other(why)) if why.contains("reset the machine")
+            )),
+            "{events:?}"
         );
     }
 

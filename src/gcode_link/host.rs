@@ -366,6 +366,9 @@ pub struct LineHost {
     max_free_slots: Option<u16>,
     paused: bool,
     priority: Option<Vec<u8>>,
+    /// Recovery probes sent again after a timeout, whose answers (`Error:`, `Resend:`,
+    /// `ok`) may still come during the handshake that follows.
+    late_probe_answers: u32,
 }
 
 impl LineHost {
@@ -412,6 +415,7 @@ impl LineHost {
             max_free_slots: None,
             paused: false,
             priority: None,
+            late_probe_answers: 0,
             cfg,
         }
     }
@@ -766,6 +770,7 @@ impl LineHost {
     }
 
     fn connected(&mut self, now: Micros) {
+        self.late_probe_answers = 0;
         let first = if self.cfg.dialect.numbers_lines() {
             2
         } else {
@@ -788,6 +793,13 @@ impl LineHost {
             Reply::Ok(ok) => self.on_handshake_ok(ok, now),
             Reply::Empty if self.handshake.step == HandshakeStep::MarlinMode => {
                 self.advance_handshake(now)
+            }
+            Reply::Resend(_) if self.late_probe_answers > 0 => {
+                // The answer to a recovery probe sent again (its `ok` follows), not to a
+                // line of this handshake: sending `M110` again behind `M115` would set
+                // the firmware's line number back under the stream.
+                self.late_probe_answers -= 1;
+                self.swallow_oks += 1;
             }
             Reply::Resend(_) => {
                 // A line of this attempt was refused: its `ok` follows; start again.
@@ -1538,6 +1550,10 @@ impl LineHost {
     }
 
     fn finish_recovery(&mut self, answer: LastAccepted) {
+        self.late_probe_answers = self
+            .probe
+            .as_ref()
+            .map_or(0, |p| p.attempts.saturating_sub(1));
         self.probe = None;
         self.pending_error = None;
         self.pending_unreadable_error = false;

@@ -736,6 +736,43 @@ fn marlin_recovery_after_a_host_restart_uses_the_probe() {
     assert_eq!(h.state(), LinkState::Idle);
 }
 
+/// After a host restart on a loaded machine the probe went out twice (its answer came
+/// after the probe's timeout), and the second answer arrives during the handshake. Its
+/// `Resend:` names a line of the old numbering, not one of the handshake's: it does not
+/// restart the handshake (an `M110 N0` sent again behind `M115` sets the firmware's
+/// line number back under the stream: "went back from 1 to 0", a reset), and its `ok`
+/// is not taken for the handshake's.
+#[test]
+fn a_late_probe_answer_during_the_handshake_does_not_restart_it() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.recover_last_accepted(t(0)).unwrap();
+    let probe = format!("\n{}", line(PROBE_LINE_NUMBER, "M105"));
+    assert_eq!(tx(&mut h, t(0)), vec![probe.clone()]);
+    let late = h.config().ok_timeout_us / 1000 + 1;
+    h.handle_timeout(t(late));
+    assert_eq!(tx(&mut h, t(late)), vec![probe]);
+    let answer = "Error:Line Number is not Last Line Number+1, Last Line: 287\nResend: 288\nok\n";
+    feed(&mut h, answer, t(late + 1));
+    assert!(
+        matches!(
+            events(&mut h)[..],
+            [LineEvent::LastAccepted(LastAccepted::Known {
+                line_number: 287,
+                ..
+            })]
+        ),
+        "the first answer recovers"
+    );
+    h.connect(t(late + 2));
+    assert_eq!(tx(&mut h, t(late + 2)), vec!["N0 M110 N0*125\n"]);
+    feed(&mut h, answer, t(late + 3));
+    assert!(tx(&mut h, t(late + 3)).is_empty(), "M110 is not sent again");
+    feed(&mut h, "ok\n", t(late + 4));
+    assert_eq!(tx(&mut h, t(late + 4)), vec!["N1 M115*39\n"]);
+    feed(&mut h, &format!("{MARLIN_ID}\nok\n"), t(late + 5));
+    assert_eq!(h.state(), LinkState::Streaming);
+}
+
 #[test]
 fn marlin_recovery_after_link_loss_names_the_line_to_resume_from() {
     let mut h = windowed(3);
