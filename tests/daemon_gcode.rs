@@ -430,7 +430,7 @@ fn marlin_corrupted_lines_and_lost_oks_run_every_line_once() {
 fn marlin_every_line_fault_at_once_runs_every_line_once_in_order() {
     job_streams_the_offline_file(
         "marlin",
-        "corrupt-line=0.03,corrupt-reply=0.02,drop-ok=0.01,resend=0.02,busy=0.004,busy-for=800",
+        "corrupt-line=0.03,corrupt-reply=0.02,drop-ok=0.01,resend=0.02,busy=0.01,busy-for=800",
         12,
     );
 }

@@ -187,8 +187,12 @@ struct GcodeSim<'a> {
     opts: GcodeOptions,
     faults: Faults,
     port: PtyPort,
-    /// Seeded draws of the firmware-side faults (busy periods, resend requests).
+    /// Seeded draws of resend requests, one per numbered line received.
     rng: SimRng,
+    /// Seeded draws of busy periods, one per move completed: apart from `rng`, so how
+    /// the lines' arrival interleaves with the moves' completion (wall-clock timing)
+    /// does not change which moves start a busy period.
+    busy_rng: SimRng,
     recorder: Option<BufWriter<File>>,
     start: Instant,
     firmware: Firmware,
@@ -253,6 +257,7 @@ impl<'a> GcodeSim<'a> {
             to_firmware: LineInjector::new(rng.next_u64(), false),
             to_host: LineInjector::new(rng.next_u64(), true),
             rng: SimRng::new(rng.next_u64()),
+            busy_rng: SimRng::new(rng.next_u64()),
             opts,
             tx: VecDeque::new(),
             sum: Summary::default(),
@@ -463,7 +468,7 @@ impl<'a> GcodeSim<'a> {
         if done.planner {
             self.firmware.moves_done(1, Micros(now_us));
         }
-        if self.rng.chance(self.faults.busy) {
+        if self.busy_rng.chance(self.faults.busy) {
             // A busy period: the handler blocks (a long command, the user's pause);
             // Marlin sends `busy: processing` keepalives meanwhile.
             self.sum.busy_periods += 1;
