@@ -121,35 +121,50 @@ function progressText(j) {
   return layer + ", " + moves;
 }
 
+// Rows are rebuilt only when what they show changed, so a focused button stays put
+// while progress streams in.
 function renderJobs() {
   const body = $("jobs");
-  body.replaceChildren();
   const jobs = [...state.jobs.values()].sort((a, b) => a.id - b.id);
   $("no-jobs").hidden = jobs.length > 0;
+  const keep = new Set();
   for (const j of jobs) {
-    const tr = document.createElement("tr");
-    tr.id = "job-" + j.id;
-    tr.dataset.state = j.state;
     const cells = [String(j.id), j.name, j.state, progressText(j), fmtEta(j.progress?.eta_s)];
-    cells.forEach((text, i) => {
-      const td = document.createElement("td");
-      td.textContent = text;
-      if (i === 2) td.className = "state";
-      tr.append(td);
-    });
-    const td = document.createElement("td");
-    for (const action of ACTIONS[j.state] || []) {
-      const b = document.createElement("button");
-      b.type = "button";
-      b.textContent = action;
-      b.setAttribute("aria-label", action + " job " + j.id + " (" + j.name + ")");
-      b.dataset.action = action;
-      b.addEventListener("click", () => jobAction(action, j.id, b));
-      td.append(b);
+    const sig = cells.join("\u0000");
+    let tr = $("job-" + j.id);
+    if (!tr || tr.dataset.sig !== sig) {
+      const row = jobRow(j, cells);
+      row.dataset.sig = sig;
+      if (tr) tr.replaceWith(row); else body.append(row);
+      tr = row;
     }
-    tr.append(td);
-    body.append(tr);
+    keep.add(tr);
   }
+  for (const tr of [...body.children]) if (!keep.has(tr)) tr.remove();
+}
+
+function jobRow(j, cells) {
+  const tr = document.createElement("tr");
+  tr.id = "job-" + j.id;
+  tr.dataset.state = j.state;
+  cells.forEach((text, i) => {
+    const td = document.createElement("td");
+    td.textContent = text;
+    if (i === 2) td.className = "state";
+    tr.append(td);
+  });
+  const td = document.createElement("td");
+  for (const action of ACTIONS[j.state] || []) {
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = action;
+    b.setAttribute("aria-label", action + " job " + j.id + " (" + j.name + ")");
+    b.dataset.action = action;
+    b.addEventListener("click", () => jobAction(action, j.id, b));
+    td.append(b);
+  }
+  tr.append(td);
+  return tr;
 }
 
 async function jobAction(action, id, button) {
