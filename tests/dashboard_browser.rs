@@ -9,9 +9,8 @@
 //! Skips, saying why, when chromedriver is not installed (`.ci/run` installs
 //! `chromium chromium-driver`).
 
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use fantoccini::{Client, ClientBuilder, Locator};
@@ -19,22 +18,9 @@ use serde_json::json;
 
 const TOKEN: &str = "dashboard-test-token-0123456789";
 
-struct Kill(Child);
-
-impl Drop for Kill {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+#[path = "../benches/common/child.rs"]
+mod child;
+use child::{free_port, wait_http, Kill};
 
 fn chromedriver() -> Option<PathBuf> {
     ["/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver"]
@@ -72,17 +58,6 @@ fn edod(dir: &Path, tty: &Path, listen: &str, token: bool) -> Kill {
         .spawn()
         .unwrap();
     Kill(child)
-}
-
-fn wait_http(port: u16) {
-    let t = Instant::now();
-    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-        assert!(
-            t.elapsed() < Duration::from_secs(20),
-            "the dashboard did not start"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
 }
 
 /// A raw HTTP request to 127.0.0.1:`port`; the status code.
