@@ -196,6 +196,12 @@ mod tests {
                 "serial.port",
                 "not a serial device",
             ),
+            (
+                "[http]\nlisten = \"0.0.0.0:7125\"\ntoken_file = \"/nonexistent/edo-token\""
+                    .to_string(),
+                "http.token_file",
+                "cannot read /nonexistent/edo-token",
+            ),
         ] {
             let f = findings(&text);
             assert!(
