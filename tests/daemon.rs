@@ -51,7 +51,7 @@ impl Daemon {
             dir.join("edod.toml"),
             format!(
                 "[serial]\nport = {:?}\n[api]\nsocket = {:?}\nmax_request_bytes = {max_request_bytes}\n{api}\n\
-                 [state]\ndir = {:?}\nkeep_finished_jobs = {keep_finished_jobs}\n[planner]\ndry_run_moves_per_layer = 100\n",
+                 [state]\ndir = {:?}\nkeep_finished_jobs = {keep_finished_jobs}\n[planner]\ndry_run_moves_per_layer = 100\n[http]\nenabled = false\n",
                 port.display().to_string(),
                 dir.join("edod.sock").display().to_string(),
                 dir.join("state").display().to_string()

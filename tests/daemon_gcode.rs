@@ -56,7 +56,7 @@ impl Daemon {
                  [machine.gcode]\nfirmware = \"{firmware}\"\nok_timeout_ms = {ok_ms}\n{busy}\
                  slow_command_timeout_s = 2\n\
                  [api]\nsocket = {:?}\n[state]\ndir = {:?}\n\
-                 [planner]\ndry_run_moves_per_layer = 100\n{extra}",
+                 [planner]\ndry_run_moves_per_layer = 100\n[http]\nenabled = false\n{extra}",
                 socket.display().to_string(),
                 dir.join("state").display().to_string()
             ),

@@ -10,8 +10,10 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 
 mod gcode;
+mod http;
 
 pub use gcode::{GcodeConfig, GcodeLink, MixName, Protocol, WindowSetting};
+pub use http::{read_token, HttpConfig, MIN_TOKEN_BYTES};
 
 /// The literal `port` value that starts the built-in simulated machine.
 pub const SIM_PORT: &str = "sim";
@@ -38,6 +40,9 @@ pub struct Config {
     /// Planner and streaming bounds.
     #[serde(default)]
     pub planner: PlannerConfig,
+    /// The web dashboard.
+    #[serde(default)]
+    pub http: HttpConfig,
 }
 
 /// `[serial]`.
@@ -467,6 +472,7 @@ impl Config {
         self.gcode_link()
             .map_err(|(key, message)| bad(&key, message))?;
         self.check_api(&bad)?;
+        self.http.check().map_err(|(key, m)| bad(key, m))?;
         self.check_bounds(&bad)
     }
 

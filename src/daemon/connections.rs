@@ -81,7 +81,7 @@ impl Budget {
     }
 
     /// The error for a request that cannot have `bytes` more.
-    fn refusal(&self, bytes: usize, what: &str) -> ApiError {
+    pub fn refusal(&self, bytes: usize, what: &str) -> ApiError {
         ApiError::new(
             ApiError::LIMIT,
             format!(
@@ -296,7 +296,7 @@ fn grow(
 }
 
 /// An error response line (id null unless known).
-fn error_line(id: Id, e: ApiError) -> String {
+pub fn error_line(id: Id, e: ApiError) -> String {
     serde_json::to_string(&Response::<crate::proto::MethodResult>::new(id, Err(e)))
         .unwrap_or_else(|_| {
             r#"{"jsonrpc":"2.0","id":null,"error":{"code":-32603,"message":"cannot write an error"}}"#
@@ -304,7 +304,7 @@ fn error_line(id: Id, e: ApiError) -> String {
         })
 }
 
-fn idle_error(shared: &Shared) -> ApiError {
+pub fn idle_error(shared: &Shared) -> ApiError {
     ApiError::new(
         ApiError::LIMIT,
         format!(
@@ -341,6 +341,84 @@ pub async fn serve(listener: UnixListener, shared: Arc<Shared>) {
     }
 }
 
+/// What one client holds, whichever transport carries it (this socket, or the
+/// dashboard's WebSocket in [`super::http`]): requests answered by the one dispatcher
+/// under the memory budget, and its subscription to notifications.
+#[derive(Default)]
+pub struct Session {
+    notifications: Option<tokio::sync::broadcast::Receiver<Arc<str>>>,
+}
+
+/// Why a subscriber's notifications ended.
+pub enum NotifyEnd {
+    /// It fell behind by this many notifications: it is cut off.
+    Lagged(u64),
+    /// The daemon stopped sending.
+    Closed,
+}
+
+impl Session {
+    /// Whether the client has subscribed (it is then idle only mid-request).
+    pub fn subscribed(&self) -> bool {
+        self.notifications.is_some()
+    }
+
+    /// Answer one complete request (a line, a WebSocket message): the reply (none for
+    /// a JSON-RPC notification); a `subscribe` starts the client's notifications.
+    pub async fn request(&mut self, line: &[u8], shared: &Arc<Shared>) -> Option<String> {
+        let (reply, subscribe) = answer(line, shared).await;
+        if subscribe && self.notifications.is_none() {
+            self.notifications = Some(shared.notify.subscribe());
+        }
+        reply
+    }
+
+    /// The next notification line; pending for ever before `subscribe`. Cancel-safe.
+    pub async fn notification(&mut self) -> Result<Arc<str>, NotifyEnd> {
+        use tokio::sync::broadcast::error::RecvError;
+        let Some(rx) = self.notifications.as_mut() else {
+            return std::future::pending().await;
+        };
+        match rx.recv().await {
+            Ok(line) => Ok(line),
+            Err(RecvError::Lagged(n)) => Err(NotifyEnd::Lagged(n)),
+            Err(RecvError::Closed) => {
+                self.notifications = None;
+                Err(NotifyEnd::Closed)
+            }
+        }
+    }
+}
+
+/// Queue a notification for a client's writer; false when the client is to be cut off
+/// (its queue is full, or it fell behind the notifications).
+pub fn queue_notification(n: Result<Arc<str>, NotifyEnd>, tx: &mpsc::Sender<Arc<str>>) -> bool {
+    match n {
+        Ok(line) => {
+            let queued = tx.try_send(line).is_ok();
+            if !queued {
+                debug!("subscriber too slow; disconnecting");
+            }
+            queued
+        }
+        Err(NotifyEnd::Lagged(n)) => {
+            debug!(missed = n, "subscriber lagged; disconnecting");
+            false
+        }
+        Err(NotifyEnd::Closed) => true,
+    }
+}
+
+/// The refusal of a request over `api.max_request_bytes`.
+pub fn too_long(shared: &Shared) -> String {
+    let max = shared.config.api.max_request_bytes;
+    let e = ApiError::new(
+        ApiError::INVALID_REQUEST,
+        format!("request over {max} bytes (api.max_request_bytes)"),
+    );
+    error_line(Id::Null, e)
+}
+
 /// An ordinary client: requests answered in order, notifications after `subscribe`.
 async fn client(stream: UnixStream, shared: Arc<Shared>) {
     let (rd, mut wr) = stream.into_split();
@@ -355,22 +433,20 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
     let api = &shared.config.api;
     let (max, idle) = (api.max_request_bytes, api.idle_timeout());
     let mut reader = LineReader::new(BufReader::new(rd), max);
-    let mut notifications: Option<tokio::sync::broadcast::Receiver<Arc<str>>> = None;
+    let mut session = Session::default();
     let mut last_request = Instant::now();
     let send = |line: String| tx.try_send(Arc::from(line)).is_ok();
     loop {
         // A subscriber waits for notifications as long as it likes, not mid-request.
-        let idle_since = match (&notifications, reader.partial_since()) {
-            (Some(_), since) => since,
-            (None, _) => Some(last_request),
+        let idle_since = match (session.subscribed(), reader.partial_since()) {
+            (true, since) => since,
+            (false, _) => Some(last_request),
         };
         tokio::select! {
             r = reader.next(Some(&shared.budget)) => match r {
                 Ok(LineEvent::Eof) | Err(_) => break,
                 Ok(LineEvent::TooLong) => {
-                    let e = ApiError::new(ApiError::INVALID_REQUEST,
-                        format!("request over {max} bytes (api.max_request_bytes)"));
-                    if !send(error_line(Id::Null, e)) { break; }
+                    if !send(too_long(&shared)) { break; }
                 }
                 Ok(LineEvent::OverBudget(n)) => {
                     let e = shared.budget.refusal(n, "this request");
@@ -380,11 +456,8 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
                 Ok(LineEvent::Line) => {
                     let line = reader.line();
                     if line.iter().all(u8::is_ascii_whitespace) { continue; }
-                    let (reply, subscribe) = answer(line, &shared).await;
+                    let reply = session.request(line, &shared).await;
                     last_request = Instant::now();
-                    if subscribe && notifications.is_none() {
-                        notifications = Some(shared.notify.subscribe());
-                    }
                     if let Some(r) = reply {
                         if !send(r) {
                             debug!("client too slow; disconnecting");
@@ -393,24 +466,7 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
                     }
                 }
             },
-            n = async {
-                match notifications.as_mut() {
-                    Some(rx) => rx.recv().await,
-                    None => std::future::pending().await,
-                }
-            } => match n {
-                Ok(line) => {
-                    if tx.try_send(line).is_err() {
-                        debug!("subscriber too slow; disconnecting");
-                        break;
-                    }
-                }
-                Err(tokio::sync::broadcast::error::RecvError::Lagged(n)) => {
-                    debug!(missed = n, "subscriber lagged; disconnecting");
-                    break;
-                }
-                Err(_) => notifications = None,
-            },
+            n = session.notification() => if !queue_notification(n, &tx) { break },
             _ = tokio::time::sleep_until(idle_since.unwrap_or_else(Instant::now) + idle),
                 if idle_since.is_some() => {
                 debug!("idle client; disconnecting");

@@ -35,6 +35,7 @@ pub mod config;
 pub mod connections;
 pub mod edo_link;
 pub mod gcode_link;
+pub mod http;
 pub mod instance;
 pub mod planner;
 pub mod port_watch;

@@ -64,12 +64,21 @@ pub fn check(cfg: &Config) -> Vec<Finding> {
         faults(cfg),
         port(&cfg.serial.port),
         baud(cfg.serial.baud),
+        token_file(cfg),
     ]
     .into_iter()
     .flatten()
     .collect();
     found.sort_by_key(|f| !f.error);
     found
+}
+
+/// A token file that cannot be read, or holds no usable token.
+fn token_file(cfg: &Config) -> Option<Finding> {
+    if !cfg.http.enabled {
+        return None;
+    }
+    cfg.http.token().err().map(|m| error("http.token_file", m))
 }
 
 fn socket_path(socket: &Path) -> Option<Finding> {
@@ -186,6 +195,12 @@ mod tests {
                 "[serial]\nport = \"/etc/hostname\"".to_string(),
                 "serial.port",
                 "not a serial device",
+            ),
+            (
+                "[http]\nlisten = \"0.0.0.0:7125\"\ntoken_file = \"/nonexistent/edo-token\""
+                    .to_string(),
+                "http.token_file",
+                "cannot read /nonexistent/edo-token",
             ),
         ] {
             let f = findings(&text);

@@ -330,6 +330,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         .run(control_rx),
     );
     let api = tokio::spawn(api::serve(listener, Arc::clone(&shared)));
+    let dashboard = tokio::spawn(super::http::serve(Arc::clone(&shared)));
     info!(socket = %shared.config.api.socket.display(), port = %shared.port.display(), "edod ready");
     let notifier = Notifier::start();
     notifier.send("READY=1");
@@ -341,6 +342,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         let _ = tokio::time::timeout(Duration::from_secs(5), rx).await;
     }
     api.abort();
+    dashboard.abort();
     let _ = std::fs::remove_file(&shared.config.api.socket);
     if let Some(c) = sim {
         stop_sim(c).await;

@@ -1,0 +1,123 @@
+//! The web dashboard (`docs/http.md`): the page, compiled into the binary, at `/`; the
+//! same JSON-RPC methods and `notify_*` pushes as the Unix socket over a WebSocket at
+//! `/websocket`; read-only JSON at `/api/...` for scripts; `POST /api/rpc` (one call)
+//! and `POST /api/preview` (a job's plan before it is submitted).
+//!
+//! Every call goes through the socket's dispatcher ([`super::connections::Session`]),
+//! under the same limits: `api.max_request_bytes` for a body or a message, the one
+//! memory budget, `api.max_clients` WebSockets, `api.client_queue` replies and
+//! notifications queued per WebSocket before a slow one is cut off. Who may call what
+//! is [`guard`]'s. Nothing a client sends is used as a path on the host: the page's
+//! files are a fixed table, and a job is named by its number.
+
+pub mod guard;
+mod layers;
+mod page;
+mod rest;
+mod ws;
+
+use std::sync::Arc;
+
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::StatusCode;
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::Router;
+use tokio::sync::Semaphore;
+use tracing::warn;
+
+pub use guard::Guard;
+
+use super::Shared;
+
+/// What the handlers share.
+pub struct App {
+    /// The daemon's shared state.
+    pub shared: Arc<Shared>,
+    /// The listener's rules.
+    pub guard: Guard,
+    /// One place per WebSocket (`api.max_clients`).
+    pub sockets: Arc<Semaphore>,
+    /// Plans made for previews and layer views, one at a time (they take a core).
+    pub planning: Arc<Semaphore>,
+}
+
+/// The dashboard's routes, guarded.
+pub fn router(shared: Arc<Shared>, guard: Guard) -> Router {
+    let max = shared.config.api.max_request_bytes;
+    let app = Arc::new(App {
+        sockets: Arc::new(Semaphore::new(shared.config.api.max_clients)),
+        planning: Arc::new(Semaphore::new(1)),
+        shared,
+        guard,
+    });
+    Router::new()
+        .route("/", get(page::index))
+        .route("/app.js", get(page::script))
+        .route("/app.css", get(page::style))
+        .route("/websocket", get(ws::upgrade))
+        .route("/api/server", get(rest::server))
+        .route("/api/status", get(rest::status))
+        .route("/api/jobs", get(rest::jobs))
+        .route("/api/jobs/{id}", get(rest::job))
+        .route("/api/jobs/{id}/layers/{layer}", get(rest::layer))
+        .route("/api/rpc", post(rest::rpc))
+        .route("/api/preview", post(rest::preview))
+        .fallback(not_found)
+        .layer(DefaultBodyLimit::max(max))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::clone(&app),
+            guarded,
+        ))
+        .with_state(app)
+}
+
+async fn not_found() -> Response {
+    (StatusCode::NOT_FOUND, "not found").into_response()
+}
+
+/// Refuse what [`Guard::check`] refuses, before any handler runs.
+async fn guarded(State(app): State<Arc<App>>, req: Request, next: Next) -> Response {
+    let ask = guard::Ask {
+        method: req.method(),
+        path: req.uri().path(),
+        query: req.uri().query(),
+        headers: req.headers(),
+    };
+    if let Err((status, why)) = app.guard.check(&ask) {
+        return (status, why).into_response();
+    }
+    next.run(req).await
+}
+
+/// Bind `[http] listen` and serve the dashboard until the task is aborted. A dashboard
+/// that cannot be served (the port taken, the token file gone) is logged and left off:
+/// the socket API and the machine go on.
+pub async fn serve(shared: Arc<Shared>) {
+    let http = &shared.config.http;
+    if !http.enabled {
+        return;
+    }
+    let (addr, token) = match (http.listen_addr(), http.token()) {
+        (Ok(a), Ok(t)) => (a, t),
+        (Err(e), _) => return warn!("http.listen: {e}; no dashboard"),
+        (_, Err(e)) => return warn!("http.token_file: {e}; no dashboard"),
+    };
+    let listener = match tokio::net::TcpListener::bind(addr).await {
+        Ok(l) => l,
+        Err(e) => return warn!("http.listen = {addr}: cannot bind ({e}); no dashboard"),
+    };
+    let guard = Guard {
+        token,
+        loopback: addr.ip().is_loopback(),
+    };
+    tracing::info!("dashboard at http://{addr}/");
+    let app = router(Arc::clone(&shared), guard);
+    if let Err(e) = axum::serve(listener, app).await {
+        warn!("dashboard stopped: {e}");
+    }
+}
+
+#[cfg(test)]
+mod tests;

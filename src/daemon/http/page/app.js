@@ -1,0 +1,477 @@
+// edo dashboard: the JSON-RPC API of docs/api.md over /websocket (docs/http.md).
+// Plain modern JavaScript, no build step; every control has an accessible name.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const SVG = "http://www.w3.org/2000/svg";
+
+const state = {
+  ws: null, nextId: 1, pending: new Map(), jobs: new Map(), machine: null,
+  progress: null, server: null, layer: null, preview: null, token: sessionStorage.getItem("edo-token"),
+};
+
+// ---- the connection ---------------------------------------------------------------
+
+function call(method, params) {
+  return new Promise((resolve, reject) => {
+    if (!state.ws || state.ws.readyState !== WebSocket.OPEN) {
+      reject(new Error("not connected to edod"));
+      return;
+    }
+    const id = state.nextId++;
+    state.pending.set(id, { resolve, reject });
+    const req = { jsonrpc: "2.0", id, method };
+    if (params !== undefined) req.params = params;
+    state.ws.send(JSON.stringify(req));
+  });
+}
+
+function onMessage(ev) {
+  let m;
+  try { m = JSON.parse(ev.data); } catch { return; }
+  if (m.id !== undefined && m.id !== null && state.pending.has(m.id)) {
+    const p = state.pending.get(m.id);
+    state.pending.delete(m.id);
+    if (m.error) p.reject(Object.assign(new Error(m.error.message), { code: m.error.code }));
+    else p.resolve(m.result);
+    return;
+  }
+  if (m.method === "notify_job_progress") onProgress(m.params);
+  else if (m.method === "notify_job_state") onJobState(m.params);
+  else if (m.method === "notify_machine_state") onMachine(m.params);
+  else if (m.error) setLink("edod: " + m.error.message);
+}
+
+function setLink(text) { $("link").textContent = text; }
+
+async function connect() {
+  try {
+    state.server = await (await fetch("/api/server")).json();
+  } catch {
+    setLink("edod does not answer; retrying…");
+    setTimeout(connect, 2000);
+    return;
+  }
+  if (state.server.token_required && !state.token) {
+    $("token-form").hidden = false;
+    setLink("this printer needs its token");
+    return;
+  }
+  const url = new URL("/websocket", location.href);
+  url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+  if (state.token) url.searchParams.set("token", state.token);
+  const ws = new WebSocket(url);
+  state.ws = ws;
+  ws.onmessage = onMessage;
+  ws.onopen = async () => {
+    setLink("connected to " + state.server.name + " " + state.server.version + " (" + state.server.port + ")");
+    try {
+      await call("subscribe");
+      onMachine(await call("machine.status"));
+      const st = await call("machine.status");
+      if (st.progress) onProgress(st.progress);
+      for (const j of await call("job.list")) state.jobs.set(j.id, j);
+      renderJobs();
+    } catch (e) { setLink("edod: " + e.message); }
+  };
+  ws.onclose = () => {
+    for (const p of state.pending.values()) p.reject(new Error("connection lost"));
+    state.pending.clear();
+    if (state.server.token_required) {
+      // A refused token closes the socket at once: ask again.
+      sessionStorage.removeItem("edo-token");
+    }
+    setLink("disconnected; reconnecting…");
+    setTimeout(connect, 1000);
+  };
+}
+
+$("token-form").addEventListener("submit", (e) => {
+  e.preventDefault();
+  state.token = $("token").value.trim();
+  sessionStorage.setItem("edo-token", state.token);
+  $("token-form").hidden = true;
+  connect();
+});
+
+// ---- the queue ------------------------------------------------------------------
+
+// What the API allows in each state (docs/api.md, Methods).
+const ACTIONS = {
+  queued: ["cancel"], planning: ["cancel"], printing: ["pause", "cancel"],
+  paused: ["resume", "cancel"], interrupted: ["resume", "cancel"],
+  done: ["delete"], failed: ["delete"], cancelled: ["delete"],
+};
+
+function fmtEta(s) {
+  if (s === null || s === undefined) return "—";
+  s = Math.round(s);
+  const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), r = s % 60;
+  return (h ? h + " h " : "") + (h || m ? m + " min " : "") + r + " s";
+}
+
+function progressText(j) {
+  const p = j.progress;
+  if (!p) {
+    if (j.state === "done") return "done";
+    return j.total_moves ? j.total_moves + " moves" : "—";
+  }
+  const layer = p.layers ? "layer " + ((p.layer ?? 0) + 1) + " of " + p.layers : "planning layers";
+  const moves = p.executed + (p.total ? " of " + p.total : "") + " moves";
+  return layer + ", " + moves;
+}
+
+// Rows are rebuilt only when what they show changed, so a focused button stays put
+// while progress streams in.
+function renderJobs() {
+  const body = $("jobs");
+  const jobs = [...state.jobs.values()].sort((a, b) => a.id - b.id);
+  $("no-jobs").hidden = jobs.length > 0;
+  const keep = new Set();
+  for (const j of jobs) {
+    const cells = [String(j.id), j.name, j.state, progressText(j), fmtEta(j.progress?.eta_s)];
+    const sig = cells.join("\u0000");
+    let tr = $("job-" + j.id);
+    if (!tr || tr.dataset.sig !== sig) {
+      const row = jobRow(j, cells);
+      row.dataset.sig = sig;
+      if (tr) tr.replaceWith(row); else body.append(row);
+      tr = row;
+    }
+    keep.add(tr);
+  }
+  for (const tr of [...body.children]) if (!keep.has(tr)) tr.remove();
+}
+
+function jobRow(j, cells) {
+  const tr = document.createElement("tr");
+  tr.id = "job-" + j.id;
+  tr.dataset.state = j.state;
+  cells.forEach((text, i) => {
+    const td = document.createElement("td");
+    td.textContent = text;
+    if (i === 2) td.className = "state";
+    tr.append(td);
+  });
+  const td = document.createElement("td");
+  for (const action of ACTIONS[j.state] || []) {
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = action;
+    b.setAttribute("aria-label", action + " job " + j.id + " (" + j.name + ")");
+    b.dataset.action = action;
+    b.addEventListener("click", () => jobAction(action, j.id, b));
+    td.append(b);
+  }
+  tr.append(td);
+  return tr;
+}
+
+async function jobAction(action, id, button) {
+  button.disabled = true;
+  try {
+    const r = await call("job." + action, { id });
+    if (action === "delete") state.jobs.delete(id);
+    else await refreshJob(id, r.state);
+    renderJobs();
+  } catch (e) {
+    setLink("job " + id + ": " + e.message);
+    button.disabled = false;
+  }
+}
+
+async function refreshJob(id, fallbackState) {
+  try {
+    state.jobs.set(id, await call("job.get", { id }));
+  } catch {
+    const j = state.jobs.get(id);
+    if (j && fallbackState) j.state = fallbackState;
+  }
+}
+
+async function onJobState(p) {
+  const j = state.jobs.get(p.job_id);
+  if (j) { j.state = p.state; j.reason = p.reason; }
+  await refreshJob(p.job_id, p.state);
+  if (!["printing", "paused", "planning"].includes(p.state) && state.progress?.job_id === p.job_id) {
+    const jj = state.jobs.get(p.job_id);
+    if (jj) delete jj.progress;
+  }
+  renderJobs();
+  renderActive();
+}
+
+// ---- the active job ---------------------------------------------------------------
+
+function onProgress(p) {
+  state.progress = p;
+  const j = state.jobs.get(p.job_id);
+  if (j) j.progress = p;
+  renderJobs();
+  renderActive();
+  const layer = p.layer ?? 0;
+  const want = p.job_id + "/" + layer;
+  if (p.layers && (!state.layer || state.layer.key !== want) && state.layerLoading !== want) {
+    loadLayer(p.job_id, layer, want);
+  } else {
+    drawExecuted();
+  }
+}
+
+async function loadLayer(job, layer, key) {
+  state.layerLoading = key;
+  try {
+    const r = await fetch("/api/jobs/" + job + "/layers/" + layer);
+    if (r.ok) {
+      state.layer = Object.assign(await r.json(), { key, job });
+      drawLayer($("layer-view"), state.layer);
+      drawExecuted();
+    }
+  } finally {
+    if (state.layerLoading === key) state.layerLoading = null;
+  }
+}
+
+function renderActive() {
+  const p = state.progress;
+  const j = p && state.jobs.get(p.job_id);
+  if (!p || !j) { $("active").textContent = "No job is printing."; return; }
+  $("active").textContent = "Job " + j.id + " (" + j.name + "): " + j.state + ", " + progressText(j) + ", ETA " + fmtEta(p.eta_s);
+  const designed = designedComposition();
+  const built = p.composition ? p.composition.map((f) => (f * 100).toFixed(0) + " %").join(" / ") : "—";
+  $("composition").textContent = "designed " + (designed || "—") + "; built " + built;
+}
+
+// The composition the plan gives the move the machine executed last.
+function designedComposition() {
+  const l = state.layer, p = state.progress;
+  if (!l || !p || l.job !== p.job_id || l.first_index === null) return null;
+  for (let i = Math.min(p.executed - l.first_index - 1, l.moves.length - 1); i >= 0; i--) {
+    const m = l.moves[i];
+    if (m && m[3]) return m[3].map((f) => (f * 100).toFixed(0) + " %").join(" / ");
+  }
+  return null;
+}
+
+// The machine's faults (bits of the link's FaultKind) and what to do about each.
+const FAULTS = [
+  [1, "A syringe ran empty.", "Swap the syringe, then refill: the job continues.", "refill"],
+  [2, "An axis hit its limit switch.", "Check the part and the axes, then refill to clear the fault and resume the job.", "refill"],
+  [4, "The machine's emergency stop was pressed.", "Release it, then resume the job from the queue.", null],
+  [8, "The machine's queue overflowed.", "Resume the job; report this if it repeats.", null],
+  [16, "The machine could not read a message.", "Check edod and the firmware versions match.", null],
+  [32, "The machine refused a move.", "Check the machine's configuration against edod.toml.", null],
+];
+
+function onMachine(m) {
+  state.machine = m;
+  const dl = $("machine");
+  dl.replaceChildren();
+  const rows = [
+    ["Connected", m.connected ? "yes" : "no" + (m.disconnected_reason ? " (" + m.disconnected_reason + ")" : "")],
+    ["State", m.state || "—"],
+    ["Position", m.position_mm.map((v) => v.toFixed(2)).join(", ") + " mm"],
+    ["Executed", String(m.executed_total)],
+    ["Queued", String(m.queued)],
+    ["Underruns", String(m.underruns)],
+  ];
+  for (const [k, v] of rows) {
+    const dt = document.createElement("dt"), dd = document.createElement("dd");
+    dt.textContent = k; dd.textContent = v;
+    dl.append(dt, dd);
+  }
+  const caps = (state.server?.machine?.syringes) || [];
+  const ul = $("syringes");
+  ul.replaceChildren();
+  m.remaining_nl.forEach((nl, i) => {
+    const li = document.createElement("li");
+    const cap = caps[i] ? caps[i].capacity_ml * 1e6 : 0;
+    const name = caps[i] ? caps[i].name : "syringe " + i;
+    const meter = document.createElement("meter");
+    meter.min = 0; meter.max = cap || nl || 1; meter.value = nl;
+    meter.setAttribute("aria-label", name + " level");
+    li.append(name + ": " + (nl / 1e6).toFixed(2) + " ml ", meter);
+    ul.append(li);
+  });
+  renderFaults(m);
+  if (m.store_problem) setLink("job store: " + m.store_problem);
+}
+
+function renderFaults(m) {
+  const box = $("faults");
+  box.replaceChildren();
+  const found = FAULTS.filter(([bit]) => m.faults & bit);
+  if (!found.length) { box.append(Object.assign(document.createElement("p"), { textContent: "None." })); return; }
+  for (const [, what, todo, action] of found) {
+    const div = document.createElement("div");
+    div.className = "fault";
+    div.setAttribute("role", "alert");
+    div.append(Object.assign(document.createElement("p"), { textContent: what + " " + todo }));
+    if (action === "refill") {
+      const b = document.createElement("button");
+      b.type = "button"; b.textContent = "Syringes refilled";
+      b.setAttribute("aria-label", "Tell edod the syringes were refilled");
+      b.addEventListener("click", () => call("machine.refill").catch((e) => setLink(e.message)));
+      div.append(b);
+    }
+    box.append(div);
+  }
+}
+
+// ---- drawing a layer ------------------------------------------------------------------
+
+// Roads as planned: extrusions in their composition's colour, travels thin and grey.
+function drawLayer(svg, l) {
+  svg.replaceChildren();
+  const pts = l.moves.filter(Boolean);
+  if (!pts.length) return;
+  let [x0, y0, x1, y1] = [Infinity, Infinity, -Infinity, -Infinity];
+  for (const [x, y] of pts) { x0 = Math.min(x0, x); y0 = Math.min(y0, y); x1 = Math.max(x1, x); y1 = Math.max(y1, y); }
+  const pad = Math.max(x1 - x0, y1 - y0, 1) * 0.05;
+  svg.setAttribute("viewBox", [x0 - pad, -(y1 + pad), x1 - x0 + 2 * pad, y1 - y0 + 2 * pad].join(" "));
+  const width = Math.max(x1 - x0, y1 - y0, 1) / 250;
+  const planned = document.createElementNS(SVG, "g");
+  planned.setAttribute("opacity", "0.45");
+  const done = document.createElementNS(SVG, "g");
+  done.id = svg.id + "-done";
+  let at = l.start || pts[0];
+  svg.segments = [];
+  l.moves.forEach((m, i) => {
+    if (!m) { svg.segments.push(null); return; }
+    const line = document.createElementNS(SVG, "line");
+    line.setAttribute("x1", at[0]); line.setAttribute("y1", -at[1]);
+    line.setAttribute("x2", m[0]); line.setAttribute("y2", -m[1]);
+    line.setAttribute("stroke", m[2] || "#bbb");
+    line.setAttribute("stroke-width", m[2] ? width * 3 : width);
+    line.setAttribute("stroke-linecap", "round");
+    planned.append(line);
+    svg.segments.push(line);
+    at = [m[0], m[1]];
+  });
+  svg.append(planned, done);
+  svg.dataset.drawn = "0";
+  $("layer-caption").textContent = svg.id === "layer-view"
+    ? "Layer " + (l.layer + 1) + (l.layers ? " of " + l.layers : "") + (l.z_mm != null ? ", z = " + l.z_mm.toFixed(2) + " mm" : "")
+    : "";
+}
+
+// The moves the machine has executed, over the plan: full colour and bold.
+function drawExecuted() {
+  const svg = $("layer-view"), l = state.layer, p = state.progress;
+  if (!l || !p || l.job !== p.job_id || !svg.segments || l.first_index === null) return;
+  const upto = Math.max(0, Math.min(p.executed - l.first_index, l.moves.length));
+  const done = $("layer-view-done");
+  let drawn = Number(svg.dataset.drawn || 0);
+  if (upto < drawn) { done.replaceChildren(); drawn = 0; }
+  for (let i = drawn; i < upto; i++) {
+    const seg = svg.segments[i];
+    if (!seg) continue;
+    const c = seg.cloneNode();
+    c.setAttribute("stroke-width", Number(seg.getAttribute("stroke-width")) * 1.3);
+    if (!l.moves[i][2]) c.setAttribute("stroke", "#333");
+    done.append(c);
+  }
+  svg.dataset.drawn = String(upto);
+  svg.dataset.executed = String(p.executed);
+  renderActive();
+}
+
+// ---- e-stop -----------------------------------------------------------------------
+
+$("estop").addEventListener("click", async () => {
+  const ack = $("estop-ack");
+  ack.hidden = false;
+  ack.textContent = "E-stop sent… waiting for the machine's acknowledgement";
+  try {
+    const t = await call("machine.estop");
+    ack.textContent = t.acked_after_us !== null
+      ? "E-stop acknowledged by the machine after " + (t.acked_after_us / 1000).toFixed(1) + " ms"
+      : "E-stop written after " + (t.written_after_us / 1000).toFixed(1) + " ms; the machine has NOT acknowledged it: cut its power";
+    ack.dataset.acked = t.acked_after_us !== null ? "yes" : "no";
+  } catch (e) {
+    ack.textContent = "E-stop failed: " + e.message + ": cut the machine's power";
+    ack.dataset.acked = "no";
+  }
+});
+
+// ---- submit -------------------------------------------------------------------------
+
+function readFile(input, asBase64) {
+  const f = input.files[0];
+  if (!f) return Promise.resolve(null);
+  return new Promise((resolve, reject) => {
+    const r = new FileReader();
+    r.onerror = () => reject(r.error);
+    r.onload = () => resolve(asBase64 ? String(r.result).split(",", 2)[1] : r.result);
+    if (asBase64) r.readAsDataURL(f); else r.readAsText(f);
+  });
+}
+
+async function preview(layer) {
+  const headers = { "Content-Type": "application/json" };
+  if (state.token) headers.Authorization = "Bearer " + state.token;
+  const r = await fetch("/api/preview?layer=" + layer, {
+    method: "POST", headers, body: JSON.stringify(state.preview.ask),
+  });
+  const v = await r.json();
+  if (!r.ok) throw new Error(v.error ? v.error.message : r.statusText);
+  return v;
+}
+
+$("submit-form").addEventListener("submit", async (e) => {
+  e.preventDefault();
+  $("submit-result").textContent = "planning the preview…";
+  try {
+    const job = await readFile($("job-file"), false);
+    const mesh = await readFile($("mesh-file"), true);
+    const ask = { job };
+    if (mesh) ask.mesh_base64 = mesh;
+    state.preview = { ask };
+    showPreview(await preview(0));
+    $("submit-result").textContent = "";
+  } catch (err) {
+    $("submit-result").textContent = "preview failed: " + err.message;
+  }
+});
+
+function showPreview(v) {
+  $("preview").hidden = false;
+  const n = v.layers.length;
+  $("preview-summary").textContent = (v.name ? v.name + ": " : "") + n + " layers, " + (v.total_moves ?? 0) + " moves" + (v.ok ? "" : " — cannot be printed as it is");
+  const ul = $("preview-problems");
+  ul.replaceChildren();
+  for (const p of v.problems) {
+    ul.append(Object.assign(document.createElement("li"), { textContent: p, className: "problem" }));
+  }
+  $("preview-layer").max = String(Math.max(0, n - 1));
+  $("preview-layer").disabled = n === 0;
+  $("confirm").disabled = !v.ok;
+  if (v.view) {
+    drawLayer($("preview-view"), v.view);
+    $("preview-layer-out").textContent = (v.view.layer + 1) + " of " + n;
+  } else {
+    $("preview-view").replaceChildren();
+  }
+}
+
+$("preview-layer").addEventListener("change", async (e) => {
+  try { showPreview(await preview(Number(e.target.value))); } catch (err) { $("submit-result").textContent = err.message; }
+});
+
+$("confirm").addEventListener("click", async () => {
+  try {
+    const r = await call("job.submit", state.preview.ask);
+    $("submit-result").textContent = "job " + r.id + " submitted: " + r.state;
+    await refreshJob(r.id, r.state);
+    renderJobs();
+    $("preview").hidden = true;
+    $("submit-form").reset();
+    location.hash = "#queue";
+  } catch (err) {
+    $("submit-result").textContent = "refused: " + err.message;
+  }
+});
+
+$("discard").addEventListener("click", () => { $("preview").hidden = true; state.preview = null; });
+
+connect();

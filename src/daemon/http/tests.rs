@@ -1,0 +1,312 @@
+//! The HTTP layer's rules, each on the router (`tower::ServiceExt::oneshot`) or, for
+//! the WebSocket, on a real listener on 127.0.0.1:0.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{header, Request, StatusCode};
+use http_body_util::BodyExt;
+use tokio::sync::{broadcast, mpsc, watch};
+use tower::ServiceExt;
+
+use super::{router, Guard};
+use crate::daemon::{Config, Control, Shared};
+
+const TOKEN: &str = "0123456789abcdef0123";
+
+/// A daemon's shared state on a temporary store, with a streamer that acknowledges
+/// e-stops.
+async fn shared(dir: &std::path::Path, max_request_bytes: usize) -> Arc<Shared> {
+    let mut config = Config::from_toml("", "test").unwrap();
+    config.api.max_request_bytes = max_request_bytes;
+    config.api.idle_timeout_s = 2.0;
+    config.state.dir = dir.to_path_buf();
+    let (events, _) = mpsc::unbounded_channel();
+    let opened = crate::daemon::store::start(dir.to_path_buf(), 1000, events)
+        .await
+        .unwrap();
+    let (control, mut rx) = mpsc::channel(8);
+    tokio::spawn(async move {
+        while let Some(c) = rx.recv().await {
+            if let Control::EStop(_, reply) = c {
+                let _ = reply.send(Ok(crate::proto::EStopTiming {
+                    written_after_us: 10,
+                    acked_after_us: Some(20),
+                }));
+            }
+        }
+    });
+    Arc::new(Shared {
+        budget: crate::daemon::connections::Budget::new(&config.api),
+        config,
+        store: opened.stores,
+        notify: broadcast::channel(64).0,
+        machine: watch::channel(Default::default()).0,
+        progress: watch::channel(None).0,
+        control,
+        port: "sim".into(),
+        alive: Default::default(),
+    })
+}
+
+fn loopback() -> Guard {
+    Guard {
+        token: None,
+        loopback: true,
+    }
+}
+
+fn beyond_loopback() -> Guard {
+    Guard {
+        token: Some(TOKEN.into()),
+        loopback: false,
+    }
+}
+
+const HOST: &str = "127.0.0.1:7125";
+
+fn rpc(method: &str) -> String {
+    format!(r#"{{"jsonrpc":"2.0","id":1,"method":"{method}"}}"#)
+}
+
+async fn send(app: axum::Router, req: Request<Body>) -> (StatusCode, String) {
+    let r = app.oneshot(req).await.unwrap();
+    let status = r.status();
+    let body = r.into_body().collect().await.unwrap().to_bytes();
+    (status, String::from_utf8_lossy(&body).into_owned())
+}
+
+fn post(path: &str) -> axum::http::request::Builder {
+    Request::post(path).header(header::HOST, HOST)
+}
+
+#[tokio::test]
+async fn the_page_is_served_small_and_unknown_paths_are_not_found() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(shared(dir.path(), 1 << 20).await, loopback());
+    let get = |p: &str| {
+        Request::get(p)
+            .header(header::HOST, HOST)
+            .body(Body::empty())
+            .unwrap()
+    };
+    let (s, body) = send(app.clone(), get("/")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(body.contains("<html"), "{body}");
+    assert!(
+        body.len() + super::page::SCRIPT.len() + super::page::STYLE.len() < 500_000,
+        "the page is over 500 kB"
+    );
+    for p in ["/app.js", "/app.css"] {
+        assert_eq!(send(app.clone(), get(p)).await.0, StatusCode::OK, "{p}");
+    }
+    // Nothing a client sends names a file: these reach no file system.
+    for p in [
+        "/../../etc/passwd",
+        "/etc/passwd",
+        "/app.js/../../Cargo.toml",
+        "/%2e%2e/x",
+    ] {
+        assert_eq!(
+            send(app.clone(), get(p)).await.0,
+            StatusCode::NOT_FOUND,
+            "{p}"
+        );
+    }
+    assert_eq!(
+        send(app.clone(), get("/api/jobs/..%2F..%2Fetc")).await.0,
+        StatusCode::BAD_REQUEST
+    );
+}
+
+#[tokio::test]
+async fn reads_answer_as_the_methods_they_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(shared(dir.path(), 1 << 20).await, beyond_loopback());
+    let get = |p: &str| {
+        Request::get(p)
+            .header(header::HOST, "printer.lan")
+            .body(Body::empty())
+            .unwrap()
+    };
+    let (s, body) = send(app.clone(), get("/api/jobs")).await;
+    assert_eq!((s, body.as_str()), (StatusCode::OK, "[]"));
+    let (s, body) = send(app.clone(), get("/api/status")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(body.contains("\"executed_total\":0"), "{body}");
+    let (s, body) = send(app.clone(), get("/api/server")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(body.contains("\"token_required\":true"), "{body}");
+    let (s, body) = send(app.clone(), get("/api/jobs/7")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND, "{body}");
+    assert!(body.contains("-32001"), "{body}");
+    assert_eq!(
+        send(app.clone(), get("/api/jobs/7/layers/0")).await.0,
+        StatusCode::NOT_FOUND
+    );
+}
+
+#[tokio::test]
+async fn beyond_loopback_a_call_without_the_token_is_refused_401() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(shared(dir.path(), 1 << 20).await, beyond_loopback());
+    let call = |auth: Option<&str>| {
+        let mut b = Request::post("/api/rpc").header(header::HOST, "printer.lan:7125");
+        if let Some(a) = auth {
+            b = b.header(header::AUTHORIZATION, a);
+        }
+        b.body(Body::from(rpc("machine.estop"))).unwrap()
+    };
+    assert_eq!(
+        send(app.clone(), call(None)).await.0,
+        StatusCode::UNAUTHORIZED
+    );
+    assert_eq!(
+        send(app.clone(), call(Some("Bearer wrong-token-wrong-token")))
+            .await
+            .0,
+        StatusCode::UNAUTHORIZED
+    );
+    let (s, body) = send(app.clone(), call(Some(&format!("Bearer {TOKEN}")))).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(body.contains("\"acked_after_us\":20"), "{body}");
+}
+
+#[tokio::test]
+async fn a_post_from_another_origin_is_refused_403() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(shared(dir.path(), 1 << 20).await, loopback());
+    let call = |origin: &str| {
+        post("/api/rpc")
+            .header(header::ORIGIN, origin)
+            .body(Body::from(rpc("server.info")))
+            .unwrap()
+    };
+    assert_eq!(
+        send(app.clone(), call("http://evil.example")).await.0,
+        StatusCode::FORBIDDEN
+    );
+    let (s, body) = send(app.clone(), call("http://127.0.0.1:7125")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(body.contains("\"name\":\"edod\""), "{body}");
+    // DNS rebinding: the right origin under another name is refused too.
+    let rebound = Request::post("/api/rpc")
+        .header(header::HOST, "evil.example:7125")
+        .header(header::ORIGIN, "http://evil.example:7125")
+        .body(Body::from(rpc("machine.estop")))
+        .unwrap();
+    assert_eq!(send(app.clone(), rebound).await.0, StatusCode::FORBIDDEN);
+}
+
+#[tokio::test]
+async fn a_body_over_the_request_limit_is_refused_413() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(shared(dir.path(), 4096).await, loopback());
+    let big = format!(
+        r#"{{"jsonrpc":"2.0","id":1,"method":"server.info","x":"{}"}}"#,
+        "x".repeat(5000)
+    );
+    let r = post("/api/rpc").body(Body::from(big)).unwrap();
+    assert_eq!(send(app.clone(), r).await.0, StatusCode::PAYLOAD_TOO_LARGE);
+    let r = post("/api/preview")
+        .body(Body::from(vec![b' '; 5000]))
+        .unwrap();
+    assert_eq!(send(app.clone(), r).await.0, StatusCode::PAYLOAD_TOO_LARGE);
+}
+
+#[tokio::test]
+async fn a_preview_names_what_a_submission_would_refuse() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(shared(dir.path(), 1 << 20).await, loopback());
+    let job = std::fs::read_to_string("config/examples/paper-annulus.toml").unwrap();
+    let body = serde_json::json!({ "job": job }).to_string();
+    let (s, out) = send(
+        app.clone(),
+        post("/api/preview").body(Body::from(body)).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{out}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["ok"], true, "{out:.300}");
+    assert!(!v["layers"].as_array().unwrap().is_empty());
+    assert!(v["view"]["moves"].as_array().unwrap().len() > 10);
+    // Too large for the machine: named, not planned.
+    let big = job.replace("radius = 30.0", "radius = 300.0");
+    let body = serde_json::json!({ "job": big }).to_string();
+    let (_, out) = send(
+        app.clone(),
+        post("/api/preview").body(Body::from(body)).unwrap(),
+    )
+    .await;
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["ok"], false, "{out:.300}");
+    assert!(
+        v["problems"].to_string().contains("build volume"),
+        "{out:.300}"
+    );
+}
+
+/// A real listener on 127.0.0.1:0 serving `guard`.
+async fn listen(shared: Arc<Shared>, guard: Guard) -> std::net::SocketAddr {
+    let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = l.local_addr().unwrap();
+    tokio::spawn(async move { axum::serve(l, router(shared, guard)).await });
+    addr
+}
+
+#[tokio::test]
+async fn the_websocket_carries_the_methods_and_the_notifications() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::Message;
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 1 << 20).await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/websocket"))
+        .await
+        .unwrap();
+    ws.send(Message::text(rpc("subscribe"))).await.unwrap();
+    let reply = ws.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(reply.contains("notify_job_progress"), "{reply}");
+    shared.notify(crate::proto::Event::MachineState(Default::default()));
+    let pushed = ws.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(
+        pushed.contains("\"method\":\"notify_machine_state\""),
+        "{pushed}"
+    );
+    ws.send(Message::text(rpc("machine.estop"))).await.unwrap();
+    let reply = ws.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(reply.contains("\"acked_after_us\":20"), "{reply}");
+    // Over api.max_request_bytes: refused as on the socket, and the connection closed.
+    ws.send(Message::text("x".repeat(2 << 20))).await.unwrap();
+    let refusal = ws.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(refusal.contains("api.max_request_bytes"), "{refusal}");
+    let end = ws.next().await;
+    assert!(
+        !matches!(end, Some(Ok(Message::Text(_)))),
+        "still answering after a message over the limit: {end:?}"
+    );
+}
+
+#[tokio::test]
+async fn a_websocket_from_another_origin_or_without_the_token_is_refused() {
+    use tokio_tungstenite::tungstenite::{client::IntoClientRequest, Error};
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 1 << 20).await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let mut req = format!("ws://{addr}/websocket")
+        .into_client_request()
+        .unwrap();
+    req.headers_mut()
+        .insert(header::ORIGIN, "http://evil.example".parse().unwrap());
+    match tokio_tungstenite::connect_async(req).await {
+        Err(Error::Http(r)) => assert_eq!(r.status(), StatusCode::FORBIDDEN),
+        other => panic!("cross-origin WebSocket not refused: {other:?}"),
+    }
+    let addr = listen(shared, beyond_loopback()).await;
+    match tokio_tungstenite::connect_async(format!("ws://{addr}/websocket")).await {
+        Err(Error::Http(r)) => assert_eq!(r.status(), StatusCode::UNAUTHORIZED),
+        other => panic!("token-less WebSocket not refused: {other:?}"),
+    }
+    let with = format!("ws://{addr}/websocket?token={TOKEN}");
+    assert!(tokio_tungstenite::connect_async(with).await.is_ok());
+}

@@ -1,0 +1,345 @@
+//! The web dashboard in a real browser (Debian's chromium through chromedriver, driven
+//! by fantoccini): edod on hil-sim; the tooth crown submitted through the page after its
+//! plan preview; progress to done with the layer view updating while it prints; pause
+//! and resume from the page; e-stop of a second job, confirmed by the machine's
+//! acknowledgement; a cross-origin WebSocket and a token-less call on a non-loopback
+//! bind, both refused. Screenshots of the queue and the live layer view are saved under
+//! `target/dashboard-screenshots/`.
+//!
+//! Skips, saying why, when chromedriver is not installed (`.ci/run` installs
+//! `chromium chromium-driver`).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use fantoccini::{Client, ClientBuilder, Locator};
+use serde_json::json;
+
+const TOKEN: &str = "dashboard-test-token-0123456789";
+
+#[path = "../benches/common/child.rs"]
+mod child;
+use child::{free_port, wait_http, Kill};
+
+fn chromedriver() -> Option<PathBuf> {
+    ["/usr/bin/chromedriver", "/usr/lib/chromium/chromedriver"]
+        .iter()
+        .map(PathBuf::from)
+        .find(|p| p.exists())
+}
+
+/// edod on a simulated machine on `tty`, its dashboard on `listen`.
+fn edod(dir: &Path, tty: &Path, listen: &str, token: bool) -> Kill {
+    let token_line = if token {
+        let f = dir.join("token");
+        std::fs::write(&f, format!("{TOKEN}\n")).unwrap();
+        format!("token_file = {:?}\n", f.display().to_string())
+    } else {
+        String::new()
+    };
+    let cfg = format!(
+        "[serial]\nport = {:?}\n\
+         [machine]\nsyringes = [{{ name = \"dentin\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }}, \
+         {{ name = \"enamel\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }}]\n\
+         [api]\nsocket = {:?}\n[state]\ndir = {:?}\n\
+         [http]\nlisten = {listen:?}\n{token_line}",
+        tty.display().to_string(),
+        dir.join("edod.sock").display().to_string(),
+        dir.join("state").display().to_string(),
+    );
+    let config = dir.join("edod.toml");
+    std::fs::write(&config, cfg).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_edod"))
+        .arg("--config")
+        .arg(&config)
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .spawn()
+        .unwrap();
+    Kill(child)
+}
+
+/// A raw HTTP request to 127.0.0.1:`port`; the status code.
+fn http_status(port: u16, request: &str) -> u16 {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.write_all(request.as_bytes()).unwrap();
+    let mut buf = [0u8; 64];
+    let n = s.read(&mut buf).unwrap();
+    let head = String::from_utf8_lossy(&buf[..n]).into_owned();
+    head.split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0)
+}
+
+async fn wait_for<F, Fut>(what: &str, secs: u64, mut f: F)
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = bool>,
+{
+    let t = Instant::now();
+    while !f().await {
+        assert!(
+            t.elapsed() < Duration::from_secs(secs),
+            "timed out waiting for {what}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+async fn text(c: &Client, css: &str) -> String {
+    match c.find(Locator::Css(css)).await {
+        Ok(e) => e.text().await.unwrap_or_default(),
+        Err(_) => String::new(),
+    }
+}
+
+async fn attr(c: &Client, css: &str, name: &str) -> Option<String> {
+    c.find(Locator::Css(css))
+        .await
+        .ok()?
+        .attr(name)
+        .await
+        .ok()?
+}
+
+/// Click `css`, finding it again if the page redrew it meanwhile.
+async fn click(c: &Client, css: &str) {
+    let mut last = None;
+    for _ in 0..20 {
+        match c.find(Locator::Css(css)).await {
+            Ok(e) => match e.click().await {
+                Ok(()) => return,
+                Err(err) => last = Some(err.to_string()),
+            },
+            Err(err) => last = Some(err.to_string()),
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("cannot click {css}: {last:?}");
+}
+
+async fn screenshot(c: &Client, name: &str) {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/dashboard-screenshots");
+    std::fs::create_dir_all(&dir).unwrap();
+    let png = c.screenshot().await.unwrap();
+    std::fs::write(dir.join(name), png).unwrap();
+}
+
+async fn browser(driver_port: u16) -> Client {
+    let caps = json!({
+        "goog:chromeOptions": {
+            "args": ["--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1000,1300"]
+        }
+    });
+    let caps = caps.as_object().unwrap().clone();
+    let t = Instant::now();
+    loop {
+        let connector = hyper_util::client::legacy::connect::HttpConnector::new();
+        match ClientBuilder::new(connector)
+            .capabilities(caps.clone())
+            .connect(&format!("http://127.0.0.1:{driver_port}"))
+            .await
+        {
+            Ok(c) => return c,
+            Err(e) => {
+                assert!(t.elapsed() < Duration::from_secs(20), "chromedriver: {e}");
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_in_a_real_browser() {
+    let Some(driver) = chromedriver() else {
+        println!("SKIPPED the_dashboard_in_a_real_browser: chromedriver not installed (apt-get install chromium chromium-driver)");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let _sim = hil_sim::spawn(hil_sim::SimConfig {
+        link: Some(dir.path().join("tty")),
+        speed: 5.0,
+        seed: 1,
+        ..hil_sim::SimConfig::default()
+    })
+    .unwrap();
+    let port = free_port();
+    let _edod = edod(
+        dir.path(),
+        &dir.path().join("tty"),
+        &format!("127.0.0.1:{port}"),
+        false,
+    );
+    wait_http(port);
+    let driver_port = free_port();
+    let _driver = Kill(
+        Command::new(driver)
+            .arg(format!("--port={driver_port}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let c = browser(driver_port).await;
+    use futures_util::FutureExt;
+    let driven = std::panic::AssertUnwindSafe(drive(&c, port))
+        .catch_unwind()
+        .await;
+    // Close the browser whatever happened, then report.
+    let _ = c.close().await;
+    if let Err(p) = driven {
+        std::panic::resume_unwind(p);
+    }
+    refusals(dir.path()).await;
+}
+
+async fn drive(c: &Client, port: u16) {
+    let base = format!("http://127.0.0.1:{port}/");
+    c.goto(&base).await.unwrap();
+    wait_for("the page to connect", 20, || async {
+        text(c, "#link").await.starts_with("connected")
+    })
+    .await;
+
+    // Submit the tooth crown through the page: preview, then confirm.
+    let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/tooth-crown.toml");
+    c.find(Locator::Css("#job-file"))
+        .await
+        .unwrap()
+        .send_keys(&job.display().to_string())
+        .await
+        .unwrap();
+    click(c, "#preview-btn").await;
+    wait_for("the plan preview", 60, || async {
+        text(c, "#preview-summary").await.contains("layers")
+    })
+    .await;
+    let summary = text(c, "#preview-summary").await;
+    assert!(summary.starts_with("tooth-crown: "), "{summary}");
+    assert!(!summary.contains("cannot be printed"), "{summary}");
+    click(c, "#confirm").await;
+    wait_for("job 1 in the queue", 10, || async {
+        c.find(Locator::Css("#job-1")).await.is_ok()
+    })
+    .await;
+
+    // While it prints: the layer view is drawn and grows.
+    wait_for("job 1 printing", 60, || async {
+        attr(c, "#job-1", "data-state").await.as_deref() == Some("printing")
+    })
+    .await;
+    wait_for("moves drawn over the layer", 60, || async {
+        attr(c, "#layer-view", "data-drawn")
+            .await
+            .and_then(|d| d.parse::<u32>().ok())
+            .unwrap_or(0)
+            > 0
+    })
+    .await;
+    let first = attr(c, "#layer-view", "data-executed")
+        .await
+        .unwrap_or_default();
+    wait_for("the layer view to update", 30, || async {
+        attr(c, "#layer-view", "data-executed")
+            .await
+            .unwrap_or_default()
+            != first
+    })
+    .await;
+    c.goto(&format!("{base}#live")).await.unwrap();
+    screenshot(c, "live-layer.png").await;
+
+    // Pause and resume from the page.
+    click(c, "#job-1 button[data-action=pause]").await;
+    wait_for("job 1 paused", 20, || async {
+        attr(c, "#job-1", "data-state").await.as_deref() == Some("paused")
+    })
+    .await;
+    click(c, "#job-1 button[data-action=resume]").await;
+    wait_for("job 1 printing again", 20, || async {
+        attr(c, "#job-1", "data-state").await.as_deref() == Some("printing")
+    })
+    .await;
+    wait_for("job 1 done", 600, || async {
+        attr(c, "#job-1", "data-state").await.as_deref() == Some("done")
+    })
+    .await;
+    c.goto(&format!("{base}#queue")).await.unwrap();
+    screenshot(c, "queue.png").await;
+
+    // A second job, e-stopped from the page: the machine's acknowledgement is shown.
+    c.find(Locator::Css("#job-file"))
+        .await
+        .unwrap()
+        .send_keys(
+            &Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("config/examples/tooth-crown.toml")
+                .display()
+                .to_string(),
+        )
+        .await
+        .unwrap();
+    click(c, "#preview-btn").await;
+    wait_for("the second preview", 60, || async {
+        attr(c, "#confirm", "disabled").await.is_none()
+            && !text(c, "#preview-summary").await.is_empty()
+    })
+    .await;
+    click(c, "#confirm").await;
+    wait_for("job 2 printing", 60, || async {
+        attr(c, "#job-2", "data-state").await.as_deref() == Some("printing")
+    })
+    .await;
+    click(c, "#estop").await;
+    wait_for("the e-stop acknowledgement", 10, || async {
+        attr(c, "#estop-ack", "data-acked").await.is_some()
+    })
+    .await;
+    let ack = text(c, "#estop-ack").await;
+    assert!(ack.contains("acknowledged by the machine"), "{ack}");
+    screenshot(c, "estop.png").await;
+}
+
+/// A cross-origin WebSocket (loopback bind), and a token-less call on a non-loopback
+/// bind: both refused.
+async fn refusals(dir: &Path) {
+    use tokio_tungstenite::tungstenite::{client::IntoClientRequest, Error};
+    let sub = dir.join("open");
+    std::fs::create_dir_all(&sub).unwrap();
+    let _sim = hil_sim::spawn(hil_sim::SimConfig {
+        link: Some(sub.join("tty")),
+        ..hil_sim::SimConfig::default()
+    })
+    .unwrap();
+    let port = free_port();
+    let _edod = edod(&sub, &sub.join("tty"), &format!("0.0.0.0:{port}"), true);
+    wait_http(port);
+    let call = r#"{"jsonrpc":"2.0","id":1,"method":"machine.estop"}"#;
+    let post = |auth: &str| {
+        format!(
+            "POST /api/rpc HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{call}",
+            call.len()
+        )
+    };
+    assert_eq!(http_status(port, &post("")), 401, "a token-less call");
+    assert_eq!(
+        http_status(port, &post(&format!("Authorization: Bearer {TOKEN}\r\n"))),
+        200
+    );
+    let mut req = format!("ws://127.0.0.1:{port}/websocket?token={TOKEN}")
+        .into_client_request()
+        .unwrap();
+    req.headers_mut()
+        .insert("origin", "http://evil.example".parse().unwrap());
+    match tokio_tungstenite::connect_async(req).await {
+        Err(Error::Http(r)) => assert_eq!(r.status().as_u16(), 403),
+        other => panic!("a cross-origin WebSocket was not refused: {other:?}"),
+    }
+    match tokio_tungstenite::connect_async(format!("ws://127.0.0.1:{port}/websocket")).await {
+        Err(Error::Http(r)) => assert_eq!(r.status().as_u16(), 401),
+        other => panic!("a token-less WebSocket was not refused: {other:?}"),
+    }
+}
