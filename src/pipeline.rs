@@ -57,6 +57,7 @@
 //! move's volumes sum to its total exactly by construction.
 
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT, MAX_SYRINGES};
+use crate::mixer::{Mixer, MixerModel, MixerOptions};
 use crate::plan::LayerPlan;
 use crate::toolpath::{self, OrderSettings, SeamMode, SubRegionOrder, ToolPath};
 use glam::{DVec2, DVec3};
@@ -116,6 +117,14 @@ pub struct ProcessSettings {
     pub flow_min_gap_fraction: f64,
     /// Dead volume of the mixing chamber V_dead, µL. Default 0 (no chamber).
     pub v_dead_ul: f64,
+    /// The mixing chamber's residence-time distribution (`crate::mixer`) through
+    /// V_dead: plug flow (default), well-mixed, or plug flow with axial dispersion. Set
+    /// by the machine (`[machine.mixer]`, `edoctl plan --mixer`), not by the job.
+    #[serde(skip)]
+    pub mixer_model: MixerModel,
+    /// Peclet number of the `dispersion` mixer model. Set with `mixer_model`.
+    #[serde(skip)]
+    pub mixer_peclet: Option<f64>,
     /// Command each composition change V_dead ahead so it reaches the nozzle exit where
     /// the path starts. Default true (no effect when `v_dead_ul` is 0).
     pub mixing_lead: bool,
@@ -170,6 +179,8 @@ impl Default for ProcessSettings {
             gap_fill: true,
             gap_fill_min_factor: 0.25,
             v_dead_ul: 0.0,
+            mixer_model: MixerModel::Plug,
+            mixer_peclet: None,
             mixing_lead: true,
             purge_xy_mm: None,
             purge_pad_mm: 5.0,
@@ -251,6 +262,13 @@ impl ProcessSettings {
         positive(self.travel_feed_mm_s, "travel_feed_mm_s")?;
         non_negative(self.retract_min_travel_mm, "retract_min_travel_mm")?;
         non_negative(self.v_dead_ul, "v_dead_ul")?;
+        self.mixer().validate().map_err(|e| {
+            let field = match e.key {
+                "peclet" => "mixer_peclet",
+                _ => "mixer_model",
+            };
+            setting_error(field, e.message)
+        })?;
         positive(self.purge_pad_mm, "purge_pad_mm")?;
         non_negative(self.purge_min_error, "purge_min_error")?;
         non_negative(self.move_deviation_mm, "move_deviation_mm")?;
@@ -292,6 +310,15 @@ impl ProcessSettings {
         Ok(())
     }
 
+    /// The mixing chamber: `mixer_model` through V_dead.
+    pub fn mixer(&self) -> MixerOptions {
+        MixerOptions {
+            model: self.mixer_model,
+            volume_nl: self.v_dead_ul * 1000.0,
+            peclet: self.mixer_peclet,
+        }
+    }
+
     /// The toolpath module's share of the settings.
     pub fn order_settings(&self) -> OrderSettings {
         OrderSettings {
@@ -317,8 +344,8 @@ pub struct StreamState {
     commanded_nl: Vec<u64>,
     /// Layers done.
     layers: u32,
-    /// Mixing chamber content from nozzle exit (front) to inlet: (volume nl, composition).
-    chamber: std::collections::VecDeque<(f64, Vec<f64>)>,
+    /// The mixing chamber; `None` before the first extrusion.
+    chamber: Option<Mixer>,
 }
 
 impl StreamState {
@@ -920,10 +947,7 @@ fn commanded_compositions(segs: &[(f64, &[f64])], s: &ProcessSettings) -> Vec<Ve
 
 /// How far the chamber's content (front first, V_dead in all) is from the designed
 /// stream's first V_dead: the largest per-material difference over the volume they share.
-fn chamber_mismatch(
-    chamber: &std::collections::VecDeque<(f64, Vec<f64>)>,
-    segs: &[(f64, &[f64])],
-) -> f64 {
+fn chamber_mismatch(chamber: &[(f64, Vec<f64>)], segs: &[(f64, &[f64])]) -> f64 {
     let mut window = StreamWindow::new(segs);
     let mut at = 0.0;
     let mut worst: f64 = 0.0;
@@ -1099,8 +1123,11 @@ impl Builder<'_> {
         };
         if !(s.mixing_lead && dead > 0.0)
             || designed.is_empty()
-            || self.state.chamber.is_empty()
-            || chamber_mismatch(&self.state.chamber, designed) <= s.purge_min_error
+            || self
+                .state
+                .chamber
+                .as_ref()
+                .is_none_or(|c| chamber_mismatch(&c.contents(), designed) <= s.purge_min_error)
         {
             return Ok(());
         }
@@ -1133,30 +1160,13 @@ impl Builder<'_> {
         Ok(())
     }
 
-    /// Push `volume_nl` of `commanded` into the chamber; what leaves the nozzle (plug
-    /// flow), or none without a chamber.
+    /// Push `volume_nl` of `commanded` into the chamber; what leaves the nozzle, or
+    /// none without a chamber.
     fn push_through_chamber(&mut self, volume_nl: f64, commanded: &[f64]) -> Option<Vec<f64>> {
-        let dead = self.settings.v_dead_ul * 1000.0;
-        if dead <= 0.0 || volume_nl <= 0.0 {
+        if self.settings.v_dead_ul <= 0.0 || volume_nl <= 0.0 {
             return None;
         }
-        let ch = &mut self.state.chamber;
-        ch.push_back((volume_nl, commanded.to_vec()));
-        let mut need = volume_nl;
-        let mut out = vec![0.0; commanded.len()];
-        while need > 1e-12 {
-            let Some(front) = ch.front_mut() else { break };
-            let take = front.0.min(need);
-            for (o, c) in out.iter_mut().zip(&front.1) {
-                *o += take * c;
-            }
-            front.0 -= take;
-            need -= take;
-            if front.0 <= 1e-12 {
-                ch.pop_front();
-            }
-        }
-        Some(out.iter().map(|x| x / volume_nl).collect())
+        self.state.chamber.as_mut()?.push(volume_nl, commanded)
     }
 
     /// Add `volume_nl` of `composition` to the job's planned and commanded totals; the
@@ -1175,11 +1185,10 @@ impl Builder<'_> {
 
     /// Push `volume_nl` of `commanded` through the chamber; compare what leaves the
     /// nozzle with `designed`.
-    fn plug_flow(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
-        let dead = self.settings.v_dead_ul * 1000.0;
-        if dead > 0.0 && self.state.chamber.is_empty() {
+    fn through_chamber(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
+        if self.settings.v_dead_ul > 0.0 && self.state.chamber.is_none() {
             // A fresh chamber is full of the first designed composition (primed).
-            self.state.chamber.push_back((dead, designed.to_vec()));
+            self.state.chamber = Some(Mixer::new(&self.settings.mixer(), designed));
         }
         let delivered = self
             .push_through_chamber(volume_nl, commanded)
@@ -1208,7 +1217,7 @@ impl Builder<'_> {
             .cloned()
             .unwrap_or_else(|| composition.to_vec());
         self.segment += 1;
-        self.plug_flow(volume_nl, &commanded, composition);
+        self.through_chamber(volume_nl, &commanded, composition);
         self.extrude_move(b, factor, volume_nl, &commanded)?;
         self.extrusion_paths
             .push((self.next.saturating_sub(1), self.path_index));
