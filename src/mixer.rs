@@ -33,6 +33,8 @@
 
 use std::collections::VecDeque;
 
+pub mod inverse;
+
 use serde::{Deserialize, Serialize};
 
 /// Most tanks a dispersion chamber is modelled with (its mean and variance stay exact;
@@ -87,6 +89,15 @@ pub struct MixerError {
 impl MixerError {
     fn new(key: &'static str, message: String) -> Self {
         MixerError { key, message }
+    }
+
+    /// The command-line option of the key (`--mixer`, `--mixer-volume-nl`,
+    /// `--mixer-peclet`: hil-sim's, `edoctl plan`'s and `edoctl demo`'s).
+    pub fn option(&self) -> String {
+        match self.key {
+            "model" => "--mixer".to_string(),
+            key => format!("--mixer-{}", key.replace('_', "-")),
+        }
     }
 }
 

@@ -322,3 +322,57 @@ fn toolpath_table_sets_the_purge() {
         .unwrap();
     assert!(err < 0.1, "{err}");
 }
+
+/// `--mixer`: a bad model, volume or Peclet number is refused naming the option; a
+/// well-mixed chamber's mixer-limited roads are reported per layer and ringed in the
+/// roads preview.
+#[test]
+fn the_mixer_option_is_checked_and_its_limits_reported() {
+    let job = example("tooth-crown.toml");
+    for (args, option) in [
+        (&["--mixer", "turbulent"][..], "--mixer:"),
+        (&["--mixer", "dispersion"], "--mixer-peclet"),
+        (
+            &["--mixer", "dispersion", "--mixer-peclet", "0"],
+            "--mixer-peclet",
+        ),
+        (
+            &["--mixer", "mixed", "--mixer-volume-nl=-1"],
+            "--mixer-volume-nl",
+        ),
+    ] {
+        let out = edoctl().arg("plan").arg(&job).args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(option),
+            "{args:?}: {err}"
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let out = edoctl()
+        .arg("plan")
+        .arg(&job)
+        .args(["--layers", "0", "--report", "-", "--mixer", "mixed"])
+        .args(["--mixer-volume-nl", "1000", "--svg"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let t = &report["layers"][0]["toolpath"];
+    let limited = t["mixer_limited"].as_array().unwrap();
+    assert!(!limited.is_empty(), "{t}");
+    assert_eq!(
+        t["mixer_limited_roads"].as_u64(),
+        Some(limited.len() as u64)
+    );
+    assert!(limited[0]["error"].as_f64().unwrap() > 0.01);
+    assert!(limited[0]["at_mm"].as_array().unwrap().len() == 2);
+    assert!(t["composition_error_road_max"].as_f64().unwrap() < 0.2);
+    let svg = std::fs::read_to_string(dir.path().join("layer-0000-roads.svg")).unwrap();
+    assert_eq!(svg.matches("mixer-limited road").count(), limited.len());
+}

@@ -168,12 +168,8 @@ fn main() -> anyhow::Result<()> {
     let faults = Faults::parse(&cli.faults).context("--faults")?;
     let gcode = gcode_options(&cli)?;
     let volume_nl = cli.mixer_volume_nl.unwrap_or(cli.dead_volume_nl as f64);
-    let mixer = edo::mixer::MixerOptions::new(&cli.mixer, volume_nl, cli.mixer_peclet).map_err(
-        |e| match e.key {
-            "model" => anyhow::anyhow!("--mixer: {}", e.message),
-            key => anyhow::anyhow!("--mixer-{}: {}", key.replace('_', "-"), e.message),
-        },
-    )?;
+    let mixer = edo::mixer::MixerOptions::new(&cli.mixer, volume_nl, cli.mixer_peclet)
+        .map_err(|e| anyhow::anyhow!("{}: {}", e.option(), e.message))?;
     let cfg = SimConfig {
         link: cli.link.clone(),
         baud: cli.baud,

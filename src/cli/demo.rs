@@ -672,6 +672,7 @@ fn previews(
                 road_width_mm: planned.road_width_mm,
                 voids: &voids,
                 void_cell_mm: cov.cell_mm,
+                mixer_limited: &lm.stats.mixer_limited,
             },
         );
         let roads = built
