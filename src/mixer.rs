@@ -33,6 +33,7 @@
 
 use std::collections::VecDeque;
 
+pub mod fit;
 pub mod inverse;
 
 use serde::{Deserialize, Serialize};
