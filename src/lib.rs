@@ -54,6 +54,7 @@ pub mod linktest_gcode;
 pub mod machine;
 pub mod material;
 pub mod mesh;
+pub mod mixer;
 pub mod pipeline;
 pub mod plan;
 pub mod proto;

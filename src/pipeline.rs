@@ -43,8 +43,15 @@
 //! with a purge pad off the part commanded with the layer's first V_dead of designed
 //! composition. [`StreamState`] carries the chamber's content across layers, and
 //! [`LayerStats`] reports the designed-versus-delivered error (largest per-material
-//! difference, volume-weighted mean and maximum). With the lead, the per-syringe volumes
-//! are those of the commanded compositions.
+//! difference, volume-weighted mean and maximum, move by move and road by road) and the
+//! roads whose error exceeds `mixer_tolerance` ([`MixerLimit`]: where and by how much).
+//! With the lead, the per-syringe volumes are those of the commanded compositions.
+//!
+//! The chamber is the machine's [`crate::mixer`] model through V_dead (`mixer_model`,
+//! plug flow by default, as above). With another model and `mixer_feed_forward`, each
+//! extrusion move is commanded what [`crate::mixer::inverse::feed_forward`] chooses from
+//! the lead's commands and the chamber's state before the layer (after any purge), and
+//! edges are split so no move is longer than V_dead/32.
 //!
 //! # Volumes
 //!
@@ -57,9 +64,13 @@
 //! move's volumes sum to its total exactly by construction.
 
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT, MAX_SYRINGES};
+use crate::mixer::{Mixer, MixerModel, MixerOptions};
+
+mod mixing;
 use crate::plan::LayerPlan;
 use crate::toolpath::{self, OrderSettings, SeamMode, SubRegionOrder, ToolPath};
 use glam::{DVec2, DVec3};
+pub use mixing::MixerLimit;
 use serde::{Deserialize, Serialize};
 
 /// Default of [`ProcessSettings::move_deviation_mm`]: the largest that keeps a part's
@@ -119,6 +130,23 @@ pub struct ProcessSettings {
     pub flow_min_gap_fraction: f64,
     /// Dead volume of the mixing chamber V_dead, µL. Default 0 (no chamber).
     pub v_dead_ul: f64,
+    /// The mixing chamber's residence-time distribution (`crate::mixer`) through
+    /// V_dead: plug flow (default), well-mixed, or plug flow with axial dispersion. Set
+    /// by the machine (`[machine.mixer]`, `edoctl plan --mixer`), not by the job.
+    #[serde(skip)]
+    pub mixer_model: MixerModel,
+    /// Peclet number of the `dispersion` mixer model. Set with `mixer_model`.
+    #[serde(skip)]
+    pub mixer_peclet: Option<f64>,
+    /// With a mixer other than plug flow and `mixing_lead`, command each extrusion move
+    /// the composition that makes the nozzle exit follow the design as closely as the
+    /// chamber allows (`crate::mixer::inverse`: a bounded feed-forward inverse of the
+    /// mixer), rather than the design V_dead ahead. Moves are then at most V_dead/32
+    /// long. Default true.
+    pub mixer_feed_forward: bool,
+    /// A road whose predicted nozzle-exit composition misses its design by more than
+    /// this (largest fraction difference) is reported as mixer-limited. Default 0.01.
+    pub mixer_tolerance: f64,
     /// Command each composition change V_dead ahead so it reaches the nozzle exit where
     /// the path starts. Default true (no effect when `v_dead_ul` is 0).
     pub mixing_lead: bool,
@@ -173,6 +201,10 @@ impl Default for ProcessSettings {
             gap_fill: true,
             gap_fill_min_factor: 0.25,
             v_dead_ul: 0.0,
+            mixer_model: MixerModel::Plug,
+            mixer_peclet: None,
+            mixer_feed_forward: true,
+            mixer_tolerance: 0.01,
             mixing_lead: true,
             purge_xy_mm: None,
             purge_pad_mm: 5.0,
@@ -254,8 +286,16 @@ impl ProcessSettings {
         positive(self.travel_feed_mm_s, "travel_feed_mm_s")?;
         non_negative(self.retract_min_travel_mm, "retract_min_travel_mm")?;
         non_negative(self.v_dead_ul, "v_dead_ul")?;
+        self.mixer().validate().map_err(|e| {
+            let field = match e.key {
+                "peclet" => "mixer_peclet",
+                _ => "mixer_model",
+            };
+            setting_error(field, e.message)
+        })?;
         positive(self.purge_pad_mm, "purge_pad_mm")?;
         non_negative(self.purge_min_error, "purge_min_error")?;
+        non_negative(self.mixer_tolerance, "mixer_tolerance")?;
         non_negative(self.move_deviation_mm, "move_deviation_mm")?;
         if let Some([x, y]) = self.purge_xy_mm {
             if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
@@ -295,6 +335,23 @@ impl ProcessSettings {
         Ok(())
     }
 
+    /// The mixing chamber: `mixer_model` through V_dead.
+    pub fn mixer(&self) -> MixerOptions {
+        MixerOptions {
+            model: self.mixer_model,
+            volume_nl: self.v_dead_ul * 1000.0,
+            peclet: self.mixer_peclet,
+        }
+    }
+
+    /// Whether extrusion moves are commanded through the mixer's feed-forward inverse.
+    pub fn feed_forward(&self) -> bool {
+        self.mixing_lead
+            && self.mixer_feed_forward
+            && self.mixer_model != MixerModel::Plug
+            && self.v_dead_ul > 0.0
+    }
+
     /// The toolpath module's share of the settings.
     pub fn order_settings(&self) -> OrderSettings {
         OrderSettings {
@@ -320,8 +377,8 @@ pub struct StreamState {
     commanded_nl: Vec<u64>,
     /// Layers done.
     layers: u32,
-    /// Mixing chamber content from nozzle exit (front) to inlet: (volume nl, composition).
-    chamber: std::collections::VecDeque<(f64, Vec<f64>)>,
+    /// The mixing chamber; `None` before the first extrusion.
+    chamber: Option<Mixer>,
 }
 
 impl StreamState {
@@ -385,6 +442,14 @@ pub struct LayerStats {
     pub composition_error_max: f64,
     /// Volume purged before the layer (all syringes), nl; 0 when no purge was needed.
     pub purge_nl: f64,
+    /// The same error road by road (what is predicted to leave the nozzle over each
+    /// road against its design): volume-weighted mean and worst road.
+    pub composition_error_road_mean: f64,
+    pub composition_error_road_max: f64,
+    /// Roads whose error exceeds `mixer_tolerance`: how many, and the worst
+    /// ([`mixing::MAX_LISTED`] at most, worst first).
+    pub mixer_limited_roads: usize,
+    pub mixer_limited: Vec<MixerLimit>,
 }
 
 /// One layer's moves, stats, and the paths they build (for previews and checks).
@@ -554,12 +619,24 @@ pub fn moves_for_paths(
     let commanded_before = state.commanded_nl.clone();
     let mut b = Builder::new(layer, settings, job_id, first_index, state);
     let designed = designed_stream(&paths, settings, layer.thickness_mm);
-    b.commanded = commanded_compositions(&designed, settings);
     b.push(MoveKind::LayerMark {
         layer: layer.index as u32,
         z_um: to_um(layer.z_mm),
     })?;
     b.purge_if_needed(&designed)?;
+    b.commanded = commanded_compositions(&designed, settings);
+    if settings.feed_forward() {
+        if let Some(first) = designed.first() {
+            let opts = settings.mixer();
+            let chamber = b
+                .state
+                .chamber
+                .clone()
+                .unwrap_or_else(|| Mixer::new(&opts, first.1));
+            let lead = std::mem::take(&mut b.commanded);
+            b.commanded = crate::mixer::inverse::feed_forward(&opts, &chamber, &designed, lead);
+        }
+    }
     for (i, p) in paths.iter().enumerate() {
         b.path_index = i as u32;
         b.path(p)?;
@@ -653,6 +730,8 @@ struct Builder<'a> {
     error_volume_nl: f64,
     /// Index in the layer's paths of the path being built.
     path_index: u32,
+    /// What is predicted to leave the nozzle over each road.
+    road_exits: mixing::RoadExits,
     extrusion_paths: Vec<(u32, u32)>,
 }
 
@@ -683,6 +762,7 @@ impl<'a> Builder<'a> {
             segment: 0,
             error_volume_nl: 0.0,
             path_index: 0,
+            road_exits: mixing::RoadExits::default(),
             extrusion_paths: Vec::new(),
         }
     }
@@ -714,6 +794,13 @@ impl<'a> Builder<'a> {
         if self.error_volume_nl > 0.0 {
             self.stats.composition_error_mean /= self.error_volume_nl;
         }
+        let (mean, max, limited, count) = self
+            .road_exits
+            .summarise(&paths, self.settings.mixer_tolerance);
+        self.stats.composition_error_road_mean = mean;
+        self.stats.composition_error_road_max = max;
+        self.stats.mixer_limited = limited;
+        self.stats.mixer_limited_roads = count;
         self.state.layers += 1;
         LayerMoves {
             moves: self.moves,
@@ -737,7 +824,16 @@ fn roads_as_moves(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<Too
         .collect();
     let lead = s.v_dead_ul * 1000.0;
     if s.mixing_lead && lead > 0.0 {
-        let at = lead_changes_nl(&merged, s, h_mm, lead);
+        let mut at = lead_changes_nl(&merged, s, h_mm, lead);
+        if s.feed_forward() {
+            at = with_every_volume(
+                at,
+                &merged,
+                s,
+                h_mm,
+                lead / crate::mixer::inverse::CELLS_PER_VOLUME,
+            );
+        }
         split_at_volumes(&mut merged, &at, s, h_mm);
     }
     merged
@@ -756,6 +852,24 @@ fn lead_changes_nl(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64, lead: f64
         }
     }
     out
+}
+
+/// `at` (sorted) with every multiple of `step_nl` within the layer's stream added, so no
+/// move is longer than `step_nl` once split there.
+fn with_every_volume(
+    mut at: Vec<f64>,
+    paths: &[ToolPath],
+    s: &ProcessSettings,
+    h_mm: f64,
+    step_nl: f64,
+) -> Vec<f64> {
+    let total: f64 = designed_stream(paths, s, h_mm).iter().map(|x| x.0).sum();
+    if step_nl > 0.0 && total.is_finite() {
+        let n = (total / step_nl).floor() as usize;
+        at.extend((1..=n).map(|k| k as f64 * step_nl));
+        at.sort_by(f64::total_cmp);
+    }
+    at
 }
 
 /// Insert a vertex into the edge holding each stream volume in `at_nl` (sorted), where
@@ -923,10 +1037,7 @@ fn commanded_compositions(segs: &[(f64, &[f64])], s: &ProcessSettings) -> Vec<Ve
 
 /// How far the chamber's content (front first, V_dead in all) is from the designed
 /// stream's first V_dead: the largest per-material difference over the volume they share.
-fn chamber_mismatch(
-    chamber: &std::collections::VecDeque<(f64, Vec<f64>)>,
-    segs: &[(f64, &[f64])],
-) -> f64 {
+fn chamber_mismatch(chamber: &[(f64, Vec<f64>)], segs: &[(f64, &[f64])]) -> f64 {
     let mut window = StreamWindow::new(segs);
     let mut at = 0.0;
     let mut worst: f64 = 0.0;
@@ -1102,8 +1213,11 @@ impl Builder<'_> {
         };
         if !(s.mixing_lead && dead > 0.0)
             || designed.is_empty()
-            || self.state.chamber.is_empty()
-            || chamber_mismatch(&self.state.chamber, designed) <= s.purge_min_error
+            || self
+                .state
+                .chamber
+                .as_ref()
+                .is_none_or(|c| chamber_mismatch(&c.contents(), designed) <= s.purge_min_error)
         {
             return Ok(());
         }
@@ -1136,30 +1250,13 @@ impl Builder<'_> {
         Ok(())
     }
 
-    /// Push `volume_nl` of `commanded` into the chamber; what leaves the nozzle (plug
-    /// flow), or none without a chamber.
+    /// Push `volume_nl` of `commanded` into the chamber; what leaves the nozzle, or
+    /// none without a chamber.
     fn push_through_chamber(&mut self, volume_nl: f64, commanded: &[f64]) -> Option<Vec<f64>> {
-        let dead = self.settings.v_dead_ul * 1000.0;
-        if dead <= 0.0 || volume_nl <= 0.0 {
+        if self.settings.v_dead_ul <= 0.0 || volume_nl <= 0.0 {
             return None;
         }
-        let ch = &mut self.state.chamber;
-        ch.push_back((volume_nl, commanded.to_vec()));
-        let mut need = volume_nl;
-        let mut out = vec![0.0; commanded.len()];
-        while need > 1e-12 {
-            let Some(front) = ch.front_mut() else { break };
-            let take = front.0.min(need);
-            for (o, c) in out.iter_mut().zip(&front.1) {
-                *o += take * c;
-            }
-            front.0 -= take;
-            need -= take;
-            if front.0 <= 1e-12 {
-                ch.pop_front();
-            }
-        }
-        Some(out.iter().map(|x| x / volume_nl).collect())
+        self.state.chamber.as_mut()?.push(volume_nl, commanded)
     }
 
     /// Add `volume_nl` of `composition` to the job's planned and commanded totals; the
@@ -1178,15 +1275,15 @@ impl Builder<'_> {
 
     /// Push `volume_nl` of `commanded` through the chamber; compare what leaves the
     /// nozzle with `designed`.
-    fn plug_flow(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
-        let dead = self.settings.v_dead_ul * 1000.0;
-        if dead > 0.0 && self.state.chamber.is_empty() {
+    fn through_chamber(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
+        if self.settings.v_dead_ul > 0.0 && self.state.chamber.is_none() {
             // A fresh chamber is full of the first designed composition (primed).
-            self.state.chamber.push_back((dead, designed.to_vec()));
+            self.state.chamber = Some(Mixer::new(&self.settings.mixer(), designed));
         }
         let delivered = self
             .push_through_chamber(volume_nl, commanded)
             .unwrap_or_else(|| commanded.to_vec());
+        self.road_exits.add(self.path_index, volume_nl, &delivered);
         let err = crate::material::max_fraction_difference(&delivered, designed);
         self.stats.composition_error_mean += err * volume_nl;
         self.error_volume_nl += volume_nl;
@@ -1211,7 +1308,7 @@ impl Builder<'_> {
             .cloned()
             .unwrap_or_else(|| composition.to_vec());
         self.segment += 1;
-        self.plug_flow(volume_nl, &commanded, composition);
+        self.through_chamber(volume_nl, &commanded, composition);
         self.extrude_move(b, factor, volume_nl, &commanded)?;
         self.extrusion_paths
             .push((self.next.saturating_sub(1), self.path_index));

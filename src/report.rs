@@ -83,10 +83,18 @@ pub struct LayerToolpath {
     pub max_width_factor: f64,
     /// Volume each syringe pushes in this layer, µL.
     pub syringe_volumes_ul: Vec<f64>,
-    /// Designed-versus-delivered composition error under the plug-flow mixing-chamber
-    /// model, with the mixing lead (volume-weighted mean and worst).
+    /// Designed-versus-delivered composition error under the machine's mixing-chamber
+    /// model (`edo::mixer`), with the mixing lead or the mixer's feed-forward inverse,
+    /// move by move (volume-weighted mean and worst).
     pub composition_error_mean: f64,
     pub composition_error_max: f64,
+    /// The same road by road (over each road's whole volume).
+    pub composition_error_road_mean: f64,
+    pub composition_error_road_max: f64,
+    /// Roads whose predicted error exceeds `mixer_tolerance` (the design changes faster
+    /// than the mixer can): how many, and the worst (at most 20).
+    pub mixer_limited_roads: usize,
+    pub mixer_limited: Vec<crate::pipeline::MixerLimit>,
     /// Volume purged before the layer (`[toolpath] purge_xy_mm`), µL; 0 without a purge.
     pub purge_ul: f64,
     /// Coverage of the roads (with `--coverage` or `--svg`).
@@ -133,6 +141,9 @@ pub struct ToolpathTotals {
     pub travel_mm: f64,
     pub retracts: usize,
     pub syringe_volumes_ul: Vec<f64>,
+    /// Worst layer's `composition_error_road_max`, and the mixer-limited roads in all.
+    pub composition_error_road_max: f64,
+    pub mixer_limited_roads: usize,
     /// Summed over layers (cell counts), when coverage was measured.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub coverage: Option<CoverageReport>,
@@ -443,6 +454,10 @@ pub fn attach_toolpaths(
         totals.extruded_mm += st.extruded_mm;
         totals.travel_mm += st.travel_mm;
         totals.retracts += st.retracts;
+        totals.composition_error_road_max = totals
+            .composition_error_road_max
+            .max(st.composition_error_road_max);
+        totals.mixer_limited_roads += st.mixer_limited_roads;
         let cov = coverage.and_then(|c| c.get(k)).map(|(a, b)| {
             with.add(a);
             without.add(b);
@@ -461,6 +476,10 @@ pub fn attach_toolpaths(
             syringe_volumes_ul: ul,
             composition_error_mean: st.composition_error_mean,
             composition_error_max: st.composition_error_max,
+            composition_error_road_mean: st.composition_error_road_mean,
+            composition_error_road_max: st.composition_error_road_max,
+            mixer_limited_roads: st.mixer_limited_roads,
+            mixer_limited: st.mixer_limited.clone(),
             purge_ul: st.purge_nl / 1000.0,
             coverage: cov,
         });

@@ -366,6 +366,9 @@ pub struct RoadsInput<'a> {
     pub voids: &'a [DVec2],
     /// Size of a void cell, mm.
     pub void_cell_mm: f64,
+    /// Roads where the design changes faster than the mixing chamber can: an orange
+    /// ring at each road's start, titled with the predicted error and the step.
+    pub mixer_limited: &'a [crate::pipeline::MixerLimit],
 }
 
 /// A layer's built roads (issue 4 preview): each road at its real width (per edge: the
@@ -437,6 +440,18 @@ pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> Str
             r##"<circle cx="{x:.3}" cy="{y:.3}" r="{:.3}" fill="{fill}" stroke="#000000" stroke-width="{:.3}"/>"##,
             input.road_width_mm * 0.3,
             thin * 0.5
+        );
+    }
+    for m in input.mixer_limited {
+        let (x, y) = f.xy(DVec2::new(m.at_mm[0], m.at_mm[1]));
+        let _ = writeln!(
+            out,
+            r##"<circle cx="{x:.3}" cy="{y:.3}" r="{:.3}" fill="none" stroke="#ff8000" stroke-width="{:.3}"><title>mixer-limited road {}: exit off the design by {:.3} after a step of {:.3}</title></circle>"##,
+            input.road_width_mm * 1.5,
+            thin * 2.0,
+            m.path,
+            m.error,
+            m.step
         );
     }
     for v in input.voids {
@@ -570,6 +585,7 @@ mod tests {
                 road_width_mm: 0.4,
                 voids: &[],
                 void_cell_mm: 0.05,
+                mixer_limited: &[],
             },
         );
         assert_eq!(svg.matches(r#"<g opacity="0.85">"#).count(), 2, "{svg}");

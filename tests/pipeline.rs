@@ -283,6 +283,7 @@ fn roads_preview_draws_everything() {
             road_width_mm: s.road_width(),
             voids: &voids,
             void_cell_mm: 0.05,
+            mixer_limited: &[],
         },
     );
     assert!(svg.starts_with("<svg") && svg.ends_with("</svg>\n"));
@@ -522,4 +523,124 @@ fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
         assert!((v1 - v0).abs() / v0 < 0.002, "{name}: {v1} vs {v0} nl");
         assert!(e1 <= e0 + 1e-4, "{name}: composition error {e1} vs {e0}");
     }
+}
+
+/// The planner's prediction of what leaves the nozzle, road by road, against hil-sim's
+/// machine model executing the planned moves through the same mixer (its chamber primed
+/// with syringe 0's material, as the planner's is with the first designed composition:
+/// the jobs start with material 0), on example jobs and every mixer model, with the
+/// feed-forward on and off. The moves carry whole nanolitres, so the two differ by
+/// rounding only.
+#[test]
+fn the_planners_prediction_is_what_the_simulated_machine_builds() {
+    use edo::mixer::MixerModel;
+    let mut checked = Vec::new();
+    for name in ["tooth-crown", "paper-annulus"] {
+        let (job, _, layers) = planned(name, 2);
+        for (model, peclet, feed_forward) in [
+            (MixerModel::Plug, None, true),
+            (MixerModel::Mixed, None, true),
+            (MixerModel::Mixed, None, false),
+            (MixerModel::Dispersion, Some(10.0), true),
+        ] {
+            let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+            s.v_dead_ul = 0.5;
+            s.mixer_model = model;
+            s.mixer_peclet = peclet;
+            s.mixer_feed_forward = feed_forward;
+            s.sub_region_order = edo::toolpath::SubRegionOrder::Alternating;
+            let mut state = StreamState::new();
+            let all = edo::pipeline::job_layer_moves(&layers, &s, 1, 0, &mut state).unwrap();
+            let first = &all[0].paths[0].composition;
+            let mut machine =
+                hil_sim::model::MachineModel::new(first.len(), u32::MAX, 1, &s.mixer());
+            if first[0] < 1.0 {
+                continue; // the machine's chamber would start with something else
+            }
+            checked.push(format!("{name} {model:?}"));
+            for lm in &all {
+                let mut roads: std::collections::BTreeMap<u32, (f64, Vec<f64>)> =
+                    Default::default();
+                let path_of: std::collections::HashMap<u32, u32> =
+                    lm.extrusion_paths.iter().copied().collect();
+                for m in &lm.moves {
+                    let e = machine.execute(m).unwrap();
+                    let (Some(exit), MoveKind::Extrude { volumes_nl, .. }) =
+                        (e.exit_composition, &m.kind)
+                    else {
+                        continue;
+                    };
+                    let Some(&path) = path_of.get(&m.index) else {
+                        continue;
+                    };
+                    let v: f64 = volumes_nl.iter().map(|&x| f64::from(x)).sum();
+                    let r = roads.entry(path).or_insert((0.0, vec![0.0; exit.len()]));
+                    r.0 += v;
+                    for (a, x) in r.1.iter_mut().zip(&exit) {
+                        *a += v * x;
+                    }
+                }
+                let (mut sum, mut volume, mut max) = (0.0, 0.0, 0.0f64);
+                for (path, (v, acc)) in &roads {
+                    let exit: Vec<f64> = acc.iter().map(|a| a / v).collect();
+                    let d = &lm.paths[*path as usize].composition;
+                    let err = edo::material::max_fraction_difference(d, &exit);
+                    sum += err * v;
+                    volume += v;
+                    max = max.max(err);
+                }
+                let what = format!(
+                    "{name} {model:?} ff {feed_forward} layer {}",
+                    lm.stats.layer
+                );
+                let st = &lm.stats;
+                assert!(
+                    (sum / volume - st.composition_error_road_mean).abs() < 2e-3,
+                    "{what}: built {} predicted {}",
+                    sum / volume,
+                    st.composition_error_road_mean
+                );
+                assert!(
+                    (max - st.composition_error_road_max).abs() < 5e-3,
+                    "{what}: built {max} predicted {}",
+                    st.composition_error_road_max
+                );
+            }
+        }
+    }
+    assert!(checked.len() >= 4, "{checked:?}");
+}
+
+/// The feed-forward inverse of a well-mixed chamber builds the crown's gradient closer
+/// to its design than the mixing lead alone, every command a mix the syringes can push.
+#[test]
+fn feed_forward_beats_the_lead_through_a_well_mixed_chamber() {
+    let (job, _, layers) = planned("tooth-crown", 1);
+    let mut errors = Vec::new();
+    for feed_forward in [false, true] {
+        let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
+        s.v_dead_ul = 1.0;
+        s.mixer_model = edo::mixer::MixerModel::Mixed;
+        s.mixer_feed_forward = feed_forward;
+        let out = layer_moves(&layers[0], &s, 1, 0, &mut StreamState::new()).unwrap();
+        for m in &out.moves {
+            m.validate(2).unwrap();
+        }
+        errors.push(out.stats);
+    }
+    let (off, on) = (&errors[0], &errors[1]);
+    assert!(
+        on.composition_error_road_mean < 0.5 * off.composition_error_road_mean,
+        "lead {} feed-forward {}",
+        off.composition_error_road_mean,
+        on.composition_error_road_mean
+    );
+    assert!(on.composition_error_road_max < off.composition_error_road_max);
+    assert!(on.mixer_limited_roads <= off.mixer_limited_roads);
+    // The roads it cannot make are named, worst first, where they start.
+    assert!(!on.mixer_limited.is_empty());
+    assert!(on
+        .mixer_limited
+        .windows(2)
+        .all(|w| w[0].error >= w[1].error));
 }

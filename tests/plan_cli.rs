@@ -322,3 +322,128 @@ fn toolpath_table_sets_the_purge() {
         .unwrap();
     assert!(err < 0.1, "{err}");
 }
+
+/// `--mixer`: a bad model, volume or Peclet number is refused naming the option; a
+/// well-mixed chamber's mixer-limited roads are reported per layer and ringed in the
+/// roads preview.
+#[test]
+fn the_mixer_option_is_checked_and_its_limits_reported() {
+    let job = example("tooth-crown.toml");
+    for (args, option) in [
+        (&["--mixer", "turbulent"][..], "--mixer:"),
+        (&["--mixer", "dispersion"], "--mixer-peclet"),
+        (
+            &["--mixer", "dispersion", "--mixer-peclet", "0"],
+            "--mixer-peclet",
+        ),
+        (
+            &["--mixer", "mixed", "--mixer-volume-nl=-1"],
+            "--mixer-volume-nl",
+        ),
+    ] {
+        let out = edoctl().arg("plan").arg(&job).args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(option),
+            "{args:?}: {err}"
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let out = edoctl()
+        .arg("plan")
+        .arg(&job)
+        .args(["--layers", "0", "--report", "-", "--mixer", "mixed"])
+        .args(["--mixer-volume-nl", "1000", "--svg"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let t = &report["layers"][0]["toolpath"];
+    let limited = t["mixer_limited"].as_array().unwrap();
+    assert!(!limited.is_empty(), "{t}");
+    assert_eq!(
+        t["mixer_limited_roads"].as_u64(),
+        Some(limited.len() as u64)
+    );
+    assert!(limited[0]["error"].as_f64().unwrap() > 0.01);
+    assert!(limited[0]["at_mm"].as_array().unwrap().len() == 2);
+    assert!(t["composition_error_road_max"].as_f64().unwrap() < 0.2);
+    let svg = std::fs::read_to_string(dir.path().join("layer-0000-roads.svg")).unwrap();
+    assert_eq!(svg.matches("mixer-limited road").count(), limited.len());
+}
+
+/// `edoctl mixer fit`: a step-response record taken from hil-sim's machine model (a
+/// dispersing chamber of 1200 nl, Pe 15: dentin then enamel pushed in moves of 12 nl,
+/// the recorded exit fraction with seeded noise of ± 0.02) gives back the chamber within
+/// 5 %, as a `[machine.mixer]` table edod accepts; a bad record names its line.
+#[test]
+fn mixer_fit_recovers_a_simulated_chamber() {
+    use edo::machine::{Move, MoveKind, PositionUm};
+    let truth = edo::mixer::MixerOptions::new("dispersion", 1200.0, Some(15.0)).unwrap();
+    let mut machine = hil_sim::model::MachineModel::new(2, u32::MAX, 1, &truth);
+    let mut seed = 99u64;
+    let mut text = String::from("# pushed_nl enamel_fraction\n");
+    for k in 0..400u32 {
+        let mv = Move {
+            job_id: 1,
+            index: k,
+            kind: MoveKind::Extrude {
+                to: PositionUm::default(),
+                feed_um_s: 10_000,
+                volumes_nl: vec![0, 12],
+                width_factor_ppt: 1000,
+            },
+        };
+        let exit = machine.execute(&mv).unwrap().exit_composition.unwrap();
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        let noise = 0.04 * ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5);
+        text.push_str(&format!(
+            "{} {:.5}\n",
+            12.0 * (f64::from(k) + 0.5),
+            exit[1] + noise
+        ));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let record = dir.path().join("step.txt");
+    std::fs::write(&record, &text).unwrap();
+    let out = edoctl()
+        .args(["--json", "mixer", "fit"])
+        .arg(&record)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let fit: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(fit["model"], "dispersion", "{fit}");
+    let v = fit["volume_nl"].as_f64().unwrap();
+    let pe = fit["peclet"].as_f64().unwrap();
+    assert!((v / 1200.0 - 1.0).abs() < 0.05, "{fit}");
+    assert!((pe / 15.0 - 1.0).abs() < 0.05, "{fit}");
+    // The table pastes into edod.toml.
+    let out = edoctl()
+        .args(["mixer", "fit"])
+        .arg(&record)
+        .output()
+        .unwrap();
+    let table = String::from_utf8_lossy(&out.stdout);
+    let cfg = edo::daemon::Config::from_toml(&table, "pasted").unwrap();
+    assert_eq!(cfg.machine.mixer().unwrap().model.name(), "dispersion");
+    std::fs::write(&record, "0 0\n12 0.1\n24 much\n").unwrap();
+    let out = edoctl()
+        .args(["mixer", "fit"])
+        .arg(&record)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("line 3"), "{err}");
+}

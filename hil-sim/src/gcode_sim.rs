@@ -240,6 +240,9 @@ impl<'a> GcodeSim<'a> {
             None => None,
         };
         let area_mm2 = f64::from(cfg.barrel_area_um2) / 1e6;
+        let mixer = cfg
+            .mixer_options()
+            .map_err(|e| anyhow::anyhow!("mixer {e}"))?;
         let sim = GcodeSim {
             cfg,
             faults: cfg.faults.clone(),
@@ -248,12 +251,7 @@ impl<'a> GcodeSim<'a> {
             start: Instant::now(),
             firmware: Firmware::new(opts.firmware_config(), Micros(0)),
             machine: GcodeMachine::new(opts.mix.clone(), cfg.syringes, area_mm2),
-            model: MachineModel::new(
-                cfg.syringes,
-                cfg.capacity_nl,
-                cfg.barrel_area_um2,
-                cfg.dead_volume_nl,
-            ),
+            model: MachineModel::new(cfg.syringes, cfg.capacity_nl, cfg.barrel_area_um2, &mixer),
             to_firmware: LineInjector::new(rng.next_u64(), false),
             to_host: LineInjector::new(rng.next_u64(), true),
             rng: SimRng::new(rng.next_u64()),

@@ -44,6 +44,17 @@ struct Cli {
     /// Mixing chamber dead volume V_dead in nl.
     #[arg(long, default_value_t = 20_000, value_name = "NL")]
     dead_volume_nl: u64,
+    /// The mixing chamber's residence-time distribution: plug (plug flow through the
+    /// volume), mixed (one well-mixed tank) or dispersion (plug flow with axial
+    /// dispersion, needs --mixer-peclet); edo::mixer, hil-sim/README.md.
+    #[arg(long, value_name = "MODEL", default_value = "plug")]
+    mixer: String,
+    /// The chamber's volume in nl (default: --dead-volume-nl).
+    #[arg(long, value_name = "NL")]
+    mixer_volume_nl: Option<f64>,
+    /// Peclet number of the dispersion model (more than 0; large is nearly plug flow).
+    #[arg(long, value_name = "PE")]
+    mixer_peclet: Option<f64>,
     /// Do not read run-time commands from stdin.
     #[arg(long)]
     no_stdin: bool,
@@ -160,6 +171,9 @@ fn main() -> anyhow::Result<()> {
     }
     let faults = Faults::parse(&cli.faults).context("--faults")?;
     let gcode = gcode_options(&cli)?;
+    let volume_nl = cli.mixer_volume_nl.unwrap_or(cli.dead_volume_nl as f64);
+    let mixer = edo::mixer::MixerOptions::new(&cli.mixer, volume_nl, cli.mixer_peclet)
+        .map_err(|e| anyhow::anyhow!("{}: {}", e.option(), e.message))?;
     let cfg = SimConfig {
         link: cli.link.clone(),
         baud: cli.baud,
@@ -170,6 +184,9 @@ fn main() -> anyhow::Result<()> {
         record: cli.record.clone(),
         faults,
         dead_volume_nl: cli.dead_volume_nl,
+        mixer: mixer.model,
+        mixer_peclet: mixer.peclet,
+        mixer_volume_nl: cli.mixer_volume_nl,
         gcode,
         ..SimConfig::default()
     };

@@ -1,11 +1,10 @@
 //! The machine model: axes, syringes (capacity, barrel area, remaining volume) and the
-//! mixing chamber of dead volume V_dead through which composition reaches the nozzle exit
-//! by plug flow (first in, first out).
-
-use std::collections::VecDeque;
+//! mixing chamber of volume V_dead through which composition reaches the nozzle exit (plug
+//! flow, first in first out, or another of [`edo::mixer`]'s models).
 
 use edo::link::FaultKind;
 use edo::machine::{Move, MoveKind, PositionUm};
+use edo::mixer::{Mixer, MixerOptions};
 
 /// One syringe.
 #[derive(Debug, Clone, PartialEq)]
@@ -18,25 +17,18 @@ pub struct Syringe {
     pub remaining_nl: u32,
 }
 
-/// The mixing chamber: a plug-flow column of `dead_volume_nl`. Every nanolitre pushed in
-/// pushes the oldest nanolitre out at the nozzle.
+/// The mixing chamber: [`edo::mixer::Mixer`] (plug flow through V_dead unless hil-sim
+/// is started with another `--mixer`), pushed with every extrusion move's volumes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MixingChamber {
-    dead_volume_nl: u64,
-    /// Slices from nozzle (front) to inlet (back): (volume nl, composition).
-    slices: VecDeque<(u64, Vec<f64>)>,
+    mixer: Mixer,
 }
 
 impl MixingChamber {
-    /// A chamber full of `initial` composition.
-    pub fn new(dead_volume_nl: u64, initial: Vec<f64>) -> Self {
-        let mut slices = VecDeque::new();
-        if dead_volume_nl > 0 {
-            slices.push_back((dead_volume_nl, initial));
-        }
+    /// A chamber described by `options`, full of `initial` composition.
+    pub fn new(options: &MixerOptions, initial: Vec<f64>) -> Self {
         Self {
-            dead_volume_nl,
-            slices,
+            mixer: Mixer::new(options, &initial),
         }
     }
 
@@ -51,31 +43,7 @@ impl MixingChamber {
             .iter()
             .map(|&v| v as f64 / total as f64)
             .collect();
-        if self.dead_volume_nl == 0 {
-            return Some(inflow);
-        }
-        self.slices.push_back((total, inflow));
-        // Take `total` nl from the front.
-        let mut need = total;
-        let mut out = vec![0.0; volumes_nl.len()];
-        while need > 0 {
-            let Some(front) = self.slices.front_mut() else {
-                break;
-            };
-            let take = front.0.min(need);
-            for (o, c) in out.iter_mut().zip(&front.1) {
-                *o += c * take as f64;
-            }
-            front.0 -= take;
-            need -= take;
-            if front.0 == 0 {
-                self.slices.pop_front();
-            }
-        }
-        for o in &mut out {
-            *o /= total as f64;
-        }
-        Some(out)
+        self.mixer.push(total as f64, &inflow)
     }
 }
 
@@ -108,9 +76,9 @@ pub struct MachineModel {
 }
 
 impl MachineModel {
-    /// `n` syringes of `capacity_nl` each with `barrel_area_um2`, chamber of `dead_nl`
-    /// primed with syringe 0's material.
-    pub fn new(n: usize, capacity_nl: u32, barrel_area_um2: u32, dead_nl: u64) -> Self {
+    /// `n` syringes of `capacity_nl` each with `barrel_area_um2`, a chamber described by
+    /// `mixer` primed with syringe 0's material.
+    pub fn new(n: usize, capacity_nl: u32, barrel_area_um2: u32, mixer: &MixerOptions) -> Self {
         let mut initial = vec![0.0; n];
         if let Some(first) = initial.first_mut() {
             *first = 1.0;
@@ -125,7 +93,7 @@ impl MachineModel {
                 };
                 n
             ],
-            chamber: MixingChamber::new(dead_nl, initial),
+            chamber: MixingChamber::new(mixer, initial),
             layer: 0,
         }
     }
@@ -220,21 +188,43 @@ mod tests {
 
     #[test]
     fn plug_flow_delays_composition_by_dead_volume() {
-        let mut c = MixingChamber::new(1000, vec![1.0, 0.0]);
+        let mut c = MixingChamber::new(&MixerOptions::plug(1000.0), vec![1.0, 0.0]);
         // First 1000 nl of pure B push out the initial A.
         for _ in 0..10 {
             assert_eq!(c.push(&[0, 100]), Some(vec![1.0, 0.0]));
         }
         assert_eq!(c.push(&[0, 100]), Some(vec![0.0, 1.0]));
         // Half-and-half straddling.
-        let mut c = MixingChamber::new(100, vec![1.0, 0.0]);
+        let mut c = MixingChamber::new(&MixerOptions::plug(100.0), vec![1.0, 0.0]);
         assert_eq!(c.push(&[0, 200]), Some(vec![0.5, 0.5]));
         assert_eq!(c.push(&[0, 0]), None);
     }
 
     #[test]
+    fn a_well_mixed_chamber_records_an_exponential_washout() {
+        let mixed = MixerOptions::new("mixed", 1000.0, None).unwrap();
+        let mut m = MachineModel::new(2, 1_000_000, 1, &mixed);
+        for k in 0..20u32 {
+            let mv = Move {
+                job_id: 1,
+                index: k,
+                kind: MoveKind::Extrude {
+                    to: PositionUm::default(),
+                    feed_um_s: 10_000,
+                    volumes_nl: vec![0, 100],
+                    width_factor_ppt: 1000,
+                },
+            };
+            let exit = m.execute(&mv).unwrap().exit_composition.unwrap();
+            let v0 = f64::from(k) * 100.0;
+            let a = 1000.0 / 100.0 * ((-v0 / 1000.0).exp() - (-(v0 + 100.0) / 1000.0).exp());
+            assert!((exit[0] - a).abs() < 1e-12, "{k}: {exit:?}");
+        }
+    }
+
+    #[test]
     fn moves_take_length_over_feed_and_empty_syringes_fault() {
-        let mut m = MachineModel::new(2, 1000, 1, 0);
+        let mut m = MachineModel::new(2, 1000, 1, &MixerOptions::plug(0.0));
         let mv = Move {
             job_id: 1,
             index: 0,

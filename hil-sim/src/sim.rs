@@ -42,8 +42,15 @@ pub struct SimConfig {
     pub record: Option<PathBuf>,
     /// Faults.
     pub faults: Faults,
-    /// Mixing chamber dead volume V_dead (nl).
+    /// Mixing chamber dead volume V_dead (nl): the volume of the chamber, whatever its
+    /// model.
     pub dead_volume_nl: u64,
+    /// The chamber's residence-time distribution (`--mixer`, default plug flow).
+    pub mixer: edo::mixer::MixerModel,
+    /// Peclet number of the `dispersion` model (`--mixer-peclet`).
+    pub mixer_peclet: Option<f64>,
+    /// The chamber's volume in nl when not `dead_volume_nl` (`--mixer-volume-nl`).
+    pub mixer_volume_nl: Option<f64>,
     /// Capacity of each syringe (nl).
     pub capacity_nl: u32,
     /// Barrel cross-section of each syringe (µm²).
@@ -66,11 +73,28 @@ impl Default for SimConfig {
             record: None,
             faults: Faults::parse("").unwrap_or_default(),
             dead_volume_nl: 20_000,
+            mixer: edo::mixer::MixerModel::Plug,
+            mixer_peclet: None,
+            mixer_volume_nl: None,
             capacity_nl: 10_000_000,
             barrel_area_um2: 78_539_816,
             rx_buffer_bytes: 2048,
             gcode: None,
         }
+    }
+}
+
+impl SimConfig {
+    /// The mixing chamber: `mixer` through `mixer_volume_nl`, else `dead_volume_nl` (an
+    /// error names the key).
+    pub fn mixer_options(&self) -> Result<edo::mixer::MixerOptions, edo::mixer::MixerError> {
+        let o = edo::mixer::MixerOptions {
+            model: self.mixer,
+            volume_nl: self.mixer_volume_nl.unwrap_or(self.dead_volume_nl as f64),
+            peclet: self.mixer_peclet,
+        };
+        o.validate()?;
+        Ok(o)
     }
 }
 
@@ -543,12 +567,10 @@ impl<'a> Sim<'a> {
         };
         let start = Instant::now();
         let link = MachineLink::new(link_config(cfg, rng.next_u64()), Micros(0));
-        let model = MachineModel::new(
-            cfg.syringes,
-            cfg.capacity_nl,
-            cfg.barrel_area_um2,
-            cfg.dead_volume_nl,
-        );
+        let mixer = cfg
+            .mixer_options()
+            .map_err(|e| anyhow::anyhow!("mixer {e}"))?;
+        let model = MachineModel::new(cfg.syringes, cfg.capacity_nl, cfg.barrel_area_um2, &mixer);
         let to_machine = Injector::new(rng.next_u64());
         let to_host = Injector::new(rng.next_u64());
         let sim = Sim {

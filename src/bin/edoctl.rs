@@ -31,6 +31,9 @@ enum Commands {
     /// Print a graded tooth crown on the simulated machine end to end (edod + hil-sim in a
     /// temporary directory) and write the planned and as-built previews side by side.
     Demo(edo::cli::demo::DemoArgs),
+    /// The mixing chamber: fit its model to a measured step response.
+    #[command(subcommand)]
+    Mixer(edo::cli::mixer::MixerCommand),
     /// Plan a job offline: validate it, run the EDO method on every layer, and write
     /// the plan report and SVG previews.
     Plan(edo::cli::plan::PlanArgs),
@@ -190,7 +193,7 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
         Commands::Refill => out.print(&c.request::<method::MachineRefill>(&NoParams {})?, |_| {
             "refill noted; the paused job continues".to_string()
         }),
-        Commands::Plan(_) | Commands::LinkTest { .. } | Commands::Demo(_) => {}
+        Commands::Plan(_) | Commands::LinkTest { .. } | Commands::Demo(_) | Commands::Mixer(_) => {}
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -335,6 +338,9 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Commands::Plan(args) => edo::cli::plan::run(args).map(|()| ExitCode::SUCCESS),
         Commands::Demo(args) => edo::cli::demo::run(args, cli.json),
+        Commands::Mixer(command) => {
+            edo::cli::mixer::run(command, cli.json).map(|()| ExitCode::SUCCESS)
+        }
         Commands::LinkTest {
             port,
             moves,

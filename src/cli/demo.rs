@@ -9,8 +9,10 @@
 //! - plans the same job offline with the same settings and checks that the machine
 //!   executed exactly the planned moves (same count, every index once, in order, same
 //!   per-syringe volumes and positions);
-//! - compares the composition that left the nozzle (the simulator's plug-flow mixing
-//!   chamber) with the designed composition of each road;
+//! - compares the composition that left the nozzle (the simulator's mixing chamber:
+//!   plug flow, or with `--mixer` a well-mixed or dispersing one) with the designed
+//!   composition of each road, and with `--mixer` the planner's prediction with the
+//!   mixer's feed-forward on and off;
 //! - measures the planned roads' coverage (void, overlap, outside at 10 µm);
 //! - writes per layer the planned roads and the as-built roads side by side
 //!   (`layer-NNNN.svg`), the summary (`summary.json`) and the machine's recording
@@ -75,6 +77,31 @@ pub struct DemoArgs {
     /// with --port, a machine started so) instead of over edo's own link.
     #[arg(long, value_name = "FIRMWARE", value_enum)]
     pub firmware: Option<Firmware>,
+    /// The machine's mixing chamber (edod's `[machine.mixer]`; volume default 1000 nl):
+    /// the simulator builds through it and edod plans for it (with --port, a machine
+    /// started with the same `hil-sim --mixer`).
+    #[command(flatten)]
+    pub mixer: crate::cli::plan::MixerArgs,
+}
+
+/// The job the demo submits: the bundled crown, without the mixer's feed-forward
+/// (`--no-feed-forward`) as its `[toolpath] mixer_feed_forward = false`.
+fn demo_job_text(feed_forward: bool) -> String {
+    if !feed_forward {
+        format!("{DEMO_JOB}\n[toolpath]\nmixer_feed_forward = false\n")
+    } else {
+        DEMO_JOB.to_string()
+    }
+}
+
+/// The predicted nozzle-exit error road by road, with the mixer's feed-forward on and
+/// off (`--mixer` other than plug only).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct FeedForwardErrors {
+    pub on: CompositionError,
+    pub off: CompositionError,
+    /// Roads over `mixer_tolerance` (0.01) as planned for the print.
+    pub mixer_limited_roads: usize,
 }
 
 /// Designed-versus-built composition error: the largest volume-fraction difference
@@ -151,6 +178,13 @@ pub struct DemoSummary {
     pub gcode_lines_planned: Option<u64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gcode_lines_executed: Option<u64>,
+    /// `--mixer`: the machine's mixing chamber.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mixer: Option<crate::mixer::MixerOptions>,
+    /// `--mixer` other than plug: whether the print used the mixer's feed-forward, and
+    /// the planner's road-by-road prediction with it on and off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub feed_forward: Option<(bool, FeedForwardErrors)>,
 }
 
 /// Run the demo; the exit status is failure unless the job finished and the machine
@@ -177,17 +211,41 @@ pub fn run(args: &DemoArgs, json_out: bool) -> Result<ExitCode> {
 /// The demo in the work directory `work`: print the job on edod and the machine, then
 /// compare the recording with the plan, draw the previews and write the summary.
 fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Result<DemoSummary> {
-    let job = Job::from_toml(DEMO_JOB, "tooth-crown.toml (bundled)")?;
+    let feed_forward = !args.mixer.no_feed_forward;
+    let job_text = demo_job_text(feed_forward);
+    let job = Job::from_toml(&job_text, "tooth-crown.toml (bundled)")?;
     let (cfg, record_path) = demo_config(args, work)?;
     let machine = cfg.machine.clone();
     let writing = gcode_writing(&cfg)?;
-    let (final_job, print_time_s) = print_on_edod(cfg, &job, args, json_out)?;
+    let (final_job, print_time_s) = print_on_edod(cfg, &job, &job_text, args, json_out)?;
 
     let record_text = std::fs::read_to_string(&record_path)
         .with_context(|| format!("cannot read the recording {}", record_path.display()))?;
     let recording = record::parse(&record_text).context("the machine's recording")?;
     let job_id = final_job["id"].as_u64().unwrap_or(0);
     let planned = plan_offline(&job, &machine)?;
+    let feed_forward_errors = match machine.mixer() {
+        Ok(m) if m.model != crate::mixer::MixerModel::Plug => {
+            let other = Job::from_toml(&demo_job_text(!feed_forward), "tooth-crown.toml")?;
+            let other = predicted_per_road(&plan_offline(&other, &machine)?.layers);
+            let this = predicted_per_road(&planned.layers);
+            let (on, off) = if feed_forward {
+                (this, other)
+            } else {
+                (other, this)
+            };
+            Some(FeedForwardErrors {
+                on,
+                off,
+                mixer_limited_roads: planned
+                    .layers
+                    .iter()
+                    .map(|l| l.stats.mixer_limited_roads)
+                    .sum(),
+            })
+        }
+        _ => None,
+    };
     let executed = Executed::of(&planned.layers, recording, job_id as u32, writing)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
@@ -205,6 +263,8 @@ fn run_in(args: &DemoArgs, json_out: bool, work: &Path, started: Instant) -> Res
         total_time_s: started.elapsed().as_secs_f64(),
         out_dir: args.out.clone(),
         firmware: args.firmware.map(|f| f.display_name().to_string()),
+        mixer: machine.mixer.as_ref().and_then(|_| machine.mixer().ok()),
+        feed_forward: feed_forward_errors.map(|e| (feed_forward, e)),
         ..summarize(&planned, &executed, &coverage)
     };
     let path = args.out.join("summary.json");
@@ -295,6 +355,8 @@ fn summarize(
         firmware: None,
         gcode_lines_planned: executed.lines.map(|l| l.0),
         gcode_lines_executed: executed.lines.map(|l| l.1),
+        mixer: None,
+        feed_forward: None,
     }
 }
 
@@ -337,6 +399,16 @@ fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
     // A 1 µL mixing chamber: the crown is small (about 80 µL in all), and the default
     // 20 µL chamber of config/edod.toml would hold a quarter of the part.
     cfg.machine.dead_volume_nl = DEMO_DEAD_VOLUME_NL;
+    if let Some(model) = &args.mixer.mixer {
+        cfg.machine.mixer = Some(crate::daemon::config::MixerConfig {
+            model: model.clone(),
+            volume_nl: args.mixer.mixer_volume_nl,
+            peclet: args.mixer.mixer_peclet,
+        });
+        cfg.machine
+            .mixer()
+            .map_err(|e| anyhow::anyhow!("{}: {}", e.option(), e.message))?;
+    }
     cfg.api.socket = work.join("edod.sock");
     cfg.state.dir = work.join("state");
     Ok((cfg, record_path))
@@ -347,6 +419,7 @@ fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
 fn print_on_edod(
     cfg: Config,
     job: &Job,
+    job_text: &str,
     args: &DemoArgs,
     json_out: bool,
 ) -> Result<(serde_json::Value, f64)> {
@@ -368,7 +441,7 @@ fn print_on_edod(
             Err(_) => bail!("edod stopped abnormally"),
         }
     };
-    let printed = submit_and_watch(&socket, job, args, json_out);
+    let printed = submit_and_watch(&socket, job, job_text, args, json_out);
     let stopped = stop_daemon();
     let printed = printed?;
     stopped?;
@@ -380,6 +453,7 @@ fn print_on_edod(
 fn submit_and_watch(
     socket: &Path,
     job: &Job,
+    job_text: &str,
     args: &DemoArgs,
     json_out: bool,
 ) -> Result<(serde_json::Value, f64)> {
@@ -398,7 +472,7 @@ fn submit_and_watch(
     let submitted = Instant::now();
     let r = c.call(
         "job.submit",
-        json!({"job": DEMO_JOB, "name": format!("{} (demo)", job.name)}),
+        json!({"job": job_text, "name": format!("{} (demo)", job.name)}),
     )?;
     let id = r["id"]
         .as_u64()
@@ -637,6 +711,22 @@ fn composition_errors(
     (built, built_per_road, predicted)
 }
 
+/// The planner's predicted nozzle-exit error road by road over the layers.
+fn predicted_per_road(layers: &[LayerMoves]) -> CompositionError {
+    CompositionError {
+        max: layers
+            .iter()
+            .map(|l| l.stats.composition_error_road_max)
+            .fold(0.0, f64::max),
+        ..CompositionError::of(layers.iter().map(|l| {
+            (
+                l.stats.composition_error_road_mean,
+                l.stats.planned_nl.iter().sum(),
+            )
+        }))
+    }
+}
+
 /// Write `layer-NNNN.svg` (planned roads with voids | as built) per layer; returns the
 /// planned roads' coverage summed over the layers.
 fn previews(
@@ -672,6 +762,7 @@ fn previews(
                 road_width_mm: planned.road_width_mm,
                 voids: &voids,
                 void_cell_mm: cov.cell_mm,
+                mixer_limited: &lm.stats.mixer_limited,
             },
         );
         let roads = built
@@ -722,7 +813,7 @@ fn human(s: &DemoSummary) -> String {
         ),
         _ => (String::new(), String::new()),
     };
-    format!(
+    let mut text = format!(
         "{job}: {state} ({layers} layers){over}\n\
          \x20 moves planned {planned}, executed {executed}{lines}: {as_planned}\n\
          \x20 composition designed vs built, per road: mean {rmean:.4}, max {rmax:.4}\n\
@@ -755,5 +846,34 @@ fn human(s: &DemoSummary) -> String {
         machine = s.machine_time_s,
         total = s.total_time_s,
         out = s.out_dir.display(),
-    )
+    );
+    text.push_str(&mixer_lines(s));
+    text
+}
+
+/// `--mixer`: the chamber, and the planner's road-by-road prediction with the
+/// feed-forward on and off.
+fn mixer_lines(s: &DemoSummary) -> String {
+    let Some(m) = &s.mixer else {
+        return String::new();
+    };
+    let pe = m.peclet.map(|p| format!(", Pe {p}")).unwrap_or_default();
+    let mut text = format!(
+        "  mixing chamber: {} {:.0} nl{pe}",
+        m.model.name(),
+        m.volume_nl
+    );
+    if let Some((used, e)) = &s.feed_forward {
+        text.push_str(&format!(
+            ", printed with the feed-forward {}\n    predicted per road: feed-forward on mean {:.4}, max {:.4}; off mean {:.4}, max {:.4}; {} road(s) the mixer cannot follow within 0.01",
+            if *used { "on" } else { "off" },
+            e.on.mean,
+            e.on.max,
+            e.off.mean,
+            e.off.max,
+            e.mixer_limited_roads
+        ));
+    }
+    text.push('\n');
+    text
 }

@@ -45,6 +45,50 @@ pub struct PlanArgs {
     pub build_volume: [f64; 3],
     #[command(flatten)]
     pub gcode: crate::cli::gcode::GcodeArgs,
+    #[command(flatten)]
+    pub mixer: MixerArgs,
+}
+
+/// The machine's mixing chamber (edod.toml `[machine.mixer]`), for planning offline.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct MixerArgs {
+    /// The mixing chamber's residence-time distribution: plug (default: a pure delay
+    /// of the volume), mixed (one well-mixed tank) or dispersion (plug flow with axial
+    /// dispersion, needs --mixer-peclet).
+    #[arg(long, value_name = "MODEL")]
+    pub mixer: Option<String>,
+    /// The chamber's volume V in nl (default: the job's `[toolpath] v_dead_ul`).
+    #[arg(long, value_name = "NL", requires = "mixer")]
+    pub mixer_volume_nl: Option<f64>,
+    /// Peclet number of the dispersion model (more than 0).
+    #[arg(long, value_name = "PE", requires = "mixer")]
+    pub mixer_peclet: Option<f64>,
+    /// Command the design V ahead only (the mixing lead), not the mixer's feed-forward
+    /// inverse.
+    #[arg(long)]
+    pub no_feed_forward: bool,
+}
+
+impl MixerArgs {
+    /// `settings` with this mixer (an error names the option).
+    pub fn apply(
+        &self,
+        mut settings: crate::pipeline::ProcessSettings,
+    ) -> Result<crate::pipeline::ProcessSettings> {
+        if self.no_feed_forward {
+            settings.mixer_feed_forward = false;
+        }
+        let Some(model) = &self.mixer else {
+            return Ok(settings);
+        };
+        let volume = self.mixer_volume_nl.unwrap_or(settings.v_dead_ul * 1000.0);
+        let m = crate::mixer::MixerOptions::new(model, volume, self.mixer_peclet)
+            .map_err(|e| anyhow::anyhow!("{}: {}", e.option(), e.message))?;
+        settings.v_dead_ul = m.volume_nl / 1000.0;
+        settings.mixer_model = m.model;
+        settings.mixer_peclet = m.peclet;
+        Ok(settings)
+    }
 }
 
 /// Parse a build volume `X,Y,Z` (mm).
@@ -219,9 +263,10 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         Box::new(std::io::stdout())
     };
     // The purge position is a point of the bed: in the part's coordinates for planning.
+    let process = args.mixer.apply(process_settings(&job))?;
     let process = match &placed {
-        Some((_, Ok(p))) => placed_settings(&process_settings(&job), p),
-        _ => process_settings(&job),
+        Some((_, Ok(p))) => placed_settings(&process, p),
+        _ => process,
     };
     let mut toolpath_line = None;
     if args.report.is_some() || args.svg.is_some() || args.coverage {
@@ -359,6 +404,7 @@ fn write_previews(
                 road_width_mm: process.road_width(),
                 voids: &c.voids,
                 void_cell_mm: c.with_raise.cell_mm,
+                mixer_limited: &t.stats.mixer_limited,
             },
         );
         let file = dir.join(format!("layer-{:04}-roads.svg", layer.index));
@@ -551,6 +597,10 @@ fn toolpath_summary(t: &crate::report::ToolpathTotals) -> String {
         t.retracts,
         ul.join(", ")
     );
+    line.push_str(&format!(
+        "\n  nozzle exit against the design, worst road {:.4}; {} road(s) where the design changes faster than the mixer can",
+        t.composition_error_road_max, t.mixer_limited_roads
+    ));
     if let Some(c) = &t.coverage {
         line.push_str(&format!(
             "\n  coverage at {:.0} µm: void {:.2} % ({:.2} % without the flow raise), overlap {:.2} %, outside {:.2} %",

@@ -165,6 +165,29 @@ pub struct MachineConfig {
     /// `[machine.gcode]`: with `protocol = "gcode"` only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gcode: Option<GcodeConfig>,
+    /// `[machine.mixer]`: the mixing chamber's residence-time distribution (default:
+    /// plug flow through `dead_volume_nl`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mixer: Option<MixerConfig>,
+}
+
+/// `[machine.mixer]`: the mixing chamber (`edo::mixer`).
+#[derive(Debug, Clone, Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MixerConfig {
+    /// `"plug"` (default), `"mixed"` or `"dispersion"`.
+    #[serde(default = "default_mixer_model")]
+    pub model: String,
+    /// The chamber's volume, nl (default `machine.dead_volume_nl`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volume_nl: Option<f64>,
+    /// Peclet number of the `dispersion` model.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub peclet: Option<f64>,
+}
+
+fn default_mixer_model() -> String {
+    "plug".to_string()
 }
 
 fn default_syringes() -> Vec<SyringeConfig> {
@@ -206,6 +229,18 @@ fn default_lift() -> f64 {
 }
 
 impl MachineConfig {
+    /// The mixing chamber: `[machine.mixer]`, else plug flow through `dead_volume_nl`
+    /// (an error names the key in the table).
+    pub fn mixer(&self) -> Result<crate::mixer::MixerOptions, crate::mixer::MixerError> {
+        let dead = self.dead_volume_nl as f64;
+        match &self.mixer {
+            None => Ok(crate::mixer::MixerOptions::plug(dead)),
+            Some(m) => {
+                crate::mixer::MixerOptions::new(&m.model, m.volume_nl.unwrap_or(dead), m.peclet)
+            }
+        }
+    }
+
     /// `build_volume_mm` as a [`BuildVolume`] (an error names the bad side).
     pub fn build_volume(&self) -> Result<crate::machine::placement::BuildVolume, String> {
         crate::machine::placement::BuildVolume::new(self.build_volume_mm)
@@ -227,6 +262,7 @@ impl Default for MachineConfig {
             resume_lift_mm: default_lift(),
             protocol: Protocol::default(),
             gcode: None,
+            mixer: None,
         }
     }
 }
@@ -495,6 +531,9 @@ impl Config {
 
     /// `[machine]`: syringes, sizes and speeds, the build volume and what must lie in it.
     fn check_machine(&self, bad: &impl Fn(&str, String) -> ConfigError) -> Result<(), ConfigError> {
+        self.machine
+            .mixer()
+            .map_err(|e| bad(&format!("machine.mixer.{}", e.key), e.message))?;
         let n = self.machine.syringes.len();
         if n == 0 || n > crate::machine::MAX_SYRINGES {
             return Err(bad(
@@ -701,6 +740,40 @@ mod tests {
             let e = Config::from_toml(&format!("[machine]\n{text}\n"), "m.toml").unwrap_err();
             assert!(e.to_string().contains(key), "{text}: {e}");
         }
+    }
+
+    #[test]
+    fn the_mixer_table_is_checked_naming_its_key() {
+        for (text, key) in [
+            ("model = \"turbulent\"", "machine.mixer.model"),
+            ("volume_nl = -5.0", "machine.mixer.volume_nl"),
+            ("volume_nl = nan", "machine.mixer.volume_nl"),
+            (
+                "model = \"dispersion\"\npeclet = 0.0",
+                "machine.mixer.peclet",
+            ),
+            ("model = \"dispersion\"", "machine.mixer.peclet"),
+            ("model = \"mixed\"\npeclet = 3.0", "machine.mixer.peclet"),
+        ] {
+            let e = Config::from_toml(&format!("[machine.mixer]\n{text}\n"), "m.toml").unwrap_err();
+            assert!(e.to_string().contains(key), "{text}: {e}");
+        }
+        let c = Config::from_toml(
+            "[machine]\ndead_volume_nl = 700\n[machine.mixer]\nmodel = \"dispersion\"\npeclet = 12.5\n",
+            "m.toml",
+        )
+        .unwrap();
+        let m = c.machine.mixer().unwrap();
+        assert_eq!(
+            (m.model, m.volume_nl, m.peclet),
+            (crate::mixer::MixerModel::Dispersion, 700.0, Some(12.5))
+        );
+        let plain = Config::from_toml("", "m.toml")
+            .unwrap()
+            .machine
+            .mixer()
+            .unwrap();
+        assert_eq!(plain, crate::mixer::MixerOptions::plug(20_000.0));
     }
 
     #[test]

@@ -296,7 +296,12 @@ pub fn process_settings(
     } else {
         settings.max_flow_factor.min(machine.max_flow_factor)
     };
-    settings.v_dead_ul = machine.dead_volume_nl as f64 / 1000.0;
+    let mixer = machine
+        .mixer()
+        .map_err(|e| format!("machine.mixer.{}: {}", e.key, e.message))?;
+    settings.v_dead_ul = mixer.volume_nl / 1000.0;
+    settings.mixer_model = mixer.model;
+    settings.mixer_peclet = mixer.peclet;
     // The streamer plans a layer before it knows the next one, so the mixing lead cannot
     // reach across a layer change: unless the job purges at layer changes, alternate the
     // sub-region order so that every layer starts with the composition the previous one

@@ -37,6 +37,21 @@ fn hil_sim_binary(cfg: &Config) -> PathBuf {
     PathBuf::from("hil-sim")
 }
 
+/// hil-sim's arguments for a mixing chamber other than its default (plug flow through
+/// `--dead-volume-nl`).
+fn mixer_sim_args(m: &crate::mixer::MixerOptions) -> Vec<String> {
+    let mut args = vec![
+        "--mixer".to_string(),
+        m.model.name().to_string(),
+        "--mixer-volume-nl".to_string(),
+        m.volume_nl.to_string(),
+    ];
+    if let Some(pe) = m.peclet {
+        args.extend(["--mixer-peclet".to_string(), pe.to_string()]);
+    }
+    args
+}
+
 /// Start hil-sim on a pty linked at `state/ttyEDO`; returns the child and the link.
 async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
     let link = cfg.state.dir.join("ttyEDO");
@@ -61,6 +76,11 @@ async fn start_sim(cfg: &Config) -> Result<(tokio::process::Child, PathBuf)> {
         .kill_on_drop(true);
     if !cfg.sim.faults.is_empty() {
         cmd.arg("--faults").arg(&cfg.sim.faults);
+    }
+    if cfg.machine.mixer.is_some() {
+        if let Ok(m) = cfg.machine.mixer() {
+            cmd.args(mixer_sim_args(&m));
+        }
     }
     if let Some(r) = &cfg.sim.record {
         cmd.arg("--record").arg(r);
