@@ -310,3 +310,75 @@ async fn a_websocket_from_another_origin_or_without_the_token_is_refused() {
     let with = format!("ws://{addr}/websocket?token={TOKEN}");
     assert!(tokio_tungstenite::connect_async(with).await.is_ok());
 }
+
+/// Open a WebSocket on `addr` by hand (raw TCP): the stream after the 101 answer.
+async fn raw_websocket(addr: std::net::SocketAddr) -> tokio::net::TcpStream {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let hello = format!(
+        "GET /websocket HTTP/1.1\r\nHost: {addr}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    );
+    s.write_all(hello.as_bytes()).await.unwrap();
+    let mut head = Vec::new();
+    while !head.ends_with(b"\r\n\r\n") {
+        let mut b = [0u8; 1];
+        assert_eq!(
+            s.read(&mut b).await.unwrap(),
+            1,
+            "closed during the upgrade"
+        );
+        head.push(b[0]);
+    }
+    let head = String::from_utf8_lossy(&head);
+    assert!(head.starts_with("HTTP/1.1 101"), "{head}");
+    s
+}
+
+/// A message over `api.max_request_bytes` (64 kB here) is refused while it arrives:
+/// the frame's header announces 1 MiB (within the WebSocket library's own limits), only
+/// 4 kB follow, and edod answers the refusal and closes
+/// at once (it would wait for the rest if it read messages whole before counting
+/// them). Another dashboard is served on, before and after.
+#[tokio::test]
+async fn an_oversized_websocket_message_is_refused_as_it_arrives() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio_tungstenite::tungstenite::Message;
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 64 * 1024).await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let (mut other, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/websocket"))
+        .await
+        .unwrap();
+    other.send(Message::text(rpc("server.info"))).await.unwrap();
+    let reply = other.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(reply.contains("\"name\":\"edod\""), "{reply}");
+
+    let mut s = raw_websocket(addr).await;
+    // FIN + text; masked, 64-bit length: 1 MiB announced.
+    let mut frame = vec![0x81u8, 0x80 | 127];
+    frame.extend_from_slice(&(1u64 << 20).to_be_bytes());
+    frame.extend_from_slice(&[1, 2, 3, 4]);
+    frame.extend(std::iter::repeat_n(b'x' ^ 1, 4096));
+    s.write_all(&frame).await.unwrap();
+    let mut answer = Vec::new();
+    let read = tokio::time::timeout(
+        std::time::Duration::from_secs(5),
+        s.read_to_end(&mut answer),
+    )
+    .await;
+    assert!(
+        matches!(read, Ok(Ok(_))),
+        "edod did not close the connection: it waits for the rest of the message"
+    );
+    let answer = String::from_utf8_lossy(&answer);
+    assert!(answer.contains("api.max_request_bytes"), "{answer}");
+
+    other
+        .send(Message::text(rpc("machine.status")))
+        .await
+        .unwrap();
+    let reply = other.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(reply.contains("\"executed_total\":0"), "{reply}");
+}
