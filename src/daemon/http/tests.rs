@@ -126,6 +126,7 @@ async fn reads_answer_as_the_methods_they_name() {
     let get = |p: &str| {
         Request::get(p)
             .header(header::HOST, "printer.lan")
+            .header(header::AUTHORIZATION, format!("Bearer {TOKEN}"))
             .body(Body::empty())
             .unwrap()
     };
@@ -170,6 +171,56 @@ async fn beyond_loopback_a_call_without_the_token_is_refused_401() {
     let (s, body) = send(app.clone(), call(Some(&format!("Bearer {TOKEN}")))).await;
     assert_eq!(s, StatusCode::OK);
     assert!(body.contains("\"acked_after_us\":20"), "{body}");
+}
+
+#[tokio::test]
+async fn beyond_loopback_reads_need_the_token_but_the_page_does_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 1 << 20).await;
+    let get = |p: &str, auth: Option<&str>| {
+        let mut b = Request::get(p).header(header::HOST, "printer.lan:7125");
+        if let Some(a) = auth {
+            b = b.header(header::AUTHORIZATION, a);
+        }
+        b.body(Body::empty()).unwrap()
+    };
+    let bearer = format!("Bearer {TOKEN}");
+    let app = router(Arc::clone(&shared), beyond_loopback());
+    for p in [
+        "/api/server",
+        "/api/status",
+        "/api/jobs",
+        "/api/jobs/1/layers/0",
+    ] {
+        let (s, body) = send(app.clone(), get(p, None)).await;
+        assert_eq!(s, StatusCode::UNAUTHORIZED, "{p}: {body}");
+        assert!(body.contains("http.token_file"), "{p}: {body}");
+        let (s, _) = send(app.clone(), get(p, Some("Bearer not-the-token-at-all"))).await;
+        assert_eq!(s, StatusCode::UNAUTHORIZED, "{p}");
+    }
+    let (s, body) = send(app.clone(), get("/api/jobs", Some(&bearer))).await;
+    assert_eq!((s, body.as_str()), (StatusCode::OK, "[]"));
+    // The page loads without the token, and asks for it.
+    for p in ["/", "/app.js", "/app.css"] {
+        assert_eq!(
+            send(app.clone(), get(p, None)).await.0,
+            StatusCode::OK,
+            "{p}"
+        );
+    }
+    // On loopback the reads stay open, with or without a token file.
+    let on_loopback = Guard {
+        token: Some(TOKEN.into()),
+        loopback: true,
+    };
+    for guard in [loopback(), on_loopback] {
+        let app = router(Arc::clone(&shared), guard);
+        let r = Request::get("/api/jobs")
+            .header(header::HOST, HOST)
+            .body(Body::empty())
+            .unwrap();
+        assert_eq!(send(app, r).await, (StatusCode::OK, "[]".to_string()));
+    }
 }
 
 #[tokio::test]
