@@ -1218,6 +1218,54 @@ fn a_second_edod_on_the_same_state_or_socket_refuses_and_touches_nothing() {
     assert_exactly_once(&record, a, 1500);
 }
 
+/// The dashboard's port taken by another program: edod refuses to start, naming
+/// `[http] listen` and the address, exits non-zero, and has not opened the job store
+/// (its file is byte for byte as it was; the job stored before is there after). With
+/// `[http] enabled = false` it starts on the same host as before.
+#[test]
+fn a_taken_dashboard_port_refuses_the_start_and_leaves_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 16);
+    let mut d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 50);
+    c.wait_state(a, "done");
+    drop(c);
+    assert!(d.sigterm().success());
+    let db = dir.path().join("state").join("edod.db");
+    let before = std::fs::read(&db).unwrap();
+    let held = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = held.local_addr().unwrap().to_string();
+    let text = std::fs::read_to_string(&d.config).unwrap();
+    let taken = text.replace(
+        "[http]\nenabled = false\n",
+        &format!("[http]\nlisten = {addr:?}\n"),
+    );
+    assert_ne!(taken, text);
+    std::fs::write(&d.config, &taken).unwrap();
+    let said = refused_to_start(&d.config);
+    assert!(
+        said.contains(&format!("[http] listen = \"{addr}\": cannot bind {addr}"))
+            && said.contains("enabled = false"),
+        "{said}"
+    );
+    assert!(
+        std::fs::read(&db).unwrap() == before,
+        "the store was touched"
+    );
+    assert!(!d.socket.exists(), "the refused edod bound its socket");
+    // The dashboard off, the same edod starts and has the job.
+    std::fs::write(&d.config, &text).unwrap();
+    let d = Daemon::spawn(d.socket.clone(), d.config.clone());
+    let mut c = d.client();
+    assert_eq!(c.job(a)["state"], json!("done"));
+    drop(held);
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
 /// edod's peak resident memory (VmHWM), bytes.
 fn peak_memory(d: &Daemon) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{}/status", d.child.id())).unwrap();

@@ -91,30 +91,47 @@ async fn guarded(State(app): State<Arc<App>>, req: Request, next: Next) -> Respo
     next.run(req).await
 }
 
-/// Bind `[http] listen` and serve the dashboard until the task is aborted. A dashboard
-/// that cannot be served (the port taken, the token file gone) is logged and left off:
-/// the socket API and the machine go on.
-pub async fn serve(shared: Arc<Shared>) {
-    let http = &shared.config.http;
+/// The dashboard's listener, bound before anything else starts, and its rules.
+pub struct Listening {
+    listener: tokio::net::TcpListener,
+    guard: Guard,
+}
+
+/// Bind `[http] listen` (none when `[http] enabled = false`). A dashboard that cannot
+/// be served (the port taken, the token file unreadable) is an error naming the key
+/// and the address: edod does not start, as a service whose port is taken does not,
+/// and systemd shows why. edod binds it before it opens the job store, so a refused
+/// start leaves the store as it was.
+pub async fn bind(http: &crate::daemon::config::HttpConfig) -> Result<Option<Listening>, String> {
     if !http.enabled {
-        return;
+        return Ok(None);
     }
-    let (addr, token) = match (http.listen_addr(), http.token()) {
-        (Ok(a), Ok(t)) => (a, t),
-        (Err(e), _) => return warn!("http.listen: {e}; no dashboard"),
-        (_, Err(e)) => return warn!("http.token_file: {e}; no dashboard"),
-    };
-    let listener = match tokio::net::TcpListener::bind(addr).await {
-        Ok(l) => l,
-        Err(e) => return warn!("http.listen = {addr}: cannot bind ({e}); no dashboard"),
-    };
+    let addr = http
+        .listen_addr()
+        .map_err(|e| format!("[http] listen: {e}"))?;
+    let token = http
+        .token()
+        .map_err(|e| format!("[http] token_file: {e}"))?;
+    let listener = tokio::net::TcpListener::bind(addr).await.map_err(|e| {
+        format!(
+            "[http] listen = \"{addr}\": cannot bind {addr}: {e}; free the port, choose \
+             another address, or set [http] enabled = false to run without the dashboard"
+        )
+    })?;
     let guard = Guard {
         token,
         loopback: addr.ip().is_loopback(),
     };
-    tracing::info!("dashboard at http://{addr}/");
-    let app = router(Arc::clone(&shared), guard);
-    if let Err(e) = axum::serve(listener, app).await {
+    Ok(Some(Listening { listener, guard }))
+}
+
+/// Serve the dashboard on `listening` until the task is aborted.
+pub async fn serve(shared: Arc<Shared>, listening: Listening) {
+    if let Ok(addr) = listening.listener.local_addr() {
+        tracing::info!("dashboard at http://{addr}/");
+    }
+    let app = router(shared, listening.guard);
+    if let Err(e) = axum::serve(listening.listener, app).await {
         warn!("dashboard stopped: {e}");
     }
 }
