@@ -13,6 +13,7 @@
 pub mod guard;
 mod layers;
 mod page;
+pub mod plans;
 mod rest;
 mod ws;
 
@@ -41,17 +42,38 @@ pub struct App {
     pub sockets: Arc<Semaphore>,
     /// Plans made for previews and layer views, one at a time (they take a core).
     pub planning: Arc<Semaphore>,
+    /// The plans kept for previews and layer views.
+    pub plans: Arc<plans::Planning>,
 }
 
 /// The dashboard's routes, guarded.
 pub fn router(shared: Arc<Shared>, guard: Guard) -> Router {
-    let max = shared.config.api.max_request_bytes;
-    let app = Arc::new(App {
+    routes(app(shared, guard))
+}
+
+/// What the handlers of a listener with `guard` share.
+pub fn app(shared: Arc<Shared>, guard: Guard) -> Arc<App> {
+    let http = &shared.config.http;
+    let plans = Arc::new(plans::Planning {
+        cache: Arc::new(plans::PlanCache::new(
+            http.plan_cache_entries,
+            http.plan_cache_bytes,
+        )),
+        config: shared.config.clone(),
+        limits: shared.budget.mesh_limits(),
+    });
+    Arc::new(App {
         sockets: Arc::new(Semaphore::new(shared.config.api.max_clients)),
         planning: Arc::new(Semaphore::new(1)),
+        plans,
         shared,
         guard,
-    });
+    })
+}
+
+/// The routes of `app`, guarded.
+pub fn routes(app: Arc<App>) -> Router {
+    let max = app.shared.config.api.max_request_bytes;
     Router::new()
         .route("/", get(page::index))
         .route("/app.js", get(page::script))
@@ -64,6 +86,7 @@ pub fn router(shared: Arc<Shared>, guard: Guard) -> Router {
         .route("/api/jobs/{id}/layers/{layer}", get(rest::layer))
         .route("/api/rpc", post(rest::rpc))
         .route("/api/preview", post(rest::preview))
+        .route("/api/previews/{id}/layers/{layer}", get(rest::preview_svg))
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(max))
         .layer(axum::middleware::from_fn_with_state(

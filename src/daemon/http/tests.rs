@@ -17,8 +17,14 @@ const TOKEN: &str = "0123456789abcdef0123";
 /// A daemon's shared state on a temporary store, with a streamer that acknowledges
 /// e-stops.
 async fn shared(dir: &std::path::Path, max_request_bytes: usize) -> Arc<Shared> {
+    shared_with(dir, |c| c.api.max_request_bytes = max_request_bytes).await
+}
+
+/// As [`shared`], `set` changing the configuration.
+async fn shared_with(dir: &std::path::Path, set: impl FnOnce(&mut Config)) -> Arc<Shared> {
     let mut config = Config::from_toml("", "test").unwrap();
-    config.api.max_request_bytes = max_request_bytes;
+    config.api.max_request_bytes = 1 << 20;
+    set(&mut config);
     config.api.idle_timeout_s = 2.0;
     config.state.dir = dir.to_path_buf();
     let (events, _) = mpsc::unbounded_channel();
@@ -432,4 +438,173 @@ async fn an_oversized_websocket_message_is_refused_as_it_arrives() {
         .unwrap();
     let reply = other.next().await.unwrap().unwrap().into_text().unwrap();
     assert!(reply.contains("\"executed_total\":0"), "{reply}");
+}
+
+fn annulus(radius_mm: f64) -> String {
+    std::fs::read_to_string("config/examples/paper-annulus.toml")
+        .unwrap()
+        .replace("radius = 30.0", &format!("radius = {radius_mm:.1}"))
+}
+
+fn get(path: &str) -> Request<Body> {
+    Request::get(path)
+        .header(header::HOST, HOST)
+        .body(Body::empty())
+        .unwrap()
+}
+
+/// Preview `job`: the answer's JSON.
+async fn preview_of(app: &axum::Router, job: &str) -> serde_json::Value {
+    let body = serde_json::json!({ "job": job }).to_string();
+    let (s, out) = send(
+        app.clone(),
+        post("/api/preview").body(Body::from(body)).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{out:.300}");
+    serde_json::from_str(&out).unwrap()
+}
+
+/// A preview's layers, its images and the layer views of the job once submitted come
+/// from one plan: asked again, nothing is planned again.
+#[tokio::test]
+async fn a_preview_its_images_and_the_jobs_layer_views_share_one_plan() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = super::app(shared(dir.path(), 1 << 20).await, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let made = || app.plans.cache.plans_made();
+    let job = annulus(30.0);
+    let v = preview_of(&routes, &job).await;
+    assert_eq!(v["ok"], true, "{v:.300}");
+    let id = v["id"].as_str().unwrap().to_string();
+    assert_eq!(id.len(), 32, "{id}");
+    let layers = v["layers"].as_array().unwrap().len();
+    assert!(layers >= 2, "{v:.300}");
+    assert_eq!(made(), 1);
+    let again = preview_of(&routes, &job).await;
+    assert_eq!(again["id"], v["id"]);
+    assert_eq!(again["total_moves"], v["total_moves"]);
+    for layer in 0..layers {
+        let r = routes
+            .clone()
+            .oneshot(get(&format!("/api/previews/{id}/layers/{layer}")))
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "layer {layer}");
+        assert_eq!(r.headers()[header::CONTENT_TYPE], "image/svg+xml");
+        let svg = r.into_body().collect().await.unwrap().to_bytes();
+        let svg = String::from_utf8_lossy(&svg);
+        assert!(
+            svg.starts_with("<svg") && svg.contains(&format!("layer {layer} z=")),
+            "{svg:.200}"
+        );
+    }
+    let (s, _) = send(
+        routes.clone(),
+        get(&format!("/api/previews/{id}/layers/{layers}")),
+    )
+    .await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "a layer past the last");
+    // Submitted, the job's layer views come from the same plan.
+    let submit = serde_json::json!({"jsonrpc": "2.0", "id": 1, "method": "job.submit", "params": {"job": job}});
+    let (s, out) = send(
+        routes.clone(),
+        post("/api/rpc")
+            .body(Body::from(submit.to_string()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(out.contains("\"id\":1"), "{out}");
+    for layer in [1, 0] {
+        let (s, out) = send(routes.clone(), get(&format!("/api/jobs/1/layers/{layer}"))).await;
+        assert_eq!(s, StatusCode::OK, "{out:.300}");
+        let view: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(view["layer"], layer);
+        assert_eq!(view["layers"], layers);
+        assert!(view["moves"].as_array().unwrap().len() > 10);
+    }
+    assert_eq!(made(), 1, "planned again");
+    // Another job is another plan.
+    let other = preview_of(&routes, &annulus(25.0)).await;
+    assert_ne!(other["id"], v["id"]);
+    assert_eq!(made(), 2);
+    // An id never made, or not one.
+    for bad in ["0123456789abcdef0123456789abcdef", "..%2F..%2Fetc", "zz"] {
+        let (s, out) = send(
+            routes.clone(),
+            get(&format!("/api/previews/{bad}/layers/0")),
+        )
+        .await;
+        assert_eq!(s, StatusCode::NOT_FOUND, "{bad}: {out}");
+        assert!(out.contains("preview"), "{out}");
+    }
+}
+
+/// The kept plans stay within `http.plan_cache_entries` and `http.plan_cache_bytes`:
+/// the least recently used goes first; a layer past the byte bound is drawn from a plan
+/// made again, not kept.
+#[tokio::test]
+async fn the_kept_plans_stay_within_their_bounds() {
+    let dir = tempfile::tempdir().unwrap();
+    let two = shared_with(dir.path(), |c| {
+        c.http.plan_cache_entries = 2;
+    })
+    .await;
+    let app = super::app(two, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let cache = &app.plans.cache;
+    let mut ids = Vec::new();
+    for radius in [30.0, 28.0, 26.0] {
+        ids.push(preview_of(&routes, &annulus(radius)).await["id"].clone());
+        assert!(cache.held().0 <= 2, "{:?}", cache.held());
+    }
+    assert_eq!(cache.plans_made(), 3);
+    let svg = |id: &serde_json::Value, layer: u32| {
+        get(&format!(
+            "/api/previews/{}/layers/{layer}",
+            id.as_str().unwrap()
+        ))
+    };
+    // The first, least recently used, is gone; the last two are kept.
+    let (s, out) = send(routes.clone(), svg(&ids[0], 0)).await;
+    assert_eq!(s, StatusCode::NOT_FOUND, "{out}");
+    assert!(out.contains("preview the job again"), "{out}");
+    for id in &ids[1..] {
+        assert_eq!(send(routes.clone(), svg(id, 1)).await.0, StatusCode::OK);
+    }
+    assert_eq!(cache.plans_made(), 3);
+
+    // Bytes: room for all but the last layer.
+    let job = annulus(30.0);
+    let full = {
+        let dir = tempfile::tempdir().unwrap();
+        let app = super::app(shared(dir.path(), 1 << 20).await, loopback());
+        preview_of(&super::routes(Arc::clone(&app)), &job).await;
+        app.plans.cache.held().1
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let tight = full - 33;
+    let small = shared_with(dir.path(), |c| c.http.plan_cache_bytes = tight).await;
+    let app = super::app(small, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let cache = &app.plans.cache;
+    let v = preview_of(&routes, &job).await;
+    let layers = v["layers"].as_array().unwrap().len() as u32;
+    assert!(v["view"]["moves"].as_array().is_some(), "layer 0 kept");
+    let (_, bytes) = cache.held();
+    assert!(bytes <= tight, "{bytes} bytes held, bound {tight}");
+    assert_eq!(cache.plans_made(), 1);
+    // The last layer was not kept: planned again to draw it, and not kept either.
+    let (s, out) = send(routes.clone(), svg(&v["id"], layers - 1)).await;
+    assert_eq!(s, StatusCode::OK, "{out:.200}");
+    assert!(out.starts_with("<svg"));
+    assert_eq!(cache.plans_made(), 2);
+    assert_eq!(cache.held().1, bytes);
+    // The first was kept.
+    assert_eq!(
+        send(routes.clone(), svg(&v["id"], 0)).await.0,
+        StatusCode::OK
+    );
+    assert_eq!(cache.plans_made(), 2);
 }
