@@ -1218,6 +1218,110 @@ fn a_second_edod_on_the_same_state_or_socket_refuses_and_touches_nothing() {
     assert_exactly_once(&record, a, 1500);
 }
 
+/// While a job prints, the machine's snapshot follows it: `machine.status` carries the
+/// nozzle's position (not 0, 0, 0), and subscribers get `notify_machine_state` as it
+/// moves, at most 4 a second (a dashboard's machine panel shows the position from them).
+#[test]
+fn the_machine_snapshot_follows_the_print() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim_at(dir.path(), 17, 10.0);
+    let d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let mut sub = d.client();
+    sub.call("subscribe", json!({})).unwrap();
+    let a = submit(&mut c, 3000);
+    c.wait("streaming", |c| c.executed(a) > 20);
+    let status = c.call("machine.status", json!({})).unwrap();
+    let at: Vec<f64> = serde_json::from_value(status["position_mm"].clone()).unwrap();
+    assert!(at.iter().any(|&v| v != 0.0), "{status}");
+    // Three seconds of notifications while it prints.
+    let t = Instant::now();
+    let mut seen = Vec::new();
+    while t.elapsed() < Duration::from_secs(3) {
+        let mut l = String::new();
+        assert!(sub.r.read_line(&mut l).unwrap() > 0, "daemon closed");
+        let v: Value = serde_json::from_str(&l).unwrap();
+        if v["method"] == json!("notify_machine_state") {
+            seen.push((t.elapsed(), v["params"].clone()));
+        }
+    }
+    assert_eq!(c.job(a)["state"], json!("printing"), "printed too fast");
+    let positions: std::collections::BTreeSet<String> = seen
+        .iter()
+        .map(|(_, p)| p["position_mm"].to_string())
+        .collect();
+    let executed: Vec<u64> = seen
+        .iter()
+        .filter_map(|(_, p)| p["executed_total"].as_u64())
+        .collect();
+    assert!(positions.len() >= 2, "the position pushed: {positions:?}");
+    assert!(
+        executed.windows(2).all(|w| w[0] <= w[1])
+            && executed
+                .iter()
+                .collect::<std::collections::BTreeSet<_>>()
+                .len()
+                >= 8,
+        "moves executed pushed: {executed:?}"
+    );
+    // At most 4 a second, and a few for changes of state.
+    assert!(seen.len() <= 3 * 4 + 3, "{} pushes in 3 s", seen.len());
+    drop(sub);
+    c.call("job.cancel", json!({"id": a})).unwrap();
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
+/// The dashboard's port taken by another program: edod refuses to start, naming
+/// `[http] listen` and the address, exits non-zero, and has not opened the job store
+/// (its file is byte for byte as it was; the job stored before is there after). With
+/// `[http] enabled = false` it starts on the same host as before.
+#[test]
+fn a_taken_dashboard_port_refuses_the_start_and_leaves_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 16);
+    let mut d = Daemon::start(dir.path(), sim.path());
+    let mut c = d.client();
+    c.wait_connected();
+    let a = submit(&mut c, 50);
+    c.wait_state(a, "done");
+    drop(c);
+    assert!(d.sigterm().success());
+    let db = dir.path().join("state").join("edod.db");
+    let before = std::fs::read(&db).unwrap();
+    let held = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = held.local_addr().unwrap().to_string();
+    let text = std::fs::read_to_string(&d.config).unwrap();
+    let taken = text.replace(
+        "[http]\nenabled = false\n",
+        &format!("[http]\nlisten = {addr:?}\n"),
+    );
+    assert_ne!(taken, text);
+    std::fs::write(&d.config, &taken).unwrap();
+    let said = refused_to_start(&d.config);
+    assert!(
+        said.contains(&format!("[http] listen = \"{addr}\": cannot bind {addr}"))
+            && said.contains("enabled = false"),
+        "{said}"
+    );
+    assert!(
+        std::fs::read(&db).unwrap() == before,
+        "the store was touched"
+    );
+    assert!(!d.socket.exists(), "the refused edod bound its socket");
+    // The dashboard off, the same edod starts and has the job.
+    std::fs::write(&d.config, &text).unwrap();
+    let d = Daemon::spawn(d.socket.clone(), d.config.clone());
+    let mut c = d.client();
+    assert_eq!(c.job(a)["state"], json!("done"));
+    drop(held);
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
 /// edod's peak resident memory (VmHWM), bytes.
 fn peak_memory(d: &Daemon) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{}/status", d.child.id())).unwrap();

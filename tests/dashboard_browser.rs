@@ -1,9 +1,12 @@
 //! The web dashboard in a real browser (Debian's chromium through chromedriver, driven
-//! by fantoccini): edod on hil-sim; the tooth crown submitted through the page after its
-//! plan preview; progress to done with the layer view updating while it prints; pause
-//! and resume from the page; e-stop of a second job, confirmed by the machine's
-//! acknowledgement; a cross-origin WebSocket and a token-less call on a non-loopback
-//! bind, both refused. Screenshots of the queue and the live layer view are saved under
+//! by fantoccini): edod on hil-sim; a part too large for the machine previewed with its
+//! warning and not submittable; the tooth crown submitted through the page after its
+//! plan preview (each layer's SVG image, the layer chosen from the keyboard); progress
+//! to done with the layer view and the machine's position updating while it prints;
+//! pause and resume from the page; e-stop of a second job, confirmed by the machine's
+//! acknowledgement; on a non-loopback bind, the page asking for the token and
+//! connecting with it, token-less calls and reads and a cross-origin WebSocket refused.
+//! Screenshots of the preview, the queue and the live layer view are saved under
 //! `target/dashboard-screenshots/`.
 //!
 //! Skips, saying why, when chromedriver is not installed (`.ci/run` installs
@@ -121,6 +124,30 @@ async fn click(c: &Client, css: &str) {
     panic!("cannot click {css}: {last:?}");
 }
 
+/// Choose `job` in the submit form and ask for its preview.
+async fn choose_job(c: &Client, job: &Path) {
+    c.find(Locator::Css("#job-file"))
+        .await
+        .unwrap()
+        .send_keys(&job.display().to_string())
+        .await
+        .unwrap();
+    click(c, "#preview-btn").await;
+}
+
+/// The layer (from 0) whose SVG image the preview shows, once the image has loaded.
+async fn shown_layer(c: &Client) -> Option<u32> {
+    let v = c
+        .execute(
+            "const i = document.getElementById('preview-image'); \
+             return i.hidden || !i.complete || i.naturalWidth === 0 ? null : Number(i.dataset.layer);",
+            vec![],
+        )
+        .await
+        .ok()?;
+    v.as_u64().map(|n| n as u32)
+}
+
 async fn screenshot(c: &Client, name: &str) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/dashboard-screenshots");
     std::fs::create_dir_all(&dir).unwrap();
@@ -185,15 +212,47 @@ async fn the_dashboard_in_a_real_browser() {
     );
     let c = browser(driver_port).await;
     use futures_util::FutureExt;
-    let driven = std::panic::AssertUnwindSafe(drive(&c, port))
-        .catch_unwind()
-        .await;
+    let driven = std::panic::AssertUnwindSafe(async {
+        drive(&c, port).await;
+        // Beyond loopback, with a token.
+        let sub = dir.path().join("open");
+        std::fs::create_dir_all(&sub).unwrap();
+        let _sim = hil_sim::spawn(hil_sim::SimConfig {
+            link: Some(sub.join("tty")),
+            ..hil_sim::SimConfig::default()
+        })
+        .unwrap();
+        let open = free_port();
+        let _edod = edod(&sub, &sub.join("tty"), &format!("0.0.0.0:{open}"), true);
+        wait_http(open);
+        token_page(&c, open).await;
+        refusals(open).await;
+    })
+    .catch_unwind()
+    .await;
     // Close the browser whatever happened, then report.
     let _ = c.close().await;
     if let Err(p) = driven {
         std::panic::resume_unwind(p);
     }
-    refusals(dir.path()).await;
+}
+
+/// Beyond loopback the page loads without the token, asks for it, and connects with it.
+async fn token_page(c: &Client, port: u16) {
+    c.goto(&format!("http://127.0.0.1:{port}/")).await.unwrap();
+    wait_for("the page to ask for the token", 20, || async {
+        attr(c, "#token-form", "hidden").await.is_none()
+    })
+    .await;
+    let asked = text(c, "#link").await;
+    assert!(asked.contains("token"), "{asked}");
+    let field = c.find(Locator::Css("#token")).await.unwrap();
+    field.send_keys(TOKEN).await.unwrap();
+    field.send_keys("\u{E007}").await.unwrap();
+    wait_for("the page to connect with the token", 20, || async {
+        text(c, "#link").await.starts_with("connected")
+    })
+    .await;
 }
 
 async fn drive(c: &Client, port: u16) {
@@ -204,22 +263,50 @@ async fn drive(c: &Client, port: u16) {
     })
     .await;
 
-    // Submit the tooth crown through the page: preview, then confirm.
+    // A job too large for the machine: its preview says so, and it cannot be confirmed.
+    let too_big = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/paper-annulus.toml"),
+    )
+    .unwrap()
+    .replace("radius = 30.0", "radius = 300.0");
+    let too_big_file = std::env::temp_dir().join(format!("edo-too-big-{port}.toml"));
+    std::fs::write(&too_big_file, too_big).unwrap();
+    choose_job(c, &too_big_file).await;
+    wait_for("the warning of a part that does not fit", 60, || async {
+        text(c, "#preview-problems").await.contains("build volume")
+    })
+    .await;
+    assert!(attr(c, "#confirm", "disabled").await.is_some());
+    let _ = std::fs::remove_file(&too_big_file);
+    click(c, "#discard").await;
+
+    // Submit the tooth crown through the page: preview (a layer's SVG image, another
+    // chosen from the keyboard), then confirm.
     let job = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/tooth-crown.toml");
-    c.find(Locator::Css("#job-file"))
-        .await
-        .unwrap()
-        .send_keys(&job.display().to_string())
-        .await
-        .unwrap();
-    click(c, "#preview-btn").await;
+    choose_job(c, &job).await;
     wait_for("the plan preview", 60, || async {
-        text(c, "#preview-summary").await.contains("layers")
+        text(c, "#preview-summary").await.contains("tooth-crown: ")
     })
     .await;
     let summary = text(c, "#preview-summary").await;
-    assert!(summary.starts_with("tooth-crown: "), "{summary}");
     assert!(!summary.contains("cannot be printed"), "{summary}");
+    wait_for("layer 1's image", 30, || async {
+        shown_layer(c).await == Some(0)
+    })
+    .await;
+    c.find(Locator::Css("#preview-layer"))
+        .await
+        .unwrap()
+        .send_keys("\u{E014}")
+        .await
+        .unwrap();
+    wait_for("layer 2's image", 30, || async {
+        shown_layer(c).await == Some(1)
+    })
+    .await;
+    let out = text(c, "#preview-layer-out").await;
+    assert!(out.starts_with("2 of "), "{out}");
+    screenshot(c, "preview.png").await;
     click(c, "#confirm").await;
     wait_for("job 1 in the queue", 10, || async {
         c.find(Locator::Css("#job-1")).await.is_ok()
@@ -249,6 +336,13 @@ async fn drive(c: &Client, port: u16) {
             != first
     })
     .await;
+    // The machine panel follows the print.
+    let at = text(c, "#machine-position").await;
+    assert!(at.starts_with("x "), "{at}");
+    wait_for("the machine's position to change", 30, || async {
+        text(c, "#machine-position").await != at
+    })
+    .await;
     c.goto(&format!("{base}#live")).await.unwrap();
     screenshot(c, "live-layer.png").await;
 
@@ -271,18 +365,7 @@ async fn drive(c: &Client, port: u16) {
     screenshot(c, "queue.png").await;
 
     // A second job, e-stopped from the page: the machine's acknowledgement is shown.
-    c.find(Locator::Css("#job-file"))
-        .await
-        .unwrap()
-        .send_keys(
-            &Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join("config/examples/tooth-crown.toml")
-                .display()
-                .to_string(),
-        )
-        .await
-        .unwrap();
-    click(c, "#preview-btn").await;
+    choose_job(c, &job).await;
     wait_for("the second preview", 60, || async {
         attr(c, "#confirm", "disabled").await.is_none()
             && !text(c, "#preview-summary").await.is_empty()
@@ -303,20 +386,23 @@ async fn drive(c: &Client, port: u16) {
     screenshot(c, "estop.png").await;
 }
 
-/// A cross-origin WebSocket (loopback bind), and a token-less call on a non-loopback
-/// bind: both refused.
-async fn refusals(dir: &Path) {
+/// On a non-loopback bind: a token-less call or read, and a cross-origin WebSocket,
+/// all refused; the page's own files served without the token.
+async fn refusals(port: u16) {
     use tokio_tungstenite::tungstenite::{client::IntoClientRequest, Error};
-    let sub = dir.join("open");
-    std::fs::create_dir_all(&sub).unwrap();
-    let _sim = hil_sim::spawn(hil_sim::SimConfig {
-        link: Some(sub.join("tty")),
-        ..hil_sim::SimConfig::default()
-    })
-    .unwrap();
-    let port = free_port();
-    let _edod = edod(&sub, &sub.join("tty"), &format!("0.0.0.0:{port}"), true);
-    wait_http(port);
+    let read = |path: &str, auth: &str| {
+        format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n{auth}Connection: close\r\n\r\n")
+    };
+    let bearer = format!("Authorization: Bearer {TOKEN}\r\n");
+    for path in ["/api/jobs", "/api/status", "/api/server"] {
+        assert_eq!(
+            http_status(port, &read(path, "")),
+            401,
+            "a token-less read of {path}"
+        );
+        assert_eq!(http_status(port, &read(path, &bearer)), 200, "{path}");
+    }
+    assert_eq!(http_status(port, &read("/", "")), 200, "the page");
     let call = r#"{"jsonrpc":"2.0","id":1,"method":"machine.estop"}"#;
     let post = |auth: &str| {
         format!(

@@ -411,6 +411,9 @@ fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
     }
     cfg.api.socket = work.join("edod.sock");
     cfg.state.dir = work.join("state");
+    // No dashboard: the demo watches edod through its socket, and an edod already
+    // serving its dashboard on the host must not stop the demo.
+    cfg.http.enabled = false;
     Ok((cfg, record_path))
 }
 

@@ -26,6 +26,17 @@ pub trait LayerSource: Send {
     fn layer_count(&self) -> Option<u32> {
         None
     }
+
+    /// Draw each layer's SVG preview from now on ([`crate::svg::layer_svg`], as
+    /// `edoctl plan --svg` writes them), to be taken after each layer with
+    /// [`LayerSource::take_preview_svg`]. A source with nothing to draw (a dry run)
+    /// ignores it.
+    fn draw_previews(&mut self) {}
+
+    /// The SVG preview of the layer [`LayerSource::next_layer`] returned last, if drawn.
+    fn take_preview_svg(&mut self) -> Option<String> {
+        None
+    }
 }
 
 /// Start a planner worker for job `job_id` that skips moves before `start_index`: on a
@@ -265,6 +276,10 @@ pub struct JobSource {
     volume: BuildVolume,
     /// Where the part goes on the bed (a mesh job's once its mesh is loaded).
     placement: Option<Placement>,
+    /// Draw each layer's SVG preview ([`LayerSource::draw_previews`]).
+    draw_previews: bool,
+    /// The last layer's preview, not taken yet.
+    preview_svg: Option<String>,
 }
 
 /// The process settings a job streams with on a machine: the job's nozzle, the
@@ -371,7 +386,22 @@ impl JobSource {
             next_index: 0,
             volume,
             placement,
+            draw_previews: false,
+            preview_svg: None,
         })
+    }
+
+    /// The SVG preview of a planned layer (part coordinates, as `edoctl plan --svg`).
+    fn preview_of(&self, plan: &crate::plan::LayerPlan, islands: &[crate::geom::Region]) -> String {
+        crate::svg::layer_svg(
+            plan,
+            &crate::svg::PreviewInput {
+                job_name: &self.job.name,
+                materials: &self.job.materials,
+                nozzle_mm: self.job.plan.nozzle_mm,
+                islands,
+            },
+        )
     }
 
     /// Where the part goes on the bed (`None` for a mesh job until its mesh is loaded).
@@ -448,6 +478,9 @@ impl LayerSource for JobSource {
         )
         .map_err(|e| format!("layer {} (z = {:.3} mm): {e}", s.index, l.z_mm));
         Some(plan.and_then(|plan| {
+            self.preview_svg = self
+                .draw_previews
+                .then(|| self.preview_of(&plan, &l.islands));
             let lm = crate::pipeline::layer_moves(
                 &plan,
                 &self.settings,
@@ -473,6 +506,14 @@ impl LayerSource for JobSource {
             Layers::Mesh { part, .. } => u32::try_from(part.len()).ok(),
             Layers::MeshBytes(_) => None,
         }
+    }
+
+    fn draw_previews(&mut self) {
+        self.draw_previews = true;
+    }
+
+    fn take_preview_svg(&mut self) -> Option<String> {
+        self.preview_svg.take()
     }
 }
 

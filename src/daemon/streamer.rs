@@ -43,6 +43,9 @@ const TICK: Duration = Duration::from_millis(20);
 const ESTOP_ACK_WAIT: Duration = Duration::from_secs(1);
 /// Underrun warnings at most this often (the count of the ones between goes with the next).
 const UNDERRUN_LOG_EVERY: Duration = Duration::from_secs(10);
+/// While the machine moves (position, moves executed, syringe levels), the snapshot is
+/// pushed (`notify_machine_state`) at most this often, as Moonraker's status updates.
+const MACHINE_NOTIFY_EVERY: Duration = Duration::from_millis(250);
 
 /// An operator's request waiting for the lifecycle's answer.
 enum Waiting {
@@ -218,6 +221,8 @@ pub struct Streamer {
     estops: Vec<EStopWait>,
     /// When an underrun was last logged, and how many came since.
     underrun_logged: Option<(Instant, u64)>,
+    /// The snapshot last pushed (`notify_machine_state`), and when.
+    machine_notified: (Instant, MachineSnapshot),
 }
 
 impl Streamer {
@@ -255,6 +260,7 @@ impl Streamer {
             next_request: 1,
             estops: Vec::new(),
             underrun_logged: None,
+            machine_notified: (epoch, MachineSnapshot::default()),
         }
     }
 
@@ -675,7 +681,7 @@ impl Streamer {
         }
     }
 
-    fn publish(&self) {
+    fn publish(&mut self) {
         let stats = self.link.stats();
         let s = self.link.status();
         let identity = self.link.identity();
@@ -704,22 +710,38 @@ impl Streamer {
             frames_retransmitted: stats.frames_retransmitted,
             srtt_ms: stats.srtt_us as f64 / 1000.0,
         };
-        let changed = {
-            let old = self.shared.machine.borrow();
-            old.connected != snap.connected
-                || old.disconnected_reason != snap.disconnected_reason
-                || old.queue_held_by != snap.queue_held_by
-                || old.store_problem != snap.store_problem
-                || old.state != snap.state
-                || old.faults != snap.faults
-                || old.active_job != snap.active_job
-        };
-        if changed {
+        let now = Instant::now();
+        if machine_notice_due(&self.machine_notified, &snap, now) {
             self.shared
                 .notify(crate::proto::Event::MachineState(snap.clone()));
+            self.machine_notified = (now, snap.clone());
         }
         self.shared.machine.send_replace(snap);
     }
+}
+
+/// Whether `snap` is pushed to subscribers, the last push being `last`: at once when
+/// the connection, the machine's state, its faults, the active job, the held queue or
+/// the store's problem change; while the machine moves (position, moves executed,
+/// syringe levels), at most every [`MACHINE_NOTIFY_EVERY`], so a dashboard's position
+/// follows the print.
+fn machine_notice_due(
+    last: &(Instant, MachineSnapshot),
+    snap: &MachineSnapshot,
+    now: Instant,
+) -> bool {
+    let (at, old) = last;
+    let changed = old.connected != snap.connected
+        || old.disconnected_reason != snap.disconnected_reason
+        || old.queue_held_by != snap.queue_held_by
+        || old.store_problem != snap.store_problem
+        || old.state != snap.state
+        || old.faults != snap.faults
+        || old.active_job != snap.active_job;
+    let moved = old.position_mm != snap.position_mm
+        || old.executed_total != snap.executed_total
+        || old.remaining_nl != snap.remaining_nl;
+    changed || moved && now.duration_since(*at) >= MACHINE_NOTIFY_EVERY
 }
 
 /// An open error in the OS's words: "No such file or directory", not the crate's
@@ -755,6 +777,36 @@ fn log_port(path: &std::path::Path, log: Option<PortLog>) {
 mod tests {
     use super::log_now;
     use std::time::{Duration, Instant};
+
+    #[test]
+    fn the_machine_is_pushed_on_a_change_at_once_and_while_moving_four_times_a_second() {
+        use super::{machine_notice_due, MachineSnapshot};
+        let t0 = Instant::now();
+        let ms = |n: u64| t0 + Duration::from_millis(n);
+        let last = (t0, MachineSnapshot::default());
+        assert!(!machine_notice_due(
+            &last,
+            &MachineSnapshot::default(),
+            ms(5000)
+        ));
+        let moved = MachineSnapshot {
+            position_mm: [1.0, 2.0, 0.2],
+            executed_total: 7,
+            ..MachineSnapshot::default()
+        };
+        assert!(!machine_notice_due(&last, &moved, ms(100)));
+        assert!(machine_notice_due(&last, &moved, ms(250)));
+        let faulted = MachineSnapshot {
+            faults: 1,
+            ..MachineSnapshot::default()
+        };
+        assert!(machine_notice_due(&last, &faulted, ms(1)));
+        let levels = MachineSnapshot {
+            remaining_nl: vec![5],
+            ..MachineSnapshot::default()
+        };
+        assert!(machine_notice_due(&last, &levels, ms(300)));
+    }
 
     #[test]
     fn underruns_are_logged_at_most_every_ten_seconds_with_the_count_between() {

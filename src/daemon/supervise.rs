@@ -302,6 +302,10 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     // First of all: one edod per state directory and socket (nothing read or started
     // before), held until this function returns.
     let _instance = instance::lock(&cfg)?;
+    // Then the dashboard's port: taken, edod refuses to start before it opens the store.
+    let dashboard_listener = super::http::bind(&cfg.http)
+        .await
+        .map_err(anyhow::Error::msg)?;
     instance::secure_db_files(&cfg.state.dir)?;
     let (sim, port) = if cfg.serial.port == SIM_PORT {
         let (c, l) = start_sim(&cfg).await?;
@@ -350,7 +354,8 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         .run(control_rx),
     );
     let api = tokio::spawn(api::serve(listener, Arc::clone(&shared)));
-    let dashboard = tokio::spawn(super::http::serve(Arc::clone(&shared)));
+    let dashboard =
+        dashboard_listener.map(|l| tokio::spawn(super::http::serve(Arc::clone(&shared), l)));
     info!(socket = %shared.config.api.socket.display(), port = %shared.port.display(), "edod ready");
     let notifier = Notifier::start();
     notifier.send("READY=1");
@@ -362,7 +367,9 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         let _ = tokio::time::timeout(Duration::from_secs(5), rx).await;
     }
     api.abort();
-    dashboard.abort();
+    if let Some(d) = dashboard {
+        d.abort();
+    }
     let _ = std::fs::remove_file(&shared.config.api.socket);
     if let Some(c) = sim {
         stop_sim(c).await;

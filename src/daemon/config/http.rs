@@ -19,6 +19,12 @@ pub struct HttpConfig {
     /// when `listen` is not a loopback address (default none).
     #[serde(default)]
     pub token_file: Option<PathBuf>,
+    /// Most plans kept for previews and layer views (default 8).
+    #[serde(default = "default_plan_cache_entries")]
+    pub plan_cache_entries: usize,
+    /// Most bytes of layer views and SVG previews the kept plans hold (default 64 MiB).
+    #[serde(default = "default_plan_cache_bytes")]
+    pub plan_cache_bytes: usize,
 }
 
 fn default_enabled() -> bool {
@@ -27,6 +33,12 @@ fn default_enabled() -> bool {
 fn default_listen() -> String {
     "127.0.0.1:7125".to_string()
 }
+fn default_plan_cache_entries() -> usize {
+    8
+}
+fn default_plan_cache_bytes() -> usize {
+    64 << 20
+}
 
 impl Default for HttpConfig {
     fn default() -> Self {
@@ -34,6 +46,8 @@ impl Default for HttpConfig {
             enabled: default_enabled(),
             listen: default_listen(),
             token_file: None,
+            plan_cache_entries: default_plan_cache_entries(),
+            plan_cache_bytes: default_plan_cache_bytes(),
         }
     }
 }
@@ -59,6 +73,12 @@ impl HttpConfig {
             return Ok(());
         }
         let addr = self.listen_addr().map_err(|m| ("http.listen", m))?;
+        if self.plan_cache_entries == 0 {
+            return Err((
+                "http.plan_cache_entries",
+                "must be at least 1 (a preview's layers are drawn from its kept plan)".into(),
+            ));
+        }
         if !addr.ip().is_loopback() && self.token_file.is_none() {
             return Err((
                 "http.token_file",
@@ -107,6 +127,7 @@ mod tests {
             enabled: true,
             listen: listen.into(),
             token_file: token_file.map(PathBuf::from),
+            ..HttpConfig::default()
         }
     }
 
@@ -127,6 +148,11 @@ mod tests {
             ..http("nonsense", None)
         };
         assert!(off.check().is_ok());
+        let no_plans = HttpConfig {
+            plan_cache_entries: 0,
+            ..http("127.0.0.1:7125", None)
+        };
+        assert_eq!(no_plans.check().unwrap_err().0, "http.plan_cache_entries");
     }
 
     #[test]

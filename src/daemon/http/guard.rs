@@ -9,10 +9,14 @@
 //!   printer. Clients that are not browsers send no `Origin` and are not concerned.
 //! - With a token (`http.token_file`; required beyond loopback), every WebSocket upgrade
 //!   and POST carries it, as `Authorization: Bearer TOKEN` or, for a browser's
-//!   WebSocket, which cannot set headers, as `?token=TOKEN` (401 otherwise). Reads
-//!   (`GET`) need none.
+//!   WebSocket, which cannot set headers, as `?token=TOKEN` (401 otherwise). Beyond
+//!   loopback every read carries it too (the queue and the job files are the
+//!   operator's) but for the page's own files ([`PAGE_FILES`]): the page asks for it.
 
 use axum::http::{header, HeaderMap, Method, StatusCode};
+
+/// The page's files: served to anyone who may reach the listener (they hold no data).
+pub const PAGE_FILES: [&str; 3] = ["/", "/app.js", "/app.css"];
 
 /// The rules of one listener.
 #[derive(Debug, Clone)]
@@ -40,6 +44,12 @@ impl Ask<'_> {
     /// WebSocket (which carries every method).
     fn changes_state(&self) -> bool {
         *self.method != Method::GET && *self.method != Method::HEAD || self.path == "/websocket"
+    }
+
+    /// A request for one of the page's own files ([`PAGE_FILES`]); anything else is the
+    /// API (`/api/...`, `/websocket`) or nothing.
+    fn is_page_file(&self) -> bool {
+        PAGE_FILES.contains(&self.path)
     }
 }
 
@@ -78,23 +88,32 @@ impl Guard {
                 "edod listens on loopback only: address it as localhost or 127.0.0.1",
             ));
         }
-        if !ask.changes_state() {
-            return Ok(());
+        let changes_state = ask.changes_state();
+        if changes_state {
+            Self::same_origin(ask, host)?;
         }
+        // Beyond loopback the token guards every call of the API, reads too; on
+        // loopback (where a token is optional) the calls that change state.
+        let guarded = changes_state || (!self.loopback && !ask.is_page_file());
+        if let (true, Some(token)) = (guarded, &self.token) {
+            if !self.carries(ask, token) {
+                return Err((
+                    StatusCode::UNAUTHORIZED,
+                    "this call needs the token of http.token_file (Authorization: Bearer)",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// A WebSocket upgrade or a POST sent by a page of another origin is refused.
+    fn same_origin(ask: &Ask, host: Option<&str>) -> Result<(), (StatusCode, &'static str)> {
         if let Some(origin) = header_str(ask.headers, header::ORIGIN) {
             let own = host.map(|h| format!("http://{h}"));
             if own.as_deref() != Some(origin) {
                 return Err((
                     StatusCode::FORBIDDEN,
                     "a page of another origin may not control the printer",
-                ));
-            }
-        }
-        if let Some(token) = &self.token {
-            if !self.carries(ask, token) {
-                return Err((
-                    StatusCode::UNAUTHORIZED,
-                    "this call needs the token of http.token_file (Authorization: Bearer)",
                 ));
             }
         }
@@ -217,9 +236,46 @@ mod tests {
         assert_eq!(check(&g, Method::GET, "/websocket", Some(&q), &none), 200);
         // The query carries a token for the WebSocket alone.
         assert_eq!(check(&g, Method::POST, "/api/rpc", Some(&q), &none), 401);
-        // Reads need none; any host name is answered beyond loopback.
+        // Beyond loopback the reads of the API need it too; the page's files do not
+        // (the page asks for the token); any host name is answered.
+        for read in [
+            "/api/status",
+            "/api/jobs",
+            "/api/jobs/1",
+            "/api/server",
+            "/api",
+        ] {
+            assert_eq!(check(&g, Method::GET, read, None, &none), 401, "{read}");
+            assert_eq!(check(&g, Method::GET, read, None, &bad), 401, "{read}");
+            assert_eq!(check(&g, Method::GET, read, None, &good), 200, "{read}");
+        }
+        // The query carries no token but for the WebSocket.
+        assert_eq!(check(&g, Method::GET, "/api/jobs", Some(&q), &none), 401);
+        for page in PAGE_FILES {
+            assert_eq!(check(&g, Method::GET, page, None, &none), 200, "{page}");
+        }
+        // Whatever is not a page file is guarded, however it is spelled.
+        for odd in ["//api/jobs", "/API/jobs", "/%61pi/jobs", "/nothing"] {
+            assert_eq!(check(&g, Method::GET, odd, None, &none), 401, "{odd}");
+        }
+    }
+
+    #[test]
+    fn on_loopback_reads_need_no_token_even_with_one() {
+        let g = Guard {
+            token: Some(TOKEN.into()),
+            loopback: true,
+        };
+        let none = headers(&[(header::HOST, "127.0.0.1:7125")]);
+        assert_eq!(check(&g, Method::GET, "/api/jobs", None, &none), 200);
         assert_eq!(check(&g, Method::GET, "/api/status", None, &none), 200);
-        assert_eq!(check(&g, Method::GET, "/", None, &none), 200);
+        assert_eq!(check(&g, Method::POST, "/api/rpc", None, &none), 401);
+        let open = Guard {
+            token: None,
+            loopback: true,
+        };
+        assert_eq!(check(&open, Method::GET, "/api/jobs", None, &none), 200);
+        assert_eq!(check(&open, Method::POST, "/api/rpc", None, &none), 200);
     }
 
     #[test]

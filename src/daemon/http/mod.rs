@@ -13,6 +13,7 @@
 pub mod guard;
 mod layers;
 mod page;
+pub mod plans;
 mod rest;
 mod ws;
 
@@ -41,17 +42,38 @@ pub struct App {
     pub sockets: Arc<Semaphore>,
     /// Plans made for previews and layer views, one at a time (they take a core).
     pub planning: Arc<Semaphore>,
+    /// The plans kept for previews and layer views.
+    pub plans: Arc<plans::Planning>,
 }
 
 /// The dashboard's routes, guarded.
 pub fn router(shared: Arc<Shared>, guard: Guard) -> Router {
-    let max = shared.config.api.max_request_bytes;
-    let app = Arc::new(App {
+    routes(app(shared, guard))
+}
+
+/// What the handlers of a listener with `guard` share.
+pub fn app(shared: Arc<Shared>, guard: Guard) -> Arc<App> {
+    let http = &shared.config.http;
+    let plans = Arc::new(plans::Planning {
+        cache: Arc::new(plans::PlanCache::new(
+            http.plan_cache_entries,
+            http.plan_cache_bytes,
+        )),
+        config: shared.config.clone(),
+        limits: shared.budget.mesh_limits(),
+    });
+    Arc::new(App {
         sockets: Arc::new(Semaphore::new(shared.config.api.max_clients)),
         planning: Arc::new(Semaphore::new(1)),
+        plans,
         shared,
         guard,
-    });
+    })
+}
+
+/// The routes of `app`, guarded.
+pub fn routes(app: Arc<App>) -> Router {
+    let max = app.shared.config.api.max_request_bytes;
     Router::new()
         .route("/", get(page::index))
         .route("/app.js", get(page::script))
@@ -64,6 +86,7 @@ pub fn router(shared: Arc<Shared>, guard: Guard) -> Router {
         .route("/api/jobs/{id}/layers/{layer}", get(rest::layer))
         .route("/api/rpc", post(rest::rpc))
         .route("/api/preview", post(rest::preview))
+        .route("/api/previews/{id}/layers/{layer}", get(rest::preview_svg))
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(max))
         .layer(axum::middleware::from_fn_with_state(
@@ -91,30 +114,47 @@ async fn guarded(State(app): State<Arc<App>>, req: Request, next: Next) -> Respo
     next.run(req).await
 }
 
-/// Bind `[http] listen` and serve the dashboard until the task is aborted. A dashboard
-/// that cannot be served (the port taken, the token file gone) is logged and left off:
-/// the socket API and the machine go on.
-pub async fn serve(shared: Arc<Shared>) {
-    let http = &shared.config.http;
+/// The dashboard's listener, bound before anything else starts, and its rules.
+pub struct Listening {
+    listener: tokio::net::TcpListener,
+    guard: Guard,
+}
+
+/// Bind `[http] listen` (none when `[http] enabled = false`). A dashboard that cannot
+/// be served (the port taken, the token file unreadable) is an error naming the key
+/// and the address: edod does not start, as a service whose port is taken does not,
+/// and systemd shows why. edod binds it before it opens the job store, so a refused
+/// start leaves the store as it was.
+pub async fn bind(http: &crate::daemon::config::HttpConfig) -> Result<Option<Listening>, String> {
     if !http.enabled {
-        return;
+        return Ok(None);
     }
-    let (addr, token) = match (http.listen_addr(), http.token()) {
-        (Ok(a), Ok(t)) => (a, t),
-        (Err(e), _) => return warn!("http.listen: {e}; no dashboard"),
-        (_, Err(e)) => return warn!("http.token_file: {e}; no dashboard"),
-    };
-    let listener = match tokio::net::TcpListener::bind(addr).await {
-        Ok(l) => l,
-        Err(e) => return warn!("http.listen = {addr}: cannot bind ({e}); no dashboard"),
-    };
+    let addr = http
+        .listen_addr()
+        .map_err(|e| format!("[http] listen: {e}"))?;
+    let token = http
+        .token()
+        .map_err(|e| format!("[http] token_file: {e}"))?;
+    let listener = tokio::net::TcpListener::bind(addr).await.map_err(|e| {
+        format!(
+            "[http] listen = \"{addr}\": cannot bind {addr}: {e}; free the port, choose \
+             another address, or set [http] enabled = false to run without the dashboard"
+        )
+    })?;
     let guard = Guard {
         token,
         loopback: addr.ip().is_loopback(),
     };
-    tracing::info!("dashboard at http://{addr}/");
-    let app = router(Arc::clone(&shared), guard);
-    if let Err(e) = axum::serve(listener, app).await {
+    Ok(Some(Listening { listener, guard }))
+}
+
+/// Serve the dashboard on `listening` until the task is aborted.
+pub async fn serve(shared: Arc<Shared>, listening: Listening) {
+    if let Ok(addr) = listening.listener.local_addr() {
+        tracing::info!("dashboard at http://{addr}/");
+    }
+    let app = router(shared, listening.guard);
+    if let Err(e) = axum::serve(listening.listener, app).await {
         warn!("dashboard stopped: {e}");
     }
 }

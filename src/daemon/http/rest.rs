@@ -10,9 +10,9 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde_json::{json, Value};
 
+use super::plans::{self, Find, Key, Miss, Plan, Want};
 use super::App;
 use crate::daemon::connections::Session;
-use crate::daemon::store::JobSpec;
 use crate::proto::{ApiError, Id, Request};
 
 /// A JSON body.
@@ -122,13 +122,33 @@ pub async fn rpc(State(app): State<Arc<App>>, body: Bytes) -> Response {
     .await
 }
 
-/// What a preview is asked for: a job file, its mesh, and the layer to draw.
+/// What a preview is asked for: a job file and its mesh.
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 struct PreviewAsk {
     job: String,
     #[serde(default)]
     mesh_base64: Option<String>,
+}
+
+impl PreviewAsk {
+    /// The job file and the mesh's bytes, or the error (400) that names what is wrong.
+    fn parse(body: &[u8]) -> Result<(String, Option<Vec<u8>>), ApiError> {
+        let ask: PreviewAsk = serde_json::from_slice(body)
+            .map_err(|e| ApiError::new(ApiError::INVALID_PARAMS, e.to_string()))?;
+        let mesh = ask
+            .mesh_base64
+            .as_deref()
+            .map(crate::daemon::api::base64_decode)
+            .transpose()
+            .map_err(|e| {
+                ApiError::new(
+                    ApiError::INVALID_PARAMS,
+                    format!("mesh_base64: not base64: {e}"),
+                )
+            })?;
+        Ok((ask.job, mesh))
+    }
 }
 
 /// `?layer=N`.
@@ -138,9 +158,10 @@ pub struct LayerQuery {
     layer: Option<u32>,
 }
 
-/// `POST /api/preview?layer=N`: the plan of a job not submitted: its layers (height,
-/// moves), the roads of layer N (the first by default), and what submitting it would
-/// refuse (a part that does not fit the build volume, materials the machine has not).
+/// `POST /api/preview?layer=N`: the plan of a job not submitted: its id (for its
+/// layers' images), its layers (height, moves), the view of layer N (the first by
+/// default), and what submitting it would refuse (a part that does not fit the build
+/// volume, materials the machine has not). The plan is kept ([`plans`]).
 pub async fn preview(
     State(app): State<Arc<App>>,
     Query(q): Query<LayerQuery>,
@@ -148,60 +169,128 @@ pub async fn preview(
 ) -> Response {
     let app2 = Arc::clone(&app);
     with_budget(&app, body, move |body| async move {
-        let ask: PreviewAsk = match serde_json::from_slice(&body) {
+        let (toml, mesh) = match PreviewAsk::parse(&body) {
             Ok(a) => a,
-            Err(e) => {
-                return error_response(ApiError::new(ApiError::INVALID_PARAMS, e.to_string()))
-            }
+            Err(e) => return error_response(e),
         };
-        let mesh = match ask
-            .mesh_base64
-            .as_deref()
-            .map(crate::daemon::api::base64_decode)
-        {
-            Some(Ok(m)) => Some(m),
-            Some(Err(e)) => {
-                return error_response(ApiError::new(
-                    ApiError::INVALID_PARAMS,
-                    format!("mesh_base64: not base64: {e}"),
-                ))
-            }
+        let held = match mesh.as_deref() {
+            Some(m) => match app2.shared.budget.mesh_check(m).await {
+                Ok(h) => Some(h),
+                Err(e) => return error_response(e),
+            },
             None => None,
         };
-        let spec = JobSpec::Toml {
-            toml: ask.job,
-            mesh,
-        };
-        plan_view(&app2, spec, q.layer.unwrap_or(0)).await
+        let layer = q.layer.unwrap_or(0);
+        let recipe = plans::Recipe::Preview { toml, mesh };
+        let r = from_plan(&app2, Find::Recipe(recipe), Want::All, move |k, p| {
+            Ok(p.summary(k, layer))
+        })
+        .await;
+        drop(held);
+        match r {
+            Ok(v) => json_response(StatusCode::OK, v.to_string()),
+            Err(r) => r,
+        }
     })
     .await
 }
 
+/// `GET /api/previews/{id}/layers/{layer}`: a previewed layer's SVG image, as
+/// `edoctl plan --svg` draws it (404 once the plan is no longer kept).
+pub async fn preview_svg(
+    State(app): State<Arc<App>>,
+    Path((id, layer)): Path<(String, u32)>,
+) -> Response {
+    let Some(key) = plans::parse_key(&id) else {
+        return error_response(ApiError::new(
+            ApiError::NO_SUCH_JOB,
+            "no such preview: a preview's id is 32 hex digits",
+        ));
+    };
+    match from_plan(&app, Find::Key(key), Want::Layer(layer), move |_, p| {
+        p.svg(layer)
+    })
+    .await
+    {
+        Ok(svg) => (
+            StatusCode::OK,
+            [
+                (header::CONTENT_TYPE, "image/svg+xml"),
+                // Drawn by edod, shown as an image: it runs nothing and loads nothing.
+                (header::CONTENT_SECURITY_POLICY, "default-src 'none'"),
+                (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
+                (header::CACHE_CONTROL, "private, no-cache"),
+            ],
+            svg,
+        )
+            .into_response(),
+        Err(r) => r,
+    }
+}
+
 /// `GET /api/jobs/{id}/layers/{layer}`: the roads of a stored job's layer, as planned,
-/// with the index of its first move (the page draws the moves executed over them).
+/// with the index of its first move (the page draws the moves executed over them),
+/// from the job's kept plan ([`plans`]).
 pub async fn layer(State(app): State<Arc<App>>, Path((id, layer)): Path<(u32, u32)>) -> Response {
     let reader = app.shared.store.reader.clone();
-    let planning = match plan_slot(&app).await {
-        Ok(p) => p,
+    let stored = match blocking(move || reader.source_blocking(id)).await {
+        Ok(Ok(s)) => s,
+        Ok(Err(e)) => return error_response(crate::daemon::api_error(e)),
         Err(r) => return r,
     };
-    let cfg = app.shared.config.clone();
-    let done = tokio::task::spawn_blocking(move || {
-        let _planning = planning;
-        let (job, mesh) = reader
-            .source_blocking(id)
-            .map_err(crate::daemon::api_error)?;
-        let drives = cfg.machine.syringes.len();
-        let source = crate::daemon::planner::source_of(&job, mesh.as_deref(), drives, &cfg)
-            .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e))?;
-        super::layers::view(source, layer).map_err(|e| ApiError::new(ApiError::INVALID_PARAMS, e))
-    })
-    .await;
-    match done {
-        Ok(Ok(v)) => json_response(StatusCode::OK, v.to_string()),
-        Ok(Err(e)) => error_response(e),
-        Err(e) => error_response(ApiError::new(ApiError::INTERNAL, e.to_string())),
+    let (job, mesh) = stored;
+    let recipe = plans::Recipe::Stored {
+        job: Box::new(job),
+        mesh,
+    };
+    match from_plan(
+        &app,
+        Find::Recipe(recipe),
+        Want::Layer(layer),
+        move |_, p| p.view(layer),
+    )
+    .await
+    {
+        Ok(v) => json_response(StatusCode::OK, v),
+        Err(r) => r,
     }
+}
+
+/// `f` on a blocking thread (it plans, or reads the store, or locks the plans).
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, Response> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| error_response(ApiError::new(ApiError::INTERNAL, e.to_string())))
+}
+
+/// `read` of the plan `find` names: from the kept plan if it has gone as far as
+/// `want`, else planned on, one plan at a time, on a blocking thread.
+async fn from_plan<T: Send + 'static>(
+    app: &App,
+    find: Find,
+    want: Want,
+    read: impl Fn(&Key, &Plan) -> Result<T, Miss> + Send + Sync + 'static,
+) -> Result<T, Response> {
+    let read = Arc::new(read);
+    let (planning, r) = (Arc::clone(&app.plans), Arc::clone(&read));
+    let (find, kept) = blocking(move || {
+        let kept = planning.lookup(&find, want, &*r);
+        (find, kept)
+    })
+    .await?;
+    if let Some(answer) = kept {
+        return answer.map_err(error_response);
+    }
+    let place = plan_slot(app).await?;
+    let planning = Arc::clone(&app.plans);
+    let answer = blocking(move || {
+        let _place = place;
+        planning.plan(find, want, &*read)
+    })
+    .await?;
+    answer.map_err(error_response)
 }
 
 /// The one place to plan, waited for up to the idle timeout.
@@ -213,35 +302,5 @@ async fn plan_slot(app: &App) -> Result<tokio::sync::OwnedSemaphorePermit, Respo
             ApiError::LIMIT,
             "edod is planning another preview; try again later",
         ))),
-    }
-}
-
-/// Plan `spec` on a blocking thread for a preview: its problems as a submission would
-/// find them, and the view of `layer`.
-async fn plan_view(app: &App, spec: JobSpec, layer: u32) -> Response {
-    let JobSpec::Toml { toml, mesh } = spec else {
-        return error_response(ApiError::new(ApiError::INVALID_PARAMS, "not a job file"));
-    };
-    let held = match mesh.as_deref() {
-        Some(m) => match app.shared.budget.mesh_check(m).await {
-            Ok(h) => Some(h),
-            Err(e) => return error_response(e),
-        },
-        None => None,
-    };
-    let planning = match plan_slot(app).await {
-        Ok(p) => p,
-        Err(r) => return r,
-    };
-    let machine = app.shared.config.machine.clone();
-    let limits = app.shared.budget.mesh_limits();
-    let done = tokio::task::spawn_blocking(move || {
-        let _held = (held, planning);
-        super::layers::preview(&toml, mesh.as_deref(), &machine, &limits, layer)
-    })
-    .await;
-    match done {
-        Ok(v) => json_response(StatusCode::OK, v.to_string()),
-        Err(e) => error_response(ApiError::new(ApiError::INTERNAL, e.to_string())),
     }
 }

@@ -17,8 +17,14 @@ const TOKEN: &str = "0123456789abcdef0123";
 /// A daemon's shared state on a temporary store, with a streamer that acknowledges
 /// e-stops.
 async fn shared(dir: &std::path::Path, max_request_bytes: usize) -> Arc<Shared> {
+    shared_with(dir, |c| c.api.max_request_bytes = max_request_bytes).await
+}
+
+/// As [`shared`], `set` changing the configuration.
+async fn shared_with(dir: &std::path::Path, set: impl FnOnce(&mut Config)) -> Arc<Shared> {
     let mut config = Config::from_toml("", "test").unwrap();
-    config.api.max_request_bytes = max_request_bytes;
+    config.api.max_request_bytes = 1 << 20;
+    set(&mut config);
     config.api.idle_timeout_s = 2.0;
     config.state.dir = dir.to_path_buf();
     let (events, _) = mpsc::unbounded_channel();
@@ -126,6 +132,7 @@ async fn reads_answer_as_the_methods_they_name() {
     let get = |p: &str| {
         Request::get(p)
             .header(header::HOST, "printer.lan")
+            .header(header::AUTHORIZATION, format!("Bearer {TOKEN}"))
             .body(Body::empty())
             .unwrap()
     };
@@ -170,6 +177,56 @@ async fn beyond_loopback_a_call_without_the_token_is_refused_401() {
     let (s, body) = send(app.clone(), call(Some(&format!("Bearer {TOKEN}")))).await;
     assert_eq!(s, StatusCode::OK);
     assert!(body.contains("\"acked_after_us\":20"), "{body}");
+}
+
+#[tokio::test]
+async fn beyond_loopback_reads_need_the_token_but_the_page_does_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 1 << 20).await;
+    let get = |p: &str, auth: Option<&str>| {
+        let mut b = Request::get(p).header(header::HOST, "printer.lan:7125");
+        if let Some(a) = auth {
+            b = b.header(header::AUTHORIZATION, a);
+        }
+        b.body(Body::empty()).unwrap()
+    };
+    let bearer = format!("Bearer {TOKEN}");
+    let app = router(Arc::clone(&shared), beyond_loopback());
+    for p in [
+        "/api/server",
+        "/api/status",
+        "/api/jobs",
+        "/api/jobs/1/layers/0",
+    ] {
+        let (s, body) = send(app.clone(), get(p, None)).await;
+        assert_eq!(s, StatusCode::UNAUTHORIZED, "{p}: {body}");
+        assert!(body.contains("http.token_file"), "{p}: {body}");
+        let (s, _) = send(app.clone(), get(p, Some("Bearer not-the-token-at-all"))).await;
+        assert_eq!(s, StatusCode::UNAUTHORIZED, "{p}");
+    }
+    let (s, body) = send(app.clone(), get("/api/jobs", Some(&bearer))).await;
+    assert_eq!((s, body.as_str()), (StatusCode::OK, "[]"));
+    // The page loads without the token, and asks for it.
+    for p in ["/", "/app.js", "/app.css"] {
+        assert_eq!(
+            send(app.clone(), get(p, None)).await.0,
+            StatusCode::OK,
+            "{p}"
+        );
+    }
+    // On loopback the reads stay open, with or without a token file.
+    let on_loopback = Guard {
+        token: Some(TOKEN.into()),
+        loopback: true,
+    };
+    for guard in [loopback(), on_loopback] {
+        let app = router(Arc::clone(&shared), guard);
+        let r = Request::get("/api/jobs")
+            .header(header::HOST, HOST)
+            .body(Body::empty())
+            .unwrap();
+        assert_eq!(send(app, r).await, (StatusCode::OK, "[]".to_string()));
+    }
 }
 
 #[tokio::test]
@@ -309,4 +366,245 @@ async fn a_websocket_from_another_origin_or_without_the_token_is_refused() {
     }
     let with = format!("ws://{addr}/websocket?token={TOKEN}");
     assert!(tokio_tungstenite::connect_async(with).await.is_ok());
+}
+
+/// Open a WebSocket on `addr` by hand (raw TCP): the stream after the 101 answer.
+async fn raw_websocket(addr: std::net::SocketAddr) -> tokio::net::TcpStream {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let hello = format!(
+        "GET /websocket HTTP/1.1\r\nHost: {addr}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+         Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    );
+    s.write_all(hello.as_bytes()).await.unwrap();
+    let mut head = Vec::new();
+    while !head.ends_with(b"\r\n\r\n") {
+        let mut b = [0u8; 1];
+        assert_eq!(
+            s.read(&mut b).await.unwrap(),
+            1,
+            "closed during the upgrade"
+        );
+        head.push(b[0]);
+    }
+    let head = String::from_utf8_lossy(&head);
+    assert!(head.starts_with("HTTP/1.1 101"), "{head}");
+    s
+}
+
+/// A message over `api.max_request_bytes` (64 kB here) is refused while it arrives:
+/// the frame's header announces 1 MiB (within the WebSocket library's own limits), only
+/// 4 kB follow, and edod answers the refusal and closes
+/// at once (it would wait for the rest if it read messages whole before counting
+/// them). Another dashboard is served on, before and after.
+#[tokio::test]
+async fn an_oversized_websocket_message_is_refused_as_it_arrives() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio_tungstenite::tungstenite::Message;
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 64 * 1024).await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let (mut other, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/websocket"))
+        .await
+        .unwrap();
+    other.send(Message::text(rpc("server.info"))).await.unwrap();
+    let reply = other.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(reply.contains("\"name\":\"edod\""), "{reply}");
+
+    let mut s = raw_websocket(addr).await;
+    // FIN + text; masked, 64-bit length: 1 MiB announced.
+    let mut frame = vec![0x81u8, 0x80 | 127];
+    frame.extend_from_slice(&(1u64 << 20).to_be_bytes());
+    frame.extend_from_slice(&[1, 2, 3, 4]);
+    frame.extend(std::iter::repeat_n(b'x' ^ 1, 4096));
+    s.write_all(&frame).await.unwrap();
+    let mut answer = Vec::new();
+    let read = tokio::time::timeout(
+        std::time::Duration::from_secs(5),
+        s.read_to_end(&mut answer),
+    )
+    .await;
+    assert!(
+        matches!(read, Ok(Ok(_))),
+        "edod did not close the connection: it waits for the rest of the message"
+    );
+    let answer = String::from_utf8_lossy(&answer);
+    assert!(answer.contains("api.max_request_bytes"), "{answer}");
+
+    other
+        .send(Message::text(rpc("machine.status")))
+        .await
+        .unwrap();
+    let reply = other.next().await.unwrap().unwrap().into_text().unwrap();
+    assert!(reply.contains("\"executed_total\":0"), "{reply}");
+}
+
+fn annulus(radius_mm: f64) -> String {
+    std::fs::read_to_string("config/examples/paper-annulus.toml")
+        .unwrap()
+        .replace("radius = 30.0", &format!("radius = {radius_mm:.1}"))
+}
+
+fn get(path: &str) -> Request<Body> {
+    Request::get(path)
+        .header(header::HOST, HOST)
+        .body(Body::empty())
+        .unwrap()
+}
+
+/// Preview `job`: the answer's JSON.
+async fn preview_of(app: &axum::Router, job: &str) -> serde_json::Value {
+    let body = serde_json::json!({ "job": job }).to_string();
+    let (s, out) = send(
+        app.clone(),
+        post("/api/preview").body(Body::from(body)).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{out:.300}");
+    serde_json::from_str(&out).unwrap()
+}
+
+/// A preview's layers, its images and the layer views of the job once submitted come
+/// from one plan: asked again, nothing is planned again.
+#[tokio::test]
+async fn a_preview_its_images_and_the_jobs_layer_views_share_one_plan() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = super::app(shared(dir.path(), 1 << 20).await, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let made = || app.plans.cache.plans_made();
+    let job = annulus(30.0);
+    let v = preview_of(&routes, &job).await;
+    assert_eq!(v["ok"], true, "{v:.300}");
+    let id = v["id"].as_str().unwrap().to_string();
+    assert_eq!(id.len(), 32, "{id}");
+    let layers = v["layers"].as_array().unwrap().len();
+    assert!(layers >= 2, "{v:.300}");
+    assert_eq!(made(), 1);
+    let again = preview_of(&routes, &job).await;
+    assert_eq!(again["id"], v["id"]);
+    assert_eq!(again["total_moves"], v["total_moves"]);
+    for layer in 0..layers {
+        let r = routes
+            .clone()
+            .oneshot(get(&format!("/api/previews/{id}/layers/{layer}")))
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "layer {layer}");
+        assert_eq!(r.headers()[header::CONTENT_TYPE], "image/svg+xml");
+        let svg = r.into_body().collect().await.unwrap().to_bytes();
+        let svg = String::from_utf8_lossy(&svg);
+        assert!(
+            svg.starts_with("<svg") && svg.contains(&format!("layer {layer} z=")),
+            "{svg:.200}"
+        );
+    }
+    let (s, _) = send(
+        routes.clone(),
+        get(&format!("/api/previews/{id}/layers/{layers}")),
+    )
+    .await;
+    assert_eq!(s, StatusCode::BAD_REQUEST, "a layer past the last");
+    // Submitted, the job's layer views come from the same plan.
+    let submit = serde_json::json!({"jsonrpc": "2.0", "id": 1, "method": "job.submit", "params": {"job": job}});
+    let (s, out) = send(
+        routes.clone(),
+        post("/api/rpc")
+            .body(Body::from(submit.to_string()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(out.contains("\"id\":1"), "{out}");
+    for layer in [1, 0] {
+        let (s, out) = send(routes.clone(), get(&format!("/api/jobs/1/layers/{layer}"))).await;
+        assert_eq!(s, StatusCode::OK, "{out:.300}");
+        let view: serde_json::Value = serde_json::from_str(&out).unwrap();
+        assert_eq!(view["layer"], layer);
+        assert_eq!(view["layers"], layers);
+        assert!(view["moves"].as_array().unwrap().len() > 10);
+    }
+    assert_eq!(made(), 1, "planned again");
+    // Another job is another plan.
+    let other = preview_of(&routes, &annulus(25.0)).await;
+    assert_ne!(other["id"], v["id"]);
+    assert_eq!(made(), 2);
+    // An id never made, or not one.
+    for bad in ["0123456789abcdef0123456789abcdef", "..%2F..%2Fetc", "zz"] {
+        let (s, out) = send(
+            routes.clone(),
+            get(&format!("/api/previews/{bad}/layers/0")),
+        )
+        .await;
+        assert_eq!(s, StatusCode::NOT_FOUND, "{bad}: {out}");
+        assert!(out.contains("preview"), "{out}");
+    }
+}
+
+/// The kept plans stay within `http.plan_cache_entries` and `http.plan_cache_bytes`:
+/// the least recently used goes first; a layer past the byte bound is drawn from a plan
+/// made again, not kept.
+#[tokio::test]
+async fn the_kept_plans_stay_within_their_bounds() {
+    let dir = tempfile::tempdir().unwrap();
+    let two = shared_with(dir.path(), |c| {
+        c.http.plan_cache_entries = 2;
+    })
+    .await;
+    let app = super::app(two, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let cache = &app.plans.cache;
+    let mut ids = Vec::new();
+    for radius in [30.0, 28.0, 26.0] {
+        ids.push(preview_of(&routes, &annulus(radius)).await["id"].clone());
+        assert!(cache.held().0 <= 2, "{:?}", cache.held());
+    }
+    assert_eq!(cache.plans_made(), 3);
+    let svg = |id: &serde_json::Value, layer: u32| {
+        get(&format!(
+            "/api/previews/{}/layers/{layer}",
+            id.as_str().unwrap()
+        ))
+    };
+    // The first, least recently used, is gone; the last two are kept.
+    let (s, out) = send(routes.clone(), svg(&ids[0], 0)).await;
+    assert_eq!(s, StatusCode::NOT_FOUND, "{out}");
+    assert!(out.contains("preview the job again"), "{out}");
+    for id in &ids[1..] {
+        assert_eq!(send(routes.clone(), svg(id, 1)).await.0, StatusCode::OK);
+    }
+    assert_eq!(cache.plans_made(), 3);
+
+    // Bytes: room for all but the last layer.
+    let job = annulus(30.0);
+    let full = {
+        let dir = tempfile::tempdir().unwrap();
+        let app = super::app(shared(dir.path(), 1 << 20).await, loopback());
+        preview_of(&super::routes(Arc::clone(&app)), &job).await;
+        app.plans.cache.held().1
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let tight = full - 33;
+    let small = shared_with(dir.path(), |c| c.http.plan_cache_bytes = tight).await;
+    let app = super::app(small, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let cache = &app.plans.cache;
+    let v = preview_of(&routes, &job).await;
+    let layers = v["layers"].as_array().unwrap().len() as u32;
+    assert!(v["view"]["moves"].as_array().is_some(), "layer 0 kept");
+    let (_, bytes) = cache.held();
+    assert!(bytes <= tight, "{bytes} bytes held, bound {tight}");
+    assert_eq!(cache.plans_made(), 1);
+    // The last layer was not kept: planned again to draw it, and not kept either.
+    let (s, out) = send(routes.clone(), svg(&v["id"], layers - 1)).await;
+    assert_eq!(s, StatusCode::OK, "{out:.200}");
+    assert!(out.starts_with("<svg"));
+    assert_eq!(cache.plans_made(), 2);
+    assert_eq!(cache.held().1, bytes);
+    // The first was kept.
+    assert_eq!(
+        send(routes.clone(), svg(&v["id"], 0)).await.0,
+        StatusCode::OK
+    );
+    assert_eq!(cache.plans_made(), 2);
 }

@@ -44,19 +44,41 @@ function onMessage(ev) {
 
 function setLink(text) { $("link").textContent = text; }
 
+// A GET or POST of the API, with the token when there is one (beyond loopback every
+// call of the API needs it, reads too).
+function api(path, init = {}) {
+  const headers = Object.assign({}, init.headers);
+  if (state.token) headers.Authorization = "Bearer " + state.token;
+  return fetch(path, Object.assign({}, init, { headers }));
+}
+
+function askToken(why) {
+  state.token = null;
+  sessionStorage.removeItem("edo-token");
+  $("token-form").hidden = false;
+  setLink(why);
+  $("token").focus();
+}
+
 async function connect() {
+  let r;
   try {
-    state.server = await (await fetch("/api/server")).json();
+    r = await api("/api/server");
   } catch {
     setLink("edod does not answer; retrying…");
     setTimeout(connect, 2000);
     return;
   }
-  if (state.server.token_required && !state.token) {
-    $("token-form").hidden = false;
-    setLink("this printer needs its token");
+  if (r.status === 401) {
+    askToken(state.token ? "edod refused this token: enter the token of http.token_file" : "this printer needs its token (http.token_file)");
     return;
   }
+  if (!r.ok) {
+    setLink("edod answers " + r.status + "; retrying…");
+    setTimeout(connect, 2000);
+    return;
+  }
+  state.server = await r.json();
   const url = new URL("/websocket", location.href);
   url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
   if (state.token) url.searchParams.set("token", state.token);
@@ -67,8 +89,8 @@ async function connect() {
     setLink("connected to " + state.server.name + " " + state.server.version + " (" + state.server.port + ")");
     try {
       await call("subscribe");
-      onMachine(await call("machine.status"));
       const st = await call("machine.status");
+      onMachine(st);
       if (st.progress) onProgress(st.progress);
       for (const j of await call("job.list")) state.jobs.set(j.id, j);
       renderJobs();
@@ -77,10 +99,7 @@ async function connect() {
   ws.onclose = () => {
     for (const p of state.pending.values()) p.reject(new Error("connection lost"));
     state.pending.clear();
-    if (state.server.token_required) {
-      // A refused token closes the socket at once: ask again.
-      sessionStorage.removeItem("edo-token");
-    }
+    // Reconnecting asks /api/server first: a token edod no longer takes is asked for.
     setLink("disconnected; reconnecting…");
     setTimeout(connect, 1000);
   };
@@ -221,7 +240,7 @@ function onProgress(p) {
 async function loadLayer(job, layer, key) {
   state.layerLoading = key;
   try {
-    const r = await fetch("/api/jobs/" + job + "/layers/" + layer);
+    const r = await api("/api/jobs/" + job + "/layers/" + layer);
     if (r.ok) {
       state.layer = Object.assign(await r.json(), { key, job });
       drawLayer($("layer-view"), state.layer);
@@ -235,11 +254,15 @@ async function loadLayer(job, layer, key) {
 function renderActive() {
   const p = state.progress;
   const j = p && state.jobs.get(p.job_id);
-  if (!p || !j) { $("active").textContent = "No job is printing."; return; }
+  if (!p || !j) {
+    $("active").textContent = "No job is printing.";
+    $("composition").textContent = "No job is printing.";
+    return;
+  }
   $("active").textContent = "Job " + j.id + " (" + j.name + "): " + j.state + ", " + progressText(j) + ", ETA " + fmtEta(p.eta_s);
   const designed = designedComposition();
-  const built = p.composition ? p.composition.map((f) => (f * 100).toFixed(0) + " %").join(" / ") : "—";
-  $("composition").textContent = "designed " + (designed || "—") + "; built " + built;
+  const built = p.composition ? p.composition.map((f) => (f * 100).toFixed(0) + " %").join(" / ") : "not reported yet";
+  $("composition").textContent = "designed " + (designed || "not known yet") + "; built " + built;
 }
 
 // The composition the plan gives the move the machine executed last.
@@ -263,21 +286,24 @@ const FAULTS = [
   [32, "The machine refused a move.", "Check the machine's configuration against edod.toml.", null],
 ];
 
+// The machine panel, from machine.status and notify_machine_state (pushed as the
+// machine moves, so the position follows the print).
 function onMachine(m) {
+  const before = state.machine;
   state.machine = m;
   const dl = $("machine");
   dl.replaceChildren();
   const rows = [
-    ["Connected", m.connected ? "yes" : "no" + (m.disconnected_reason ? " (" + m.disconnected_reason + ")" : "")],
-    ["State", m.state || "—"],
-    ["Position", m.position_mm.map((v) => v.toFixed(2)).join(", ") + " mm"],
-    ["Executed", String(m.executed_total)],
-    ["Queued", String(m.queued)],
-    ["Underruns", String(m.underruns)],
+    ["connected", "Connected", m.connected ? "yes" : "no" + (m.disconnected_reason ? " (" + m.disconnected_reason + ")" : "")],
+    ["state", "State", m.state || "not known"],
+    ["position", "Position", ["x", "y", "z"].map((a, i) => a + " " + m.position_mm[i].toFixed(2)).join(", ") + " mm"],
+    ["executed", "Executed", String(m.executed_total)],
+    ["queued", "Queued", String(m.queued)],
+    ["underruns", "Underruns", String(m.underruns)],
   ];
-  for (const [k, v] of rows) {
+  for (const [id, k, v] of rows) {
     const dt = document.createElement("dt"), dd = document.createElement("dd");
-    dt.textContent = k; dd.textContent = v;
+    dt.textContent = k; dd.textContent = v; dd.id = "machine-" + id;
     dl.append(dt, dd);
   }
   const caps = (state.server?.machine?.syringes) || [];
@@ -293,7 +319,8 @@ function onMachine(m) {
     li.append(name + ": " + (nl / 1e6).toFixed(2) + " ml ", meter);
     ul.append(li);
   });
-  renderFaults(m);
+  // Alerts are announced when they appear: redrawn only when the faults change.
+  if (!before || before.faults !== m.faults) renderFaults(m);
   if (m.store_problem) setLink("job store: " + m.store_problem);
 }
 
@@ -310,7 +337,6 @@ function renderFaults(m) {
     if (action === "refill") {
       const b = document.createElement("button");
       b.type = "button"; b.textContent = "Syringes refilled";
-      b.setAttribute("aria-label", "Tell edod the syringes were refilled");
       b.addEventListener("click", () => call("machine.refill").catch((e) => setLink(e.message)));
       div.append(b);
     }
@@ -350,9 +376,7 @@ function drawLayer(svg, l) {
   });
   svg.append(planned, done);
   svg.dataset.drawn = "0";
-  $("layer-caption").textContent = svg.id === "layer-view"
-    ? "Layer " + (l.layer + 1) + (l.layers ? " of " + l.layers : "") + (l.z_mm != null ? ", z = " + l.z_mm.toFixed(2) + " mm" : "")
-    : "";
+  $("layer-caption").textContent = "Layer " + (l.layer + 1) + (l.layers ? " of " + l.layers : "") + (l.z_mm != null ? ", z = " + l.z_mm.toFixed(2) + " mm" : "");
 }
 
 // The moves the machine has executed, over the plan: full colour and bold.
@@ -407,11 +431,11 @@ function readFile(input, asBase64) {
   });
 }
 
-async function preview(layer) {
-  const headers = { "Content-Type": "application/json" };
-  if (state.token) headers.Authorization = "Bearer " + state.token;
-  const r = await fetch("/api/preview?layer=" + layer, {
-    method: "POST", headers, body: JSON.stringify(state.preview.ask),
+// The plan of the chosen files, kept by edod under its id; its layers' images are the
+// SVG previews `edoctl plan --svg` draws.
+async function preview() {
+  const r = await api("/api/preview", {
+    method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(state.preview.ask),
   });
   const v = await r.json();
   if (!r.ok) throw new Error(v.error ? v.error.message : r.statusText);
@@ -427,7 +451,7 @@ $("submit-form").addEventListener("submit", async (e) => {
     const ask = { job };
     if (mesh) ask.mesh_base64 = mesh;
     state.preview = { ask };
-    showPreview(await preview(0));
+    showPreview(await preview());
     $("submit-result").textContent = "";
   } catch (err) {
     $("submit-result").textContent = "preview failed: " + err.message;
@@ -435,27 +459,58 @@ $("submit-form").addEventListener("submit", async (e) => {
 });
 
 function showPreview(v) {
+  state.preview.id = v.id;
+  state.preview.layers = v.layers.length;
   $("preview").hidden = false;
   const n = v.layers.length;
-  $("preview-summary").textContent = (v.name ? v.name + ": " : "") + n + " layers, " + (v.total_moves ?? 0) + " moves" + (v.ok ? "" : " — cannot be printed as it is");
+  $("preview-summary").textContent = (v.name ? v.name + ": " : "") + n + " layers, " + (v.total_moves ?? 0) + " moves" + (v.ok ? "" : ": cannot be printed as it is");
   const ul = $("preview-problems");
   ul.replaceChildren();
   for (const p of v.problems) {
     ul.append(Object.assign(document.createElement("li"), { textContent: p, className: "problem" }));
   }
-  $("preview-layer").max = String(Math.max(0, n - 1));
-  $("preview-layer").disabled = n === 0;
+  $("preview-warnings").hidden = v.problems.length === 0;
+  const slider = $("preview-layer");
+  slider.max = String(Math.max(0, n - 1));
+  slider.value = "0";
+  slider.disabled = n === 0;
   $("confirm").disabled = !v.ok;
-  if (v.view) {
-    drawLayer($("preview-view"), v.view);
-    $("preview-layer-out").textContent = (v.view.layer + 1) + " of " + n;
-  } else {
-    $("preview-view").replaceChildren();
-  }
+  showPreviewLayer(0);
 }
 
-$("preview-layer").addEventListener("change", async (e) => {
-  try { showPreview(await preview(Number(e.target.value))); } catch (err) { $("submit-result").textContent = err.message; }
+// Layer `layer`'s image, fetched with the token and shown from a blob: URL. A preview
+// edod no longer keeps is made again once.
+async function showPreviewLayer(layer, again = true) {
+  const img = $("preview-image"), p = state.preview;
+  if (!p || p.layers === 0) {
+    img.hidden = true;
+    $("preview-layer-out").textContent = "no layers";
+    return;
+  }
+  $("preview-layer-out").textContent = (layer + 1) + " of " + p.layers;
+  const r = await api("/api/previews/" + p.id + "/layers/" + layer);
+  if (state.preview !== p || Number($("preview-layer").value) !== layer) return;
+  if (r.status === 404 && again) {
+    showPreview(await preview());
+    $("preview-layer").value = String(layer);
+    return showPreviewLayer(layer, false);
+  }
+  if (!r.ok) {
+    const v = await r.json().catch(() => null);
+    img.hidden = true;
+    $("preview-layer-out").textContent += ": " + (v && v.error ? v.error.message : r.statusText);
+    return;
+  }
+  const url = URL.createObjectURL(await r.blob());
+  if (img.src.startsWith("blob:")) URL.revokeObjectURL(img.src);
+  img.src = url;
+  img.alt = "Layer " + (layer + 1) + " of " + p.layers + " as planned: contours and offsets coloured by composition";
+  img.dataset.layer = String(layer);
+  img.hidden = false;
+}
+
+$("preview-layer").addEventListener("input", (e) => {
+  showPreviewLayer(Number(e.target.value)).catch((err) => { $("submit-result").textContent = err.message; });
 });
 
 $("confirm").addEventListener("click", async () => {
@@ -472,6 +527,10 @@ $("confirm").addEventListener("click", async () => {
   }
 });
 
-$("discard").addEventListener("click", () => { $("preview").hidden = true; state.preview = null; });
+$("discard").addEventListener("click", () => {
+  $("preview").hidden = true;
+  state.preview = null;
+  $("job-file").focus();
+});
 
 connect();
