@@ -41,7 +41,8 @@
 //! each path starts (within a layer; past the layer's last road the last composition is
 //! held). A layer whose start the chamber does not hold begins, with `purge_xy_mm` set,
 //! with a purge pad off the part commanded with the layer's first V_dead of designed
-//! composition. [`StreamState`] carries the chamber's content across layers, and
+//! composition (through a well-mixed or dispersing chamber: the first designed
+//! composition for the model's washout, [`purge`]). [`StreamState`] carries the chamber's content across layers, and
 //! [`LayerStats`] reports the designed-versus-delivered error (largest per-material
 //! difference, volume-weighted mean and maximum, move by move and road by road) and the
 //! roads whose error exceeds `mixer_tolerance` ([`MixerLimit`]: where and by how much).
@@ -67,6 +68,7 @@ use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT, MAX_SYRINGE
 use crate::mixer::{Mixer, MixerModel, MixerOptions};
 
 mod mixing;
+pub mod purge;
 use crate::plan::LayerPlan;
 use crate::toolpath::{self, OrderSettings, SeamMode, SubRegionOrder, ToolPath};
 use glam::{DVec2, DVec3};
@@ -153,15 +155,20 @@ pub struct ProcessSettings {
     /// Purge position (x, y mm, off the part: a waste bin, or a spot on the bed where the
     /// purges stack into a tower). Where the mixing chamber does not hold what a layer
     /// starts with (the lead cannot reach back into the previous layer), the layer
-    /// begins with a purge there: V_dead laid as a zig-zag pad, commanded with the
-    /// layer's first V_dead of designed composition, so the designed composition leaves
-    /// the nozzle where the layer's first road starts. Default unset (no purge: the
-    /// layer start's error is reported).
+    /// begins with a purge there, laid as a zig-zag pad: under plug flow V_dead
+    /// commanded with the layer's first V_dead of designed composition, so the designed
+    /// composition leaves the nozzle where the layer's first road starts; through a
+    /// well-mixed or dispersing chamber the layer's first designed composition for the
+    /// model's washout (`purge::washout_nl`: until the chamber holds it within
+    /// `purge_min_error`, several V_dead for a well-mixed one). Default unset (no
+    /// purge: the layer start's error is reported).
     pub purge_xy_mm: Option<[f64; 2]>,
     /// Side of the square purge pad, mm. Default 5.
     pub purge_pad_mm: f64,
     /// Purge only where the chamber's content differs from the layer's first V_dead
-    /// by more than this (largest per-material difference). Default 0.02.
+    /// (plug flow) or first designed composition (other mixers) by more than this
+    /// (largest per-material difference); through other mixers also how close the
+    /// purge washes the chamber to it. Default 0.02.
     pub purge_min_error: f64,
     /// Seam placement of closed loops. Default `aligned`.
     pub seam: SeamMode,
@@ -1202,36 +1209,40 @@ impl Builder<'_> {
     }
 
     /// Before the layer's first road: a purge at `purge_xy_mm` where the chamber does
-    /// not hold the layer's first V_dead of designed composition (and a purge position
-    /// is set). The pad's segments are commanded the designed stream's window [0,
-    /// V_dead) in order, so after it the chamber holds exactly that.
+    /// not hold what the layer starts with (and a purge position is set). Under plug
+    /// flow the pad's segments are commanded the designed stream's window [0, V_dead)
+    /// in order, so after it the chamber holds exactly that. Through another mixer the
+    /// pad pushes the layer's first designed composition for the model's washout
+    /// ([`purge::washout_nl`]), so after it the chamber holds that within
+    /// `purge_min_error`.
     fn purge_if_needed(&mut self, designed: &[(f64, &[f64])]) -> Result<(), PipelineError> {
         let s = self.settings;
         let dead = s.v_dead_ul * 1000.0;
-        let Some([x, y]) = s.purge_xy_mm else {
+        let (Some([x, y]), Some(chamber), Some(first)) = (
+            s.purge_xy_mm,
+            self.state.chamber.as_ref(),
+            designed.first().map(|d| d.1),
+        ) else {
             return Ok(());
         };
-        if !(s.mixing_lead && dead > 0.0)
-            || designed.is_empty()
-            || self
-                .state
-                .chamber
-                .as_ref()
-                .is_none_or(|c| chamber_mismatch(&c.contents(), designed) <= s.purge_min_error)
-        {
-            return Ok(());
-        }
+        let plug = s.mixer_model == MixerModel::Plug;
+        let volume_nl = if !(s.mixing_lead && dead > 0.0) {
+            0.0
+        } else if plug {
+            if chamber_mismatch(&chamber.contents(), designed) <= s.purge_min_error {
+                0.0
+            } else {
+                dead
+            }
+        } else {
+            purge::washout_nl(chamber, &s.mixer(), first, s.purge_min_error)
+        };
         let section_nl_per_mm = self.section_mm2 * 1000.0;
-        if !(section_nl_per_mm > 0.0 && (dead / section_nl_per_mm).is_finite()) {
+        let pad_mm = volume_nl / section_nl_per_mm;
+        if !(volume_nl > 0.0 && section_nl_per_mm > 0.0 && pad_mm.is_finite()) {
             return Ok(());
         }
-        let points = purge_zigzag(
-            DVec2::new(x, y),
-            s.purge_pad_mm,
-            s.road_width(),
-            dead / section_nl_per_mm,
-        );
-        let first = designed[0].1;
+        let points = purge_zigzag(DVec2::new(x, y), s.purge_pad_mm, s.road_width(), pad_mm);
         self.travel_to(points[0], first)?;
         self.pressurise()?;
         let mut window = StreamWindow::new(designed);
@@ -1241,7 +1252,11 @@ impl Builder<'_> {
             if v <= 0.0 {
                 continue;
             }
-            let commanded = window.over(at, at + v, first);
+            let commanded = if plug {
+                window.over(at, at + v, first)
+            } else {
+                first.to_vec()
+            };
             at += v;
             self.push_through_chamber(v, &commanded);
             self.extrude_move(w[1], 1.0, v, &commanded)?;

@@ -223,6 +223,8 @@ fn check_json_block(b: &Block) -> Result<(), String> {
         serde_json::from_str(&b.lines.join("\n")).map_err(|e| format!("not JSON: {e}"))?;
     match b.heading.as_str() {
         "Job" => round_trip::<Job>(&v),
+        #[cfg(feature = "daemon")]
+        "The machine table" => round_trip::<edo::daemon::config::MachineConfig>(&v),
         other => Err(format!(
             "a json example under {other:?}: name its type in tests/api_docs.rs"
         )),
@@ -304,4 +306,28 @@ fn the_tables_list_what_the_types_define() {
     let mut codes: BTreeSet<String> = ApiError::CODES.iter().map(i64::to_string).collect();
     codes.insert("code".into());
     assert_eq!(table_keys(&md, "Errors"), codes);
+}
+
+/// The machine table lists every key `server.info`'s `machine` can hold: edod's
+/// `[machine]` with every optional table set (`gcode`, `mixer`).
+#[cfg(feature = "daemon")]
+#[test]
+fn the_machine_table_lists_every_key_of_the_machine_config() {
+    use edo::daemon::config::MachineConfig;
+    let full: MachineConfig = serde_json::from_value(serde_json::json!({
+        "protocol": "gcode",
+        "gcode": {"firmware": "marlin"},
+        "mixer": {"model": "dispersion", "volume_nl": 800.0, "peclet": 12.0},
+    }))
+    .expect("a machine table with gcode and mixer");
+    let Value::Object(keys) = serde_json::to_value(&full).expect("serialises") else {
+        panic!("the machine table is an object");
+    };
+    let mut expected: BTreeSet<String> = keys.keys().cloned().collect();
+    assert!(
+        expected.contains("mixer") && expected.contains("gcode"),
+        "{expected:?}"
+    );
+    expected.insert("key".into());
+    assert_eq!(table_keys(&api_md(), "The machine table"), expected);
 }

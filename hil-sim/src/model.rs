@@ -32,6 +32,11 @@ impl MixingChamber {
         }
     }
 
+    /// The chamber's state (what it holds).
+    pub fn mixer(&self) -> &Mixer {
+        &self.mixer
+    }
+
     /// Push per-syringe volumes in; returns the volume-weighted composition of what left
     /// the nozzle (`None` when nothing was pushed).
     pub fn push(&mut self, volumes_nl: &[u32]) -> Option<Vec<f64>> {
