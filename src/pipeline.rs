@@ -20,7 +20,9 @@
 //!   [`LayerStats`].
 //! - [`job_layer_moves`]: every layer of a job to moves, the same as [`layer_moves`] on
 //!   each in order, with most of the work on all cores (for previews, reports and
-//!   G-code; the daemon plans and streams layer by layer).
+//!   G-code; the daemon plans and streams layer by layer); [`for_each_layer_moves`] the
+//!   same a batch of layers at a time, handing each layer's moves over in order (the
+//!   G-code file is written as it is planned).
 //!
 //! # Moves of a layer
 //!
@@ -558,18 +560,53 @@ pub fn job_layer_moves(
     first_index: u32,
     state: &mut StreamState,
 ) -> Result<Vec<LayerMoves>, PipelineError> {
+    let mut out = Vec::with_capacity(layers.len());
+    for_each_layer_moves(
+        layers,
+        settings,
+        (job_id, first_index),
+        state,
+        layers.len(),
+        |_, lm| {
+            out.push(lm);
+            Ok::<(), PipelineError>(())
+        },
+    )?;
+    Ok(out)
+}
+
+/// [`job_layer_moves`] `batch_layers` layers at a time, each layer's moves handed to
+/// `each` in order as soon as its batch is finished: memory holds one batch's paths and
+/// moves, not the job's (a G-code file of a tall part is written as it is planned).
+/// The moves are the same whatever the batch size.
+pub fn for_each_layer_moves<E: From<PipelineError>>(
+    layers: &[LayerPlan],
+    settings: &ProcessSettings,
+    (job_id, first_index): (u32, u32),
+    state: &mut StreamState,
+    batch_layers: usize,
+    mut each: impl FnMut(&LayerPlan, LayerMoves) -> Result<(), E>,
+) -> Result<(), E> {
     settings.validate()?;
     let order = settings.order_settings();
-    let mut at = state.position.map(|p| p.truncate());
-    let guessed = layers
-        .iter()
-        .map(|l| {
-            let paths = toolpath::fill_order(l, &order, at).paths;
-            at = paths.last().map(ToolPath::end).or(at);
-            paths
-        })
-        .collect();
-    Ok(moves_from_guesses(layers, settings, job_id, first_index, state, guessed)?.0)
+    let mut next = first_index;
+    for batch in layers.chunks(batch_layers.max(1)) {
+        let mut at = state.position.map(|p| p.truncate());
+        let guessed = batch
+            .iter()
+            .map(|l| {
+                let paths = toolpath::fill_order(l, &order, at).paths;
+                at = paths.last().map(ToolPath::end).or(at);
+                paths
+            })
+            .collect();
+        let (moves, _) = moves_from_guesses(batch, settings, job_id, next, state, guessed)?;
+        for (layer, lm) in batch.iter().zip(moves) {
+            next = lm.next_index;
+            each(layer, lm)?;
+        }
+    }
+    Ok(())
 }
 
 /// [`job_layer_moves`] from the layers' paths as ordered from a guessed start, with how
@@ -1395,6 +1432,27 @@ mod tests {
             let mut state = StreamState::new();
             let all = job_layer_moves(&layers, &s, 3, 5, &mut state).unwrap();
             assert_eq!((all, state), serial(&layers, &s), "{seam:?}");
+        }
+    }
+
+    #[test]
+    fn layers_in_batches_give_the_serial_moves() {
+        let (layers, mut s) = non_star();
+        s.seam = SeamMode::Nearest;
+        let serial = serial(&layers, &s);
+        for batch in [1, 2, layers.len() + 1] {
+            let mut state = StreamState::new();
+            let mut all = Vec::new();
+            let mut seen = Vec::new();
+            for_each_layer_moves(&layers, &s, (3, 5), &mut state, batch, |l, lm| {
+                seen.push(l.index);
+                all.push(lm);
+                Ok::<(), PipelineError>(())
+            })
+            .unwrap();
+            let indices: Vec<_> = layers.iter().map(|l| l.index).collect();
+            assert_eq!(seen, indices, "layers handed over in order");
+            assert_eq!((all, state), serial, "batches of {batch}");
         }
     }
 

@@ -3,10 +3,10 @@
 //! planned layers.
 
 use crate::job::Job;
-use crate::machine::gcode::{write_gcode, Flavor, GcodeSettings, GcodeStats};
+use crate::machine::gcode::{Flavor, GcodeSettings, GcodeStats, MoveWriter};
 use crate::machine::placement::{BuildVolume, Placement};
 use crate::machine::{Move, MoveKind};
-use crate::pipeline::{job_layer_moves, LayerStats, ProcessSettings, StreamState};
+use crate::pipeline::{for_each_layer_moves, LayerStats, ProcessSettings, StreamState};
 use crate::plan::LayerPlan;
 use anyhow::{Context, Result};
 use std::path::{Path, PathBuf};
@@ -53,69 +53,151 @@ pub struct GcodeSummary {
     pub commanded_nl: Vec<u64>,
 }
 
-/// All moves of a job (job id 0), starting with `Home`, placed on the machine by
-/// `placement` and each checked to lie inside `volume`.
-pub fn job_moves(
-    job: &Job,
-    layers: &[LayerPlan],
-    process: &ProcessSettings,
-    (placement, volume): (&Placement, &BuildVolume),
-) -> Result<(Vec<Move>, Vec<LayerStats>, StreamState)> {
-    let mut state = StreamState::new();
-    let mut moves = vec![Move {
-        job_id: 0,
-        index: 0,
-        kind: MoveKind::Home,
-    }];
-    let mut stats = Vec::with_capacity(layers.len());
-    let all = job_layer_moves(layers, process, 0, moves.len() as u32, &mut state)
-        .with_context(|| format!("job {}: turning layers into moves", job.name))?;
-    for (layer, mut out) in layers.iter().zip(all) {
-        placement
-            .put_on_machine(&mut out.moves, volume)
-            .map_err(|e| anyhow::anyhow!("job {} layer {}: {e}", job.name, layer.index))?;
-        moves.extend(out.moves);
-        stats.push(out.stats);
-    }
-    Ok((moves, stats, state))
-}
+/// Layers planned into moves and written at a time: enough to keep every core busy
+/// finishing paths, few enough that a tall part's moves never sit in memory at once.
+const LAYERS_PER_BATCH: usize = 16;
 
 /// Turn planned layers into moves with `process` settings, place them on the machine
 /// (`placement`, inside `volume`: see [`crate::machine::placement`]) and write them as
-/// G-code to `path`.
+/// G-code to `path`, a batch of layers at a time. The file is written beside `path` and
+/// renamed onto it at the end: a job refused half-way (a move outside the volume) leaves
+/// no file, and an older file stays whole until the new one is.
 pub fn write(
     job: &Job,
     layers: &[LayerPlan],
     process: &ProcessSettings,
     settings: &GcodeSettings,
-    on_machine: (&Placement, &BuildVolume),
+    (placement, volume): (&Placement, &BuildVolume),
     path: &Path,
 ) -> Result<GcodeSummary> {
-    let (moves, stats, state) = job_moves(job, layers, process, on_machine)?;
-    let header = vec![
-        format!(
-            "edo job {}: {} layer(s), {} moves",
-            job.name,
-            layers.len(),
-            moves.len()
-        ),
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("cannot create {}", parent.display()))?;
+    }
+    let partial = partial_path(path);
+    let file = std::fs::File::create(&partial)
+        .with_context(|| format!("cannot write {}", partial.display()))?;
+    let mut out = LineSink {
+        file: std::io::BufWriter::with_capacity(1 << 20, file),
+        path: &partial,
+        lines: Vec::new(),
+    };
+    let written = (|| {
+        let mut w = MoveWriter::new(job.materials.len(), settings)?;
+        w.preamble(&header(job, layers.len(), settings), &mut out.lines);
+        let summary = write_moves(job, layers, process, (placement, volume), &mut w, &mut out)?;
+        out.finish()?;
+        Ok(summary)
+    })();
+    let summary = match written {
+        Ok(summary) => summary,
+        Err(e) => {
+            let _ = std::fs::remove_file(&partial);
+            return Err(e);
+        }
+    };
+    if let Err(e) = std::fs::rename(&partial, path) {
+        let _ = std::fs::remove_file(&partial);
+        return Err(e).with_context(|| format!("cannot write {}", path.display()));
+    }
+    Ok(summary)
+}
+
+/// The job's moves, from `Home` on, through `w` into `out` a batch of layers at a time.
+fn write_moves(
+    job: &Job,
+    layers: &[LayerPlan],
+    process: &ProcessSettings,
+    (placement, volume): (&Placement, &BuildVolume),
+    w: &mut MoveWriter,
+    out: &mut LineSink<'_>,
+) -> Result<GcodeSummary> {
+    let home = Move {
+        job_id: 0,
+        index: 0,
+        kind: MoveKind::Home,
+    };
+    w.move_lines(&home, &mut out.lines);
+    out.flush_lines()?;
+    let mut moves = 1;
+    let mut stats = Vec::with_capacity(layers.len());
+    let mut state = StreamState::new();
+    for_each_layer_moves(
+        layers,
+        process,
+        (0, 1),
+        &mut state,
+        LAYERS_PER_BATCH,
+        |layer, mut lm| -> Result<()> {
+            placement
+                .put_on_machine(&mut lm.moves, volume)
+                .map_err(|e| anyhow::anyhow!("layer {}: {e}", layer.index))?;
+            for m in &lm.moves {
+                w.move_lines(m, &mut out.lines);
+            }
+            out.flush_lines()?;
+            moves += lm.moves.len();
+            stats.push(lm.stats);
+            Ok(())
+        },
+    )
+    .with_context(|| format!("job {}: turning layers into moves", job.name))?;
+    w.comment(
+        &format!("end of job {}: {moves} moves", job.name),
+        &mut out.lines,
+    );
+    Ok(GcodeSummary {
+        moves,
+        layers: stats,
+        gcode: w.stats(),
+        commanded_nl: state.commanded_nl().to_vec(),
+    })
+}
+
+/// The file's header comments.
+fn header(job: &Job, layers: usize, settings: &GcodeSettings) -> Vec<String> {
+    vec![
+        format!("edo job {}: {layers} layer(s)", job.name),
         format!(
             "drives (syringes) in order: {}; barrel area {} mm2",
             job.materials.join(", "),
             settings.barrel_area_mm2
         ),
-    ];
-    let mut text = String::new();
-    let gcode = write_gcode(&moves, job.materials.len(), settings, &header, &mut text)?;
-    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("cannot create {}", parent.display()))?;
+    ]
+}
+
+/// `dir/.name.partial`: where [`write`] writes before the rename.
+fn partial_path(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map_or_else(|| "gcode".into(), |n| n.to_string_lossy().into_owned());
+    path.with_file_name(format!(".{name}.partial"))
+}
+
+/// Lines from a [`MoveWriter`] on their way into the file.
+struct LineSink<'a> {
+    file: std::io::BufWriter<std::fs::File>,
+    path: &'a Path,
+    lines: Vec<String>,
+}
+
+impl LineSink<'_> {
+    fn flush_lines(&mut self) -> Result<()> {
+        use std::io::Write;
+        for l in self.lines.drain(..) {
+            self.file
+                .write_all(l.as_bytes())
+                .and_then(|()| self.file.write_all(b"\n"))
+                .with_context(|| format!("cannot write {}", self.path.display()))?;
+        }
+        Ok(())
     }
-    std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(GcodeSummary {
-        moves: moves.len(),
-        layers: stats,
-        gcode,
-        commanded_nl: state.commanded_nl().to_vec(),
-    })
+
+    fn finish(&mut self) -> Result<()> {
+        use std::io::Write;
+        self.flush_lines()?;
+        self.file
+            .flush()
+            .with_context(|| format!("cannot write {}", self.path.display()))
+    }
 }

@@ -379,6 +379,11 @@ impl MoveWriter {
         self.line("M83 ; relative extrusion".into(), out);
     }
 
+    /// A comment line `; text` into `out`.
+    pub fn comment(&mut self, text: &str, out: &mut Vec<String>) {
+        self.line(format!("; {text}"), out);
+    }
+
     /// The lines of one move into `out`: a Marlin mix it needs first, then its command.
     pub fn move_lines(&mut self, m: &Move, out: &mut Vec<String>) {
         let mut s = String::new();
