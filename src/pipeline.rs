@@ -29,7 +29,8 @@
 //! the travel is at least `retract_min_travel_mm`), `Travel`, `Prime` (exactly the volumes
 //! retracted), `Dwell` — then one `Extrude` per centreline edge at constant scanning
 //! speed (`print_feed_mm_s`). The edges are the path's merged within `move_deviation_mm`
-//! where the width does not change (`toolpath::merge`), and split where the mixing
+//! where the width changes by at most `move_width_tolerance`, each move pushing the
+//! volume of the edges it replaces (`toolpath::merge`), and split where the mixing
 //! lead's commanded composition changes, so no move blends two compositions.
 //!
 //! # Mixing chamber
@@ -80,6 +81,9 @@ use serde::{Deserialize, Serialize};
 /// their curves out of phase); 0.0025 mm moves them by 0.017 and 0.003, for 6 % more
 /// moves on Benchy (`docs/job-format.md`).
 pub const DEFAULT_MOVE_DEVIATION_MM: f64 = 0.0025;
+
+/// Default of [`ProcessSettings::move_width_tolerance`] (`docs/job-format.md`).
+pub const DEFAULT_MOVE_WIDTH_TOLERANCE: f64 = 0.1;
 
 /// Process settings: feeds, road width, extrusion cessation, flow limits, mixing chamber,
 /// seams. Units in the names; defaults documented per field (see [`Default`]).
@@ -180,6 +184,13 @@ pub struct ProcessSettings {
     /// `process.move_deviation`. Default 0.0025.
     #[serde(skip)]
     pub move_deviation_mm: f64,
+    /// How much the width may change within one merged move: the largest relative
+    /// spread ((widest − narrowest) / narrowest) of the edges' width factors a move
+    /// replaces; each such move pushes exactly the volume of its edges
+    /// (`toolpath::merge`). 0: a move never spans a width change. Set by the job's
+    /// `process.move_width_tolerance`. Default [`DEFAULT_MOVE_WIDTH_TOLERANCE`].
+    #[serde(skip)]
+    pub move_width_tolerance: f64,
 }
 
 impl Default for ProcessSettings {
@@ -215,6 +226,7 @@ impl Default for ProcessSettings {
             sub_region_order: SubRegionOrder::InnerToOuter,
             syringes: None,
             move_deviation_mm: DEFAULT_MOVE_DEVIATION_MM,
+            move_width_tolerance: DEFAULT_MOVE_WIDTH_TOLERANCE,
         }
     }
 }
@@ -297,6 +309,7 @@ impl ProcessSettings {
         non_negative(self.purge_min_error, "purge_min_error")?;
         non_negative(self.mixer_tolerance, "mixer_tolerance")?;
         non_negative(self.move_deviation_mm, "move_deviation_mm")?;
+        non_negative(self.move_width_tolerance, "move_width_tolerance")?;
         if let Some([x, y]) = self.purge_xy_mm {
             if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
             {
@@ -812,12 +825,13 @@ impl<'a> Builder<'a> {
     }
 }
 
-/// The edges the layer's paths are built with: merged within `move_deviation_mm`
-/// (`toolpath::merge`), then split where the mixing lead's commanded composition changes
+/// The edges the layer's paths are built with: merged within `move_deviation_mm` and
+/// `move_width_tolerance` (`toolpath::merge`), then split where the mixing lead's commanded composition changes
 /// so that no move straddles such a change (a merged edge would blend the two
 /// compositions over its whole length).
 fn roads_as_moves(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<ToolPath> {
-    let merge = toolpath::merge::MergeOptions::within(s.move_deviation_mm);
+    let merge = toolpath::merge::MergeOptions::within(s.move_deviation_mm)
+        .with_width_tolerance(s.move_width_tolerance);
     let mut merged: Vec<ToolPath> = paths
         .iter()
         .map(|p| toolpath::merge::merge_edges(p, &merge))
