@@ -21,6 +21,8 @@
 //! - [`job_layer_moves`]: every layer of a job to moves, the same as [`layer_moves`] on
 //!   each in order, with most of the work on all cores (for previews, reports and
 //!   G-code; the daemon plans and streams layer by layer).
+//! - [`for_each_job_layer_moves`]: the same, each layer's moves handed over as soon as
+//!   they are made (the G-code export writes them out and never holds the job's moves).
 //!
 //! # Moves of a layer
 //!
@@ -564,6 +566,25 @@ pub fn job_layer_moves(
     first_index: u32,
     state: &mut StreamState,
 ) -> Result<Vec<LayerMoves>, PipelineError> {
+    let mut out = Vec::with_capacity(layers.len());
+    for_each_job_layer_moves(layers, settings, job_id, first_index, state, |lm| {
+        out.push(lm);
+        Ok::<(), PipelineError>(())
+    })?;
+    Ok(out)
+}
+
+/// [`job_layer_moves`], each layer's moves handed to `each` in order as soon as they
+/// are made, so that a caller writing them out (the G-code export) never holds the
+/// whole job's moves.
+pub fn for_each_job_layer_moves<E: From<PipelineError>>(
+    layers: &[LayerPlan],
+    settings: &ProcessSettings,
+    job_id: u32,
+    first_index: u32,
+    state: &mut StreamState,
+    each: impl FnMut(LayerMoves) -> Result<(), E>,
+) -> Result<(), E> {
     settings.validate()?;
     let order = settings.order_settings();
     let mut at = state.position.map(|p| p.truncate());
@@ -575,19 +596,22 @@ pub fn job_layer_moves(
             paths
         })
         .collect();
-    Ok(moves_from_guesses(layers, settings, job_id, first_index, state, guessed)?.0)
+    let start = (job_id, first_index);
+    moves_from_guesses(layers, settings, start, state, guessed, each)?;
+    Ok(())
 }
 
-/// [`job_layer_moves`] from the layers' paths as ordered from a guessed start, with how
-/// many layers had to be finished again (their order from the real start differed).
-fn moves_from_guesses(
+/// [`for_each_job_layer_moves`] from the layers' paths as ordered from a guessed start
+/// (moves of job `start.0` numbered from `start.1`); how many layers had to be finished
+/// again (their order from the real start differed).
+fn moves_from_guesses<E: From<PipelineError>>(
     layers: &[LayerPlan],
     settings: &ProcessSettings,
-    job_id: u32,
-    first_index: u32,
+    (job_id, first_index): (u32, u32),
     state: &mut StreamState,
     guessed: Vec<Vec<ToolPath>>,
-) -> Result<(Vec<LayerMoves>, usize), PipelineError> {
+    mut each: impl FnMut(LayerMoves) -> Result<(), E>,
+) -> Result<usize, E> {
     use rayon::prelude::*;
     let order = settings.order_settings();
     let finished: Vec<Vec<ToolPath>> = layers
@@ -595,7 +619,6 @@ fn moves_from_guesses(
         .zip(&guessed)
         .map(|(l, paths)| finish_paths(l, settings, paths.clone()))
         .collect();
-    let mut out = Vec::with_capacity(layers.len());
     let (mut next, mut again) = (first_index, 0);
     for ((l, guess), done) in layers.iter().zip(guessed).zip(finished) {
         let start = state.position.map(|p| p.truncate());
@@ -608,9 +631,9 @@ fn moves_from_guesses(
         };
         let lm = moves_for_paths(l, paths, settings, job_id, next, state)?;
         next = lm.next_index;
-        out.push(lm);
+        each(lm)?;
     }
-    Ok((out, again))
+    Ok(again)
 }
 
 /// Moves for already ordered paths (what [`layer_moves`] does after ordering).
@@ -1410,7 +1433,12 @@ mod tests {
             .map(|l| toolpath::fill_order(l, &s.order_settings(), far).paths)
             .collect();
         let mut state = StreamState::new();
-        let (all, again) = moves_from_guesses(&layers, &s, 3, 5, &mut state, guessed).unwrap();
+        let mut all = Vec::new();
+        let again = moves_from_guesses(&layers, &s, (3, 5), &mut state, guessed, |lm| {
+            all.push(lm);
+            Ok::<(), PipelineError>(())
+        })
+        .unwrap();
         assert_eq!(again, layers.len());
         assert_eq!((all, state), serial(&layers, &s));
     }

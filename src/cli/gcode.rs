@@ -3,10 +3,12 @@
 //! planned layers.
 
 use crate::job::Job;
-use crate::machine::gcode::{write_gcode, Flavor, GcodeSettings, GcodeStats};
+use crate::machine::gcode::{Flavor, GcodeSettings, GcodeStats, MoveWriter};
 use crate::machine::placement::{BuildVolume, Placement};
 use crate::machine::{Move, MoveKind};
-use crate::pipeline::{job_layer_moves, LayerStats, ProcessSettings, StreamState};
+use crate::pipeline::{
+    for_each_job_layer_moves, job_layer_moves, LayerStats, ProcessSettings, StreamState,
+};
 use crate::plan::LayerPlan;
 use anyhow::{Context, Result};
 use std::path::{Path, PathBuf};
@@ -82,40 +84,97 @@ pub fn job_moves(
 
 /// Turn planned layers into moves with `process` settings, place them on the machine
 /// (`placement`, inside `volume`: see [`crate::machine::placement`]) and write them as
-/// G-code to `path`.
+/// G-code to `path`, a layer at a time as the moves are made (the job's moves are
+/// never all held). The lines go to `path` with `.part` added, renamed to `path` once
+/// complete, so a refused job (a move off the machine) leaves no file.
 pub fn write(
     job: &Job,
     layers: &[LayerPlan],
     process: &ProcessSettings,
     settings: &GcodeSettings,
-    on_machine: (&Placement, &BuildVolume),
+    (placement, volume): (&Placement, &BuildVolume),
     path: &Path,
 ) -> Result<GcodeSummary> {
-    let (moves, stats, state) = job_moves(job, layers, process, on_machine)?;
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("cannot create {}", parent.display()))?;
+    }
+    let mut part = path.as_os_str().to_owned();
+    part.push(".part");
+    let part = PathBuf::from(part);
+    let written = write_lines(job, layers, process, settings, (placement, volume), &part);
+    let summary = match written {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = std::fs::remove_file(&part);
+            return Err(e);
+        }
+    };
+    std::fs::rename(&part, path)
+        .with_context(|| format!("cannot write {} (from {})", path.display(), part.display()))?;
+    Ok(summary)
+}
+
+/// [`write`]'s lines into the file `to`.
+fn write_lines(
+    job: &Job,
+    layers: &[LayerPlan],
+    process: &ProcessSettings,
+    settings: &GcodeSettings,
+    (placement, volume): (&Placement, &BuildVolume),
+    to: &Path,
+) -> Result<GcodeSummary> {
+    use std::io::Write;
+    let file =
+        std::fs::File::create(to).with_context(|| format!("cannot write {}", to.display()))?;
+    let mut file = std::io::BufWriter::new(file);
     let header = vec![
-        format!(
-            "edo job {}: {} layer(s), {} moves",
-            job.name,
-            layers.len(),
-            moves.len()
-        ),
+        format!("edo job {}: {} layer(s)", job.name, layers.len()),
         format!(
             "drives (syringes) in order: {}; barrel area {} mm2",
             job.materials.join(", "),
             settings.barrel_area_mm2
         ),
     ];
-    let mut text = String::new();
-    let gcode = write_gcode(&moves, job.materials.len(), settings, &header, &mut text)?;
-    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("cannot create {}", parent.display()))?;
-    }
-    std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
+    let mut w = MoveWriter::new(job.materials.len(), settings)?;
+    let mut lines = Vec::new();
+    let mut put = |w: &mut MoveWriter, ms: &[Move], lines: &mut Vec<String>| -> Result<()> {
+        for m in ms {
+            w.move_lines(m, lines);
+        }
+        for l in lines.drain(..) {
+            file.write_all(l.as_bytes())?;
+            file.write_all(b"\n")?;
+        }
+        Ok(())
+    };
+    w.preamble(&header, &mut lines);
+    let home = Move {
+        job_id: 0,
+        index: 0,
+        kind: MoveKind::Home,
+    };
+    put(&mut w, &[home], &mut lines)?;
+    let (mut state, mut stats, mut moves, mut k) = (StreamState::new(), Vec::new(), 1, 0);
+    for_each_job_layer_moves(layers, process, 0, 1, &mut state, |mut out| {
+        let index = layers.get(k).map_or(k, |l| l.index);
+        k += 1;
+        placement
+            .put_on_machine(&mut out.moves, volume)
+            .map_err(|e| anyhow::anyhow!("job {} layer {index}: {e}", job.name))?;
+        put(&mut w, &out.moves, &mut lines)?;
+        moves += out.moves.len();
+        stats.push(out.stats);
+        Ok::<(), anyhow::Error>(())
+    })
+    .with_context(|| format!("job {}: turning layers into moves", job.name))?;
+    put(&mut w, &[], &mut lines)?;
+    file.flush()
+        .with_context(|| format!("cannot write {}", to.display()))?;
     Ok(GcodeSummary {
-        moves: moves.len(),
+        moves,
         layers: stats,
-        gcode,
+        gcode: w.stats(),
         commanded_nl: state.commanded_nl().to_vec(),
     })
 }
