@@ -168,6 +168,7 @@ struct RawProcess {
     field_cell: Option<f64>,
     contour_deviation: Option<f64>,
     move_deviation: Option<f64>,
+    move_width_tolerance: Option<f64>,
     cusp: Option<f64>,
     max_gap: Option<f64>,
     thin_regions: Option<crate::plan::ThinRegions>,
@@ -268,11 +269,7 @@ impl Job {
         let z_step = z_step(g.z_step, !z_stations.is_empty(), &bad)?;
         check_extruded_size(&geometry, &layers, !z_stations.is_empty(), nozzle_mm, &bad)?;
         let mut toolpath = toolpath_settings(raw.toolpath, nozzle_mm, &bad)?;
-        if let Some(d) = raw.process.move_deviation {
-            // Up to a quarter of the nozzle, as the contour deviation.
-            up_to_nozzle(d, nozzle_mm / 4.0, "process.move_deviation", &bad)?;
-            toolpath.move_deviation_mm = d;
-        }
+        move_merging(&raw.process, nozzle_mm, &mut toolpath, &bad)?;
         Ok(Job {
             toolpath,
             placement,
@@ -1133,6 +1130,30 @@ fn positive<E>(v: f64, key: &str, bad: &impl Fn(&str, String) -> E) -> Result<()
 }
 
 /// A length from 0 to the nozzle diameter, mm.
+/// `process.move_deviation` and `process.move_width_tolerance` into `toolpath`.
+fn move_merging<E>(
+    p: &RawProcess,
+    nozzle_mm: f64,
+    toolpath: &mut crate::pipeline::ProcessSettings,
+    bad: &impl Fn(&str, String) -> E,
+) -> Result<(), E> {
+    if let Some(d) = p.move_deviation {
+        // Up to a quarter of the nozzle, as the contour deviation.
+        up_to_nozzle(d, nozzle_mm / 4.0, "process.move_deviation", bad)?;
+        toolpath.move_deviation_mm = d;
+    }
+    if let Some(t) = p.move_width_tolerance {
+        if !(0.0..=0.5).contains(&t) {
+            return Err(bad(
+                "process.move_width_tolerance",
+                format!("must be a fraction from 0 to 0.5, got {t}"),
+            ));
+        }
+        toolpath.move_width_tolerance = t;
+    }
+    Ok(())
+}
+
 fn up_to_nozzle<E>(
     v: f64,
     nozzle_mm: f64,
@@ -1303,6 +1324,13 @@ nozzle = 0.5
         let finer = GOOD.replace("[process]", "[process]\ncontour_deviation = 0.01");
         let job2 = Job::from_toml(&finer, "job.toml").unwrap();
         assert_eq!(job2.plan.contour_deviation_mm, 0.01);
+        assert_eq!(
+            job.toolpath.move_width_tolerance,
+            crate::pipeline::DEFAULT_MOVE_WIDTH_TOLERANCE
+        );
+        let strict = GOOD.replace("[process]", "[process]\nmove_width_tolerance = 0.0");
+        let job3 = Job::from_toml(&strict, "job.toml").unwrap();
+        assert_eq!(job3.toolpath.move_width_tolerance, 0.0);
         let layers = job.extruded_layers().unwrap();
         assert_eq!(layers.len(), 2);
         assert!((layers[1].z_mm - 0.4).abs() < 1e-12);
@@ -1353,6 +1381,13 @@ nozzle = 0.5
         assert!(e.contains("process.r_mach"), "{e}");
         let e = err(&GOOD.replace("pattern = \"growth-rings\"", "pattern = \"zebra\""));
         assert!(e.contains("gradient.pattern"), "{e}");
+        for t in ["0.6", "-0.1", "nan"] {
+            let e = err(&GOOD.replace(
+                "[process]",
+                &format!("[process]\nmove_width_tolerance = {t}"),
+            ));
+            assert!(e.contains("process.move_width_tolerance"), "{t}: {e}");
+        }
         let e = err(&GOOD.replace("[process]", "[process]\ncolour = 1"));
         assert!(e.contains("colour"), "{e}");
         let e = err(&GOOD.replace("function = \"linear\"", "function = { power = -1.0 }"));

@@ -31,7 +31,8 @@
 //! the travel is at least `retract_min_travel_mm`), `Travel`, `Prime` (exactly the volumes
 //! retracted), `Dwell` — then one `Extrude` per centreline edge at constant scanning
 //! speed (`print_feed_mm_s`). The edges are the path's merged within `move_deviation_mm`
-//! where the width does not change (`toolpath::merge`), and split where the mixing
+//! where the width changes by at most `move_width_tolerance`, each move pushing the
+//! volume of the edges it replaces (`toolpath::merge`), and split where the mixing
 //! lead's commanded composition changes, so no move blends two compositions.
 //!
 //! # Mixing chamber
@@ -84,6 +85,9 @@ use serde::{Deserialize, Serialize};
 /// their curves out of phase); 0.0025 mm moves them by 0.017 and 0.003, for 6 % more
 /// moves on Benchy (`docs/job-format.md`).
 pub const DEFAULT_MOVE_DEVIATION_MM: f64 = 0.0025;
+
+/// Default of [`ProcessSettings::move_width_tolerance`] (`docs/job-format.md`).
+pub const DEFAULT_MOVE_WIDTH_TOLERANCE: f64 = 0.1;
 
 /// Process settings: feeds, road width, extrusion cessation, flow limits, mixing chamber,
 /// seams. Units in the names; defaults documented per field (see [`Default`]).
@@ -189,6 +193,13 @@ pub struct ProcessSettings {
     /// `process.move_deviation`. Default 0.0025.
     #[serde(skip)]
     pub move_deviation_mm: f64,
+    /// How much the width may change within one merged move: the largest relative
+    /// spread ((widest − narrowest) / narrowest) of the edges' width factors a move
+    /// replaces; each such move pushes exactly the volume of its edges
+    /// (`toolpath::merge`). 0: a move never spans a width change. Set by the job's
+    /// `process.move_width_tolerance`. Default [`DEFAULT_MOVE_WIDTH_TOLERANCE`].
+    #[serde(skip)]
+    pub move_width_tolerance: f64,
 }
 
 impl Default for ProcessSettings {
@@ -224,6 +235,7 @@ impl Default for ProcessSettings {
             sub_region_order: SubRegionOrder::InnerToOuter,
             syringes: None,
             move_deviation_mm: DEFAULT_MOVE_DEVIATION_MM,
+            move_width_tolerance: DEFAULT_MOVE_WIDTH_TOLERANCE,
         }
     }
 }
@@ -306,6 +318,7 @@ impl ProcessSettings {
         non_negative(self.purge_min_error, "purge_min_error")?;
         non_negative(self.mixer_tolerance, "mixer_tolerance")?;
         non_negative(self.move_deviation_mm, "move_deviation_mm")?;
+        non_negative(self.move_width_tolerance, "move_width_tolerance")?;
         if let Some([x, y]) = self.purge_xy_mm {
             if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
             {
@@ -600,25 +613,29 @@ pub fn for_each_layer_moves<E: From<PipelineError>>(
                 paths
             })
             .collect();
-        let (moves, _) = moves_from_guesses(batch, settings, job_id, next, state, guessed)?;
-        for (layer, lm) in batch.iter().zip(moves) {
+        let mut layer = batch.iter();
+        moves_from_guesses(batch, settings, (job_id, next), state, guessed, |lm| {
             next = lm.next_index;
-            each(layer, lm)?;
-        }
+            match layer.next() {
+                Some(l) => each(l, lm),
+                None => Ok(()),
+            }
+        })?;
     }
     Ok(())
 }
 
-/// [`job_layer_moves`] from the layers' paths as ordered from a guessed start, with how
-/// many layers had to be finished again (their order from the real start differed).
-fn moves_from_guesses(
+/// [`for_each_layer_moves`] from the layers' paths as ordered from a guessed start
+/// (moves of job `start.0` numbered from `start.1`); how many layers had to be finished
+/// again (their order from the real start differed).
+fn moves_from_guesses<E: From<PipelineError>>(
     layers: &[LayerPlan],
     settings: &ProcessSettings,
-    job_id: u32,
-    first_index: u32,
+    (job_id, first_index): (u32, u32),
     state: &mut StreamState,
     guessed: Vec<Vec<ToolPath>>,
-) -> Result<(Vec<LayerMoves>, usize), PipelineError> {
+    mut each: impl FnMut(LayerMoves) -> Result<(), E>,
+) -> Result<usize, E> {
     use rayon::prelude::*;
     let order = settings.order_settings();
     let finished: Vec<Vec<ToolPath>> = layers
@@ -626,7 +643,6 @@ fn moves_from_guesses(
         .zip(&guessed)
         .map(|(l, paths)| finish_paths(l, settings, paths.clone()))
         .collect();
-    let mut out = Vec::with_capacity(layers.len());
     let (mut next, mut again) = (first_index, 0);
     for ((l, guess), done) in layers.iter().zip(guessed).zip(finished) {
         let start = state.position.map(|p| p.truncate());
@@ -639,9 +655,9 @@ fn moves_from_guesses(
         };
         let lm = moves_for_paths(l, paths, settings, job_id, next, state)?;
         next = lm.next_index;
-        out.push(lm);
+        each(lm)?;
     }
-    Ok((out, again))
+    Ok(again)
 }
 
 /// Moves for already ordered paths (what [`layer_moves`] does after ordering).
@@ -856,12 +872,13 @@ impl<'a> Builder<'a> {
     }
 }
 
-/// The edges the layer's paths are built with: merged within `move_deviation_mm`
-/// (`toolpath::merge`), then split where the mixing lead's commanded composition changes
+/// The edges the layer's paths are built with: merged within `move_deviation_mm` and
+/// `move_width_tolerance` (`toolpath::merge`), then split where the mixing lead's commanded composition changes
 /// so that no move straddles such a change (a merged edge would blend the two
 /// compositions over its whole length).
 fn roads_as_moves(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<ToolPath> {
-    let merge = toolpath::merge::MergeOptions::within(s.move_deviation_mm);
+    let merge = toolpath::merge::MergeOptions::within(s.move_deviation_mm)
+        .with_width_tolerance(s.move_width_tolerance);
     let mut merged: Vec<ToolPath> = paths
         .iter()
         .map(|p| toolpath::merge::merge_edges(p, &merge))
@@ -1469,7 +1486,12 @@ mod tests {
             .map(|l| toolpath::fill_order(l, &s.order_settings(), far).paths)
             .collect();
         let mut state = StreamState::new();
-        let (all, again) = moves_from_guesses(&layers, &s, 3, 5, &mut state, guessed).unwrap();
+        let mut all = Vec::new();
+        let again = moves_from_guesses(&layers, &s, (3, 5), &mut state, guessed, |lm| {
+            all.push(lm);
+            Ok::<(), PipelineError>(())
+        })
+        .unwrap();
         assert_eq!(again, layers.len());
         assert_eq!((all, state), serial(&layers, &s));
     }

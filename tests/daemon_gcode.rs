@@ -211,11 +211,13 @@ fn sim_with_keepalive(
     (h, record)
 }
 
-/// The `gcode` of every move the simulator ran, in order.
+/// The `gcode` of every move the simulator ran, in order (a last line the recorder is
+/// still writing left out).
 fn ran(record: &Path) -> Vec<String> {
     std::fs::read_to_string(record)
         .unwrap()
-        .lines()
+        .split_inclusive('\n')
+        .filter(|l| l.ends_with('\n'))
         .map(|l| serde_json::from_str::<Value>(l).unwrap())
         .filter_map(|v| v["gcode"].as_str().map(str::to_string))
         .collect()
@@ -270,7 +272,7 @@ fn move_lines(text: &str) -> Vec<String> {
 const JOB: &str = r#"name = "graded square"
 [geometry]
 polygon = { outer = { rect = { min = [0.0, 0.0], max = [3.0, 3.0] } } }
-height = 0.4
+height = 0.8
 [materials]
 names = ["A", "B"]
 [gradient]

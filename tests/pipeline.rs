@@ -471,10 +471,11 @@ fn roads_shorter_than_min_road_are_left_out() {
     assert_eq!(all.len() - kept.len(), short);
 }
 
-/// Merging edges into moves within the default `move_deviation_mm` on the example
-/// jobs: fewer extrusion moves, the same volume per syringe within the chord loss,
-/// coverage (void, overlap, outside) within 0.05 percentage points, and with a mixing
-/// lead no worse a designed-versus-delivered composition.
+/// Merging edges into moves within the default `move_deviation_mm` and
+/// `move_width_tolerance` on the example jobs: fewer extrusion moves, exactly the same
+/// volume (each move pushes what the edges it replaces did), coverage (void, overlap,
+/// outside) within 0.05 percentage points, and with a mixing lead no worse a
+/// designed-versus-delivered composition.
 #[test]
 fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
     for name in ["paper-annulus", "tooth-crown", "fibers", "non-star"] {
@@ -482,10 +483,15 @@ fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
         let mut runs = Vec::new();
         let mut coverage = Vec::new();
         let islands: Vec<_> = slices[..2].iter().map(|s| &s.layer.islands).collect();
-        for deviation in [0.0, edo::pipeline::DEFAULT_MOVE_DEVIATION_MM] {
+        let merged = (
+            edo::pipeline::DEFAULT_MOVE_DEVIATION_MM,
+            edo::pipeline::DEFAULT_MOVE_WIDTH_TOLERANCE,
+        );
+        for (deviation, width_tolerance) in [(0.0, 0.0), merged] {
             let mut s = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
             s.v_dead_ul = 1.0;
             s.move_deviation_mm = deviation;
+            s.move_width_tolerance = width_tolerance;
             let mut state = StreamState::new();
             let (mut extrusions, mut index, mut error) = (0usize, 0, 0.0f64);
             let mut cov = [0.0; 3];
@@ -503,8 +509,7 @@ fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
                     .count();
                 error = error.max(out.stats.composition_error_mean);
             }
-            let nl: f64 = state.planned_nl().iter().sum();
-            runs.push((extrusions, nl, error));
+            runs.push((extrusions, state.planned_nl().to_vec(), error));
             coverage.push(cov);
         }
         for (k, what) in ["void", "overlap", "outside"].iter().enumerate() {
@@ -515,12 +520,18 @@ fn merged_moves_deposit_the_same_roads_with_fewer_moves() {
                 "{name}: {what} {before:.3} % -> {after:.3} %"
             );
         }
-        let ((n0, v0, e0), (n1, v1, e1)) = (runs[0], runs[1]);
+        let (n0, v0, e0) = (runs[0].0, &runs[0].1, runs[0].2);
+        let (n1, v1, e1) = (runs[1].0, &runs[1].1, runs[1].2);
         eprintln!(
-            "{name}: {n0} -> {n1} extrusions, {v0:.0} -> {v1:.0} nl, error {e0:.4} -> {e1:.4}"
+            "{name}: {n0} -> {n1} extrusions, {v0:.0?} -> {v1:.0?} nl, error {e0:.4} -> {e1:.4}"
         );
         assert!(n1 < n0, "{name}: {n1} vs {n0} moves");
-        assert!((v1 - v0).abs() / v0 < 0.002, "{name}: {v1} vs {v0} nl");
+        for (a, b) in v0.iter().zip(v1) {
+            assert!(
+                (b - a).abs() <= 1e-9 * a.max(1.0),
+                "{name}: {v1:?} vs {v0:?} nl"
+            );
+        }
         assert!(e1 <= e0 + 1e-4, "{name}: composition error {e1} vs {e0}");
     }
 }

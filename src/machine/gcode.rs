@@ -615,12 +615,24 @@ impl MarlinMix {
                 // Pay back what is owed before this move over the next WINDOW moves.
                 self.paying = Some(Self::WINDOW);
                 let k = Self::WINDOW as f64;
-                Some(
-                    base.iter()
-                        .zip(&before)
-                        .map(|(b, owed)| (b + owed / (k * t)).max(0.0))
-                        .collect(),
-                )
+                let spread: Vec<f64> = base
+                    .iter()
+                    .zip(&before)
+                    .map(|(b, owed)| (b + owed / (k * t)).max(0.0))
+                    .collect();
+                if off_after(&spread) <= Self::DRIFT {
+                    Some(spread)
+                } else {
+                    // Too far off to spread (a long move): this move's own split and
+                    // all that is owed, so no move ends more than DRIFT off.
+                    Some(
+                        units
+                            .iter()
+                            .zip(&before)
+                            .map(|(&u, owed)| ((u as f64 + owed) / t).max(0.0))
+                            .collect(),
+                    )
+                }
             }
             (Some(_), Some(0)) => {
                 self.paying = None;
