@@ -572,6 +572,39 @@ impl MarlinMix {
         }
     }
 
+    /// How far the worst drive's split would end from its plan after a move of `t`
+    /// units at weights `w` (the move already added to `planned`).
+    fn off_after(&self, w: &[f64], t: f64) -> f64 {
+        let wsum: f64 = w.iter().sum();
+        self.split
+            .iter()
+            .zip(&self.planned)
+            .zip(w)
+            .map(|((s, p), wi)| (s + t * wi / wsum - p).abs())
+            .fold(0.0, f64::max)
+    }
+
+    /// Weights that pay back what is `owed` before this move: spread over the next
+    /// WINDOW moves on top of the window's `base` composition, or, when that still ends
+    /// over DRIFT (a long move), this move's own split and all that is owed at once.
+    fn repay(&self, base: &[f64], owed: &[f64], units: &[i64]) -> Vec<f64> {
+        let t: f64 = units.iter().sum::<i64>() as f64;
+        let k = Self::WINDOW as f64;
+        let spread: Vec<f64> = base
+            .iter()
+            .zip(owed)
+            .map(|(b, o)| (b + o / (k * t)).max(0.0))
+            .collect();
+        if self.off_after(&spread, t) <= Self::DRIFT {
+            return spread;
+        }
+        units
+            .iter()
+            .zip(owed)
+            .map(|(&u, o)| ((u as f64 + o) / t).max(0.0))
+            .collect()
+    }
+
     /// Account for a move of per-drive `units`; the weights to send first, if any.
     fn next(&mut self, units: &[i64]) -> Option<Vec<f64>> {
         let total: i64 = units.iter().sum();
@@ -600,39 +633,11 @@ impl MarlinMix {
         for (p, &u) in self.planned.iter_mut().zip(units) {
             *p += u as f64;
         }
-        let off_after = |w: &[f64]| {
-            let wsum: f64 = w.iter().sum();
-            self.split
-                .iter()
-                .zip(&self.planned)
-                .zip(w)
-                .map(|((s, p), wi)| (s + t * wi / wsum - p).abs())
-                .fold(0.0, f64::max)
-        };
         let new = match (&self.weights, self.paying) {
             (None, _) => Some(base.clone()),
-            (Some(w), _) if off_after(w) > Self::DRIFT => {
-                // Pay back what is owed before this move over the next WINDOW moves.
+            (Some(w), _) if self.off_after(w, t) > Self::DRIFT => {
                 self.paying = Some(Self::WINDOW);
-                let k = Self::WINDOW as f64;
-                let spread: Vec<f64> = base
-                    .iter()
-                    .zip(&before)
-                    .map(|(b, owed)| (b + owed / (k * t)).max(0.0))
-                    .collect();
-                if off_after(&spread) <= Self::DRIFT {
-                    Some(spread)
-                } else {
-                    // Too far off to spread (a long move): this move's own split and
-                    // all that is owed, so no move ends more than DRIFT off.
-                    Some(
-                        units
-                            .iter()
-                            .zip(&before)
-                            .map(|(&u, owed)| ((u as f64 + owed) / t).max(0.0))
-                            .collect(),
-                    )
-                }
+                Some(self.repay(&base, &before, units))
             }
             (Some(_), Some(0)) => {
                 self.paying = None;
