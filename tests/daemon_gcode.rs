@@ -722,6 +722,11 @@ fn held_at_most(firmware: &str) -> usize {
     }
 }
 
+/// Why a job is interrupted by a pulled cable: the port's end of file, or, when the
+/// firmware's silence outlasts the ok timeouts before edod reads it (a loaded host), the
+/// lost link (`docs/firmware.md`, "What edod learns after a lost link").
+const UNPLUG_REASONS: &[&str] = &["serial port lost", "link to the machine lost"];
+
 /// `fault` (hil-sim's `reset` or `unplug`) mid-job on `firmware`: the job is interrupted
 /// for one of `reasons`, and edod connects again; resumed, it runs to the end, nothing
 /// skipped, the resume's service moves between, at most `repeats_allowed` moves twice.
@@ -798,26 +803,14 @@ fn klipper_restart_mid_job_resumes_skipping_nothing() {
 /// every move exactly once.
 #[test]
 fn marlin_unplug_mid_job_resumes_running_every_move_once() {
-    fault_mid_job_interrupts_and_resumes(
-        "marlin",
-        18,
-        hil_sim::Command::Unplug,
-        &["serial port lost"],
-        0,
-    );
+    fault_mid_job_interrupts_and_resumes("marlin", 18, hil_sim::Command::Unplug, UNPLUG_REASONS, 0);
 }
 
 /// RRF, cable pulled mid-job: `M409`'s `lineNumber` names the last line parsed (maybe
 /// one it dropped): at most that one move runs twice.
 #[test]
 fn rrf_unplug_mid_job_resumes_running_at_most_one_move_twice() {
-    fault_mid_job_interrupts_and_resumes(
-        "rrf",
-        19,
-        hil_sim::Command::Unplug,
-        &["serial port lost"],
-        1,
-    );
+    fault_mid_job_interrupts_and_resumes("rrf", 19, hil_sim::Command::Unplug, UNPLUG_REASONS, 1);
 }
 
 /// Klipper, its pty gone mid-job: nothing says what ran; the job is interrupted and
@@ -830,7 +823,7 @@ fn klipper_unplug_mid_job_resumes_skipping_nothing() {
         "klipper",
         20,
         hil_sim::Command::Unplug,
-        &["serial port lost"],
+        UNPLUG_REASONS,
         held_at_most("klipper") + 8,
     );
 }
