@@ -1129,7 +1129,6 @@ fn positive<E>(v: f64, key: &str, bad: &impl Fn(&str, String) -> E) -> Result<()
     Ok(())
 }
 
-/// A length from 0 to the nozzle diameter, mm.
 /// `process.move_deviation` and `process.move_width_tolerance` into `toolpath`.
 fn move_merging<E>(
     p: &RawProcess,
@@ -1143,10 +1142,11 @@ fn move_merging<E>(
         toolpath.move_deviation_mm = d;
     }
     if let Some(t) = p.move_width_tolerance {
-        if !(0.0..=0.5).contains(&t) {
+        use crate::pipeline::MAX_MOVE_WIDTH_TOLERANCE as MAX;
+        if !(0.0..=MAX).contains(&t) {
             return Err(bad(
                 "process.move_width_tolerance",
-                format!("must be a fraction from 0 to 0.5, got {t}"),
+                format!("must be a fraction from 0 to {MAX}, got {t}"),
             ));
         }
         toolpath.move_width_tolerance = t;
@@ -1154,6 +1154,7 @@ fn move_merging<E>(
     Ok(())
 }
 
+/// A length from 0 to the nozzle diameter, mm.
 fn up_to_nozzle<E>(
     v: f64,
     nozzle_mm: f64,

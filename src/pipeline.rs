@@ -89,6 +89,10 @@ pub const DEFAULT_MOVE_DEVIATION_MM: f64 = 0.0025;
 /// Default of [`ProcessSettings::move_width_tolerance`] (`docs/job-format.md`).
 pub const DEFAULT_MOVE_WIDTH_TOLERANCE: f64 = 0.1;
 
+/// Largest [`ProcessSettings::move_width_tolerance`] accepted: a move half again as wide
+/// at one end as at the other is no longer one road width.
+pub const MAX_MOVE_WIDTH_TOLERANCE: f64 = 0.5;
+
 /// Process settings: feeds, road width, extrusion cessation, flow limits, mixing chamber,
 /// seams. Units in the names; defaults documented per field (see [`Default`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -318,7 +322,15 @@ impl ProcessSettings {
         non_negative(self.purge_min_error, "purge_min_error")?;
         non_negative(self.mixer_tolerance, "mixer_tolerance")?;
         non_negative(self.move_deviation_mm, "move_deviation_mm")?;
-        non_negative(self.move_width_tolerance, "move_width_tolerance")?;
+        if !(0.0..=MAX_MOVE_WIDTH_TOLERANCE).contains(&self.move_width_tolerance) {
+            return Err(setting_error(
+                "move_width_tolerance",
+                format!(
+                    "must be a fraction from 0 to {MAX_MOVE_WIDTH_TOLERANCE}, got {}",
+                    self.move_width_tolerance
+                ),
+            ));
+        }
         if let Some([x, y]) = self.purge_xy_mm {
             if !(x.is_finite() && y.is_finite() && x.abs() < MAX_COORD_MM && y.abs() < MAX_COORD_MM)
             {
@@ -1517,6 +1529,20 @@ mod tests {
                 ProcessSettings::from_toml(&format!("gap_fill_min_factor = {bad}\n"), "t"),
                 Err(PipelineError::Setting {
                     field: "gap_fill_min_factor",
+                    ..
+                })
+            ));
+        }
+        // Set from the job's [process] table, checked again before use.
+        for bad in [-0.1, 0.6, f64::NAN] {
+            let s = ProcessSettings {
+                move_width_tolerance: bad,
+                ..ProcessSettings::for_nozzle(0.4)
+            };
+            assert!(matches!(
+                s.validate(),
+                Err(PipelineError::Setting {
+                    field: "move_width_tolerance",
                     ..
                 })
             ));
