@@ -101,7 +101,7 @@ fn gcode_drive_sums_equal_plan_volumes() {
             flavor,
             barrel_area_mm2: 165.0,
             marlin_direct_mixing: direct,
-            axes: Vec::new(),
+            ..GcodeSettings::default()
         };
         let path = dir.path().join(format!("{flavor:?}-{direct}.gcode"));
         // On a 200 x 200 x 150 mm machine, the annulus centred on the bed.

@@ -138,6 +138,7 @@ impl GcodeMachine {
                     }
                 }
             }
+            "MANUAL_STEPPER" => self.manual_stepper(text),
             "M164" => {
                 let total: f64 = self.pending_mix.iter().sum();
                 if total > 0.0 {
@@ -145,6 +146,25 @@ impl GcodeMachine {
                 }
             }
             _ => {}
+        }
+    }
+
+    /// Klipper's `MANUAL_STEPPER STEPPER=syringe_a SET_POSITION=v`: the plunger of the
+    /// syringe whose axis letter ends the stepper's name now stands at `v` (the firmware
+    /// model refuses it while the axis is registered; a refused line never gets here).
+    fn manual_stepper(&mut self, text: &str) {
+        let param = |key: &str| {
+            text.split_ascii_whitespace().find_map(|w| {
+                let (k, v) = w.split_once('=')?;
+                k.eq_ignore_ascii_case(key).then_some(v)
+            })
+        };
+        let drive = param("STEPPER")
+            .and_then(|s| s.strip_prefix("syringe_"))
+            .and_then(|s| s.chars().next())
+            .and_then(|c| self.drive_of_axis(c.to_ascii_uppercase()));
+        if let (Some(i), Some(v)) = (drive, param("SET_POSITION").and_then(number)) {
+            self.plunger_mm[i] = v;
         }
     }
 

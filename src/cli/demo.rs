@@ -365,12 +365,7 @@ fn gcode_writing(cfg: &Config) -> Result<Option<(GcodeSettings, usize)>> {
     let link = cfg
         .gcode_link()
         .map_err(|(key, why)| anyhow::anyhow!("{key}: {why}"))?;
-    Ok(link.map(|g| {
-        (
-            GcodeSettings::for_mix(&g.mix, g.barrel_area_mm2),
-            cfg.machine.syringes.len(),
-        )
-    }))
+    Ok(link.map(|g| (g.settings(), cfg.machine.syringes.len())))
 }
 
 /// edod's configuration for the demo, and the recording the machine writes: hil-sim

@@ -39,6 +39,7 @@ impl GcodeArgs {
             barrel_area_mm2: self.barrel_area,
             marlin_direct_mixing: self.marlin_direct_mixing,
             axes: self.axes.clone(),
+            ..GcodeSettings::default()
         }
     }
 }
@@ -142,6 +143,7 @@ fn write_moves(
         },
     )
     .with_context(|| format!("job {}: turning layers into moves", job.name))?;
+    w.epilogue(&mut out.lines);
     w.comment(
         &format!("end of job {}: {moves} moves", job.name),
         &mut out.lines,

@@ -35,6 +35,9 @@ pub trait LinkAdapter: Send {
     fn command(&mut self, c: MachineCommand, flushing: bool, now: Micros);
     /// Whether the link takes another move now (`ahead`: moves it may hold unsent).
     fn has_room(&self, ahead: usize) -> bool;
+    /// A job ended (done, cancelled or failed): a link may end the firmware's job state
+    /// once the moves still in it ran (Klipper's syringe axes released).
+    fn job_ended(&mut self, _job_id: u32) {}
     /// Queue a move; why not, if it cannot go.
     fn send_move(&mut self, mv: Move) -> Result<(), String>;
     /// Moves waiting in the link and moves sent and not acknowledged.

@@ -123,6 +123,30 @@ pub struct SyringeConfig {
     pub barrel_diameter_mm: f64,
     /// Capacity (ml).
     pub capacity_ml: f64,
+    /// Highest plunger speed, mm/s (default 2). On Klipper it is the syringe axis'
+    /// `LIMIT_VELOCITY` (`docs/gcode.md`).
+    #[serde(default = "default_max_plunger")]
+    pub max_plunger_mm_s: f64,
+    /// Highest plunger acceleration, mm/s² (default 20); Klipper's `LIMIT_ACCEL`.
+    #[serde(default = "default_max_plunger_accel")]
+    pub max_plunger_accel_mm_s2: f64,
+}
+
+impl SyringeConfig {
+    /// The plunger's limits.
+    pub fn plunger_limits(&self) -> crate::machine::gcode::PlungerLimits {
+        crate::machine::gcode::PlungerLimits {
+            max_mm_s: self.max_plunger_mm_s,
+            max_accel_mm_s2: self.max_plunger_accel_mm_s2,
+        }
+    }
+}
+
+fn default_max_plunger() -> f64 {
+    crate::machine::gcode::PlungerLimits::default().max_mm_s
+}
+fn default_max_plunger_accel() -> f64 {
+    crate::machine::gcode::PlungerLimits::default().max_accel_mm_s2
 }
 
 /// `[machine]`.
@@ -197,6 +221,8 @@ fn default_syringes() -> Vec<SyringeConfig> {
             name: (*n).to_string(),
             barrel_diameter_mm: 10.0,
             capacity_ml: 10.0,
+            max_plunger_mm_s: default_max_plunger(),
+            max_plunger_accel_mm_s2: default_max_plunger_accel(),
         })
         .collect()
 }
@@ -556,6 +582,10 @@ impl Config {
                     &format!("machine.syringes[{i}].capacity_ml"),
                     "must be positive".into(),
                 ));
+            }
+            if let Err(e) = s.plunger_limits().check() {
+                let key = e.split(' ').next().unwrap_or("max_plunger_mm_s");
+                return Err(bad(&format!("machine.syringes[{i}].{key}"), e));
             }
         }
         for (key, v) in [

@@ -85,6 +85,9 @@ pub struct GcodeLink {
     /// The writer of the job being streamed (its id), started with the job's first move
     /// after a (re)connection or a flush.
     writer: Option<(u32, MoveWriter)>,
+    /// A job ended: once every line went out and was acknowledged, Klipper's syringe
+    /// axes are released (the writer's epilogue) so a macro can move the plungers.
+    release_axes_when_idle: bool,
     next_tag: u64,
     /// Tags up to this one were accepted.
     accepted_upto: Option<u64>,
@@ -223,9 +226,10 @@ impl GcodeLink {
         let drives = drives.max(1);
         Self {
             host: LineHost::new(cfg.link.clone()),
-            settings: GcodeSettings::for_mix(&cfg.mix, cfg.barrel_area_mm2),
+            settings: cfg.settings(),
             drives,
             writer: None,
+            release_axes_when_idle: false,
             next_tag: 1,
             accepted_upto: None,
             pending: VecDeque::new(),
@@ -275,26 +279,32 @@ impl GcodeLink {
         Ok(last)
     }
 
-    /// The prologue every connection starts with: the writer's preamble (tool set-up,
-    /// Klipper's syringe axes at 0, units, absolute positions, relative extrusion),
-    /// without comments.
+    /// The prologue every connection starts with: the writer's connection prologue (tool
+    /// set-up, units, absolute positions, relative extrusion; Klipper's syringe axes
+    /// released, which a job's preamble takes again at its first move).
     fn send_prologue(&mut self) {
         let mut lines = Vec::new();
         match MoveWriter::new(self.drives, &self.settings) {
-            Ok(mut w) => w.preamble(&[], &mut lines),
+            Ok(mut w) => w.connection_prologue(&mut lines),
             Err(e) => {
                 warn!(error = %e, "G-code prologue");
                 return;
             }
         }
-        match self.send_lines(&lines) {
+        self.send_lines_of_no_move(&lines, "prologue");
+    }
+
+    /// Queue `lines` that belong to no move (a prologue, an epilogue), in order with the
+    /// moves; `what` names them in the log if the link refuses them.
+    fn send_lines_of_no_move(&mut self, lines: &[String], what: &str) {
+        match self.send_lines(lines) {
             Ok(last_tag) => self.pending.push_back(Pending {
                 mv: None,
                 sync: false,
                 to: None,
                 last_tag,
             }),
-            Err(e) => warn!(error = %e, "G-code prologue refused"),
+            Err(e) => warn!(error = %e, "G-code {what} refused"),
         }
     }
 
@@ -328,6 +338,33 @@ impl GcodeLink {
                 .push_back(Event::MachineStatus(report_of(&self.status)));
         }
         self.check_flushed();
+        self.release_axes_if_idle();
+    }
+
+    /// Klipper, after a job ended: with nothing left to send or acknowledge and the
+    /// machine running normally, the writer's epilogue releases the syringe axes; the
+    /// next writer's preamble takes them again (at 0 where the plungers stand).
+    fn release_axes_if_idle(&mut self) {
+        let idle = self.pending.is_empty()
+            && self.host.queued_len() == 0
+            && self.host.in_flight_len() == 0
+            && self.stop == Stop::None
+            && self.host.state() == LinkState::Streaming;
+        if !(self.release_axes_when_idle && idle) {
+            return;
+        }
+        self.release_axes_when_idle = false;
+        // A flush (a cancel) dropped the job's writer: any writer releases the axes.
+        let writer = match self.writer.take() {
+            Some((_, w)) => Ok(w),
+            None => MoveWriter::new(self.drives, &self.settings),
+        };
+        let Ok(mut w) = writer else {
+            return;
+        };
+        let mut lines = Vec::new();
+        w.epilogue(&mut lines);
+        self.send_lines_of_no_move(&lines, "epilogue");
     }
 
     /// Move `p` ran; whether it was a move.
@@ -815,7 +852,17 @@ impl LinkAdapter for GcodeLink {
             && self.host.queued_len() < ahead.clamp(1, 16)
     }
 
+    fn job_ended(&mut self, _job_id: u32) {
+        if self.settings.flavor == crate::machine::gcode::Flavor::Klipper {
+            self.release_axes_when_idle = true;
+            self.release_axes_if_idle();
+        }
+    }
+
     fn send_move(&mut self, mv: Move) -> Result<(), String> {
+        if mv.job_id != crate::lifecycle::SERVICE_JOB_ID {
+            self.release_axes_when_idle = false;
+        }
         let lines = self.lines_of(&mv)?;
         let last_tag = self.send_lines(&lines)?;
         self.pending.push_back(Pending {
@@ -904,6 +951,7 @@ mod tests {
             link: LineLinkConfig::for_dialect(Dialect::Marlin),
             mix: MixWriting::MarlinM163,
             barrel_area_mm2: 78.5,
+            plunger_limits: Vec::new(),
         };
         let link = GcodeLink::new(&cfg, 2, 1_000_000);
         let fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Marlin), Micros(0));

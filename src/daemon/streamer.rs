@@ -450,7 +450,15 @@ impl Streamer {
                 Action::LookUpJob(id) => self.shared.store.reader.look_up(id),
                 Action::ListQueued => self.shared.store.reader.queued(),
                 Action::Reply { request, result } => self.reply(request, result),
-                Action::JobState(note) => self.notify_state(note),
+                Action::JobState(note) => {
+                    if matches!(
+                        note.state,
+                        JobState::Done | JobState::Cancelled | JobState::Failed
+                    ) {
+                        self.link.job_ended(note.job_id);
+                    }
+                    self.notify_state(note)
+                }
                 Action::Progress(p) => self.progress(p),
                 Action::Underrun(u) => self.log_underrun(&u),
                 Action::Log {

@@ -271,7 +271,7 @@ async fn gcode_resume_lines(
             Ok(moves) => moves.into_iter().map(Ok).collect::<Vec<_>>(),
             Err(e) => vec![Err(e)],
         });
-        let settings = crate::machine::gcode::GcodeSettings::for_mix(&g.mix, g.barrel_area_mm2);
+        let settings = g.settings();
         super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &settings)
     })
     .await;

@@ -223,6 +223,9 @@ pub struct Firmware {
     ready_at: Option<Micros>,
     reject_next: bool,
     rrf_marlin_mode: bool,
+    /// Klipper: each `[manual_stepper]` registered as a G-code axis
+    /// (`MANUAL_STEPPER ... GCODE_AXIS=A`), by name; a restart forgets them.
+    klipper_axes: Vec<(String, char)>,
     stats: FirmwareStats,
 }
 
@@ -249,6 +252,7 @@ impl Firmware {
             ready_at: None,
             reject_next: false,
             rrf_marlin_mode: cfg.rrf_marlin_mode,
+            klipper_axes: Vec::new(),
             stats: FirmwareStats::default(),
             cfg,
         };
@@ -282,6 +286,7 @@ impl Firmware {
         self.ready_at = None;
         self.reject_next = false;
         self.rrf_marlin_mode = self.cfg.rrf_marlin_mode;
+        self.klipper_axes.clear();
         match self.cfg.dialect {
             Dialect::Marlin => {
                 let name = self.cfg.firmware_name.clone();
@@ -767,6 +772,14 @@ impl Firmware {
             self.planner_used += 1;
         }
         let word = command_word(&cmd.text).unwrap_or_default();
+        if self.cfg.dialect == Dialect::Klipper && word == "MANUAL_STEPPER" {
+            if let Err(why) = self.klipper_manual_stepper(&cmd.text) {
+                // `gcode.py` `_respond_error`, then the line's `ok`; the line did nothing.
+                self.say(&format!("!! {why}"));
+                self.say("ok");
+                return true;
+            }
+        }
         let replies = self.run_builtin(&word, &cmd.text);
         self.answer(&word, &cmd, replies, length);
         self.processed.push_back(ProcessedLine {
@@ -775,6 +788,48 @@ impl Firmware {
             is_move: cmd.kind == CommandKind::Move,
         });
         true
+    }
+
+    /// Klipper's `manual_stepper.py` `cmd_MANUAL_STEPPER`, as far as axis registration
+    /// goes: its refusals, word for word (Kalico 2026.10; Klipper v0.13.0-106 and on).
+    fn klipper_manual_stepper(&mut self, text: &str) -> Result<(), String> {
+        let param = |key: &str| {
+            text.split_ascii_whitespace().find_map(|w| {
+                let (k, v) = w.split_once('=')?;
+                k.eq_ignore_ascii_case(key).then(|| v.to_string())
+            })
+        };
+        let Some(stepper) = param("STEPPER").map(|s| s.to_ascii_lowercase()) else {
+            return Err("Error on 'MANUAL_STEPPER': missing STEPPER".into());
+        };
+        let registered = self.klipper_axes.iter().position(|(s, _)| *s == stepper);
+        let Some(axis) = param("GCODE_AXIS") else {
+            return match registered {
+                Some(_) => Err("Must unregister from gcode axis first".into()),
+                None => Ok(()),
+            };
+        };
+        let axis = axis.to_ascii_uppercase();
+        match (registered, axis.chars().next()) {
+            (Some(_), Some(_)) => Err("Must unregister axis first".into()),
+            (Some(i), None) => {
+                self.klipper_axes.remove(i);
+                Ok(())
+            }
+            (None, None) => Ok(()),
+            (None, Some(c))
+                if axis.len() != 1 || !c.is_ascii_uppercase() || "XYZEFN".contains(c) =>
+            {
+                Err("Not a valid GCODE_AXIS".into())
+            }
+            (None, Some(c)) if self.klipper_axes.iter().any(|(_, a)| *a == c) => {
+                Err(format!("Axis '{c}' already registered"))
+            }
+            (None, Some(c)) => {
+                self.klipper_axes.push((stepper, c));
+                Ok(())
+            }
+        }
     }
 
     /// The commands the front end itself answers; their reply lines (before `ok`).
@@ -889,7 +944,7 @@ impl Firmware {
             }
             Dialect::Klipper if word == "M115" => {
                 self.say(&format!(
-                    "ok FIRMWARE_NAME:{} FIRMWARE_VERSION:v0.12.0-edo-model",
+                    "ok FIRMWARE_NAME:{} FIRMWARE_VERSION:v0.13.0-730-edo-model",
                     self.cfg.firmware_name
                 ));
             }

@@ -363,3 +363,54 @@ fn klipper_m112_is_out_of_band_below_20_pending_lines() {
     fw.handle_bytes(&bytes, t(1));
     assert!(!fw.is_halted());
 }
+
+/// `manual_stepper.py`: a registered axis refuses `SET_POSITION` and a second
+/// `GCODE_AXIS=<letter>`, word for word, with `!!` then `ok`, and the line does nothing;
+/// `GCODE_AXIS=` releases it (a no-op when not registered); a restart forgets it.
+#[test]
+fn klipper_manual_stepper_axes_refuse_as_klipper_does() {
+    let mut fw = model(Dialect::Klipper, |_| {});
+    let s = "MANUAL_STEPPER STEPPER=syringe_a";
+    let run = |fw: &mut Firmware, line: &str| {
+        fw.handle_bytes(format!("{line}\n").as_bytes(), t(1));
+        let r = replies(fw);
+        lines(fw);
+        r
+    };
+    assert_eq!(run(&mut fw, &format!("{s} GCODE_AXIS=")), ["ok"]);
+    assert_eq!(run(&mut fw, &format!("{s} SET_POSITION=0")), ["ok"]);
+    assert_eq!(run(&mut fw, &format!("{s} GCODE_AXIS=A")), ["ok"]);
+    assert_eq!(
+        run(&mut fw, &format!("{s} SET_POSITION=0")),
+        ["!! Must unregister from gcode axis first", "ok"]
+    );
+    assert_eq!(
+        run(&mut fw, &format!("{s} GCODE_AXIS=A")),
+        ["!! Must unregister axis first", "ok"]
+    );
+    assert_eq!(
+        run(&mut fw, "MANUAL_STEPPER STEPPER=syringe_b GCODE_AXIS=A"),
+        ["!! Axis 'A' already registered", "ok"]
+    );
+    assert_eq!(
+        run(&mut fw, "MANUAL_STEPPER STEPPER=syringe_b GCODE_AXIS=E"),
+        ["!! Not a valid GCODE_AXIS", "ok"]
+    );
+    fw.handle_bytes(format!("{s} MOVE=1\n").as_bytes(), t(1));
+    assert_eq!(
+        replies(&mut fw),
+        ["!! Must unregister from gcode axis first", "ok"]
+    );
+    assert!(lines(&mut fw).is_empty(), "a refused line does nothing");
+    assert_eq!(run(&mut fw, &format!("{s} GCODE_AXIS=")), ["ok"]);
+    assert_eq!(run(&mut fw, &format!("{s} MOVE=1")), ["ok"]);
+    assert_eq!(run(&mut fw, &format!("{s} GCODE_AXIS=A")), ["ok"]);
+    fw.reset(t(2));
+    replies(&mut fw);
+    fw.handle_bytes(format!("{s} SET_POSITION=0\n").as_bytes(), t(10_000));
+    assert_eq!(
+        replies(&mut fw),
+        ["// Klipper state: Ready", "ok"],
+        "a restart forgets the registration"
+    );
+}

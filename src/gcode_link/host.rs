@@ -145,8 +145,8 @@ pub enum LineEvent {
         /// What follows `busy:`.
         text: String,
     },
-    /// A firmware error that is not a resend request (`Error:`, Klipper `!!`). The link
-    /// goes on; the job's owner decides.
+    /// A firmware error that is not a resend request (`Error:`, Klipper `!!`): the line
+    /// its `ok` names was refused, and the link stops there ([`LineEvent::Stopped`]).
     Error {
         /// The message.
         text: String,
@@ -353,6 +353,9 @@ pub struct LineHost {
     /// A Marlin line error whose `Last Line:` could not be read (a corrupted reply),
     /// waiting for its `Resend:`.
     pending_unreadable_error: bool,
+    /// A firmware error reply (`Error:` that asks for no resend, Klipper's `!!`) waiting
+    /// for the `ok` that names the line it refused: then the link stops.
+    refused: Option<String>,
     /// An ADVANCED_OK line number ahead of the oldest line in flight, not yet confirmed.
     jump_hint: Option<u32>,
     last_progress: Micros,
@@ -396,6 +399,7 @@ impl LineHost {
             rewind: None,
             pending_error: None,
             pending_unreadable_error: false,
+            refused: None,
             jump_hint: None,
             last_progress: Micros(0),
             busy_known: false,
@@ -1059,9 +1063,7 @@ impl LineHost {
                 self.pending_unreadable_error = true
             }
             Reply::Error { text, .. } => self.on_firmware_error(text),
-            Reply::KlipperError(text) => self
-                .events
-                .push_back(LineEvent::Error { text: text.into() }),
+            Reply::KlipperError(text) => self.on_klipper_error(text),
             Reply::KlipperState(state) => self.on_klipper_state(state, line),
             Reply::Busy(text) => self.on_busy(text, now),
             Reply::Wait => self.on_wait(now),
@@ -1106,9 +1108,16 @@ impl LineHost {
         if self.swallow_oks > 0 {
             self.swallow_oks -= 1;
             self.stats.oks_swallowed += 1;
+            // An error before a swallowed `ok` was the answer to edod's own probe.
+            self.refused = None;
             return;
         }
         self.note_free_counts(&ok);
+        if let Some(reply) = self.refused.take() {
+            self.timeouts_in_row = 0;
+            self.stop_refused(reply);
+            return;
+        }
         let Some(front) = self.in_flight.front().map(|f| f.number) else {
             self.stats.oks_unexpected += 1;
             self.protocol_error("`ok` with no line in flight, ignored".into());
@@ -1315,10 +1324,53 @@ impl LineHost {
         let lower = text.to_ascii_lowercase();
         if lower.contains("halted") || lower.contains("kill") || lower.contains("m999") {
             self.halt(text);
-        } else {
+        } else if ["checksum", "line number", "last line"]
+            .iter()
+            .any(|w| lower.contains(w))
+        {
+            // A line error whose resend half was garbled: the resend request (or the
+            // `ok` timeout's probe) that follows is what counts, not a refusal.
             self.events
                 .push_back(LineEvent::Error { text: text.into() });
+        } else {
+            self.note_refusal(text, format!("Error:{text}"));
         }
+    }
+
+    /// Klipper's `!!`: its shutdown (`M112`, an MCU error) halts; any other is a refusal
+    /// of the line its `ok` names.
+    fn on_klipper_error(&mut self, text: &str) {
+        if text.to_ascii_lowercase().contains("shutdown") {
+            self.halt(text);
+        } else {
+            self.note_refusal(text, format!("!! {text}"));
+        }
+    }
+
+    /// A line was refused: the reply precedes the `ok` that names the line (Klipper,
+    /// Marlin and RepRapFirmware all answer an error, then `ok`). The first refusal
+    /// stands; the link stops at that `ok` ([`LineHost::stop_refused`]).
+    fn note_refusal(&mut self, text: &str, reply: String) {
+        self.events
+            .push_back(LineEvent::Error { text: text.into() });
+        if self.refused.is_none() {
+            self.refused = Some(reply);
+        }
+    }
+
+    /// The `ok` for a refused line came: that line was taken (and refused), nothing
+    /// more goes out and the job's owner hears which line and why.
+    fn stop_refused(&mut self, reply: String) {
+        let Some(front) = self.in_flight.front().map(|f| f.number) else {
+            return;
+        };
+        let text = self.sent(front).map_or_else(String::new, |s| {
+            String::from_utf8_lossy(&s.wire).trim().to_string()
+        });
+        self.acknowledge_front();
+        self.stop(format!(
+            "the firmware refused line {front} `{text}`: {reply}"
+        ));
     }
 
     fn on_klipper_state(&mut self, state: &str, line: &str) {
@@ -1362,6 +1414,7 @@ impl LineHost {
         self.swallow_oks = 0;
         self.pending_error = None;
         self.pending_unreadable_error = false;
+        self.refused = None;
         self.jump_hint = None;
         if self.timeouts_in_row > self.cfg.max_timeouts {
             return self.link_lost(now);

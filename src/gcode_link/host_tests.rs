@@ -609,31 +609,80 @@ fn klipper_ready_is_a_reset_and_shutdown_a_halt() {
         t(3),
     );
     let ev = events(&mut h);
-    assert!(matches!(&ev[0], LineEvent::Error { .. }));
     assert!(
-        matches!(&ev[1], LineEvent::Halted { unacknowledged, .. } if unacknowledged == &vec![0])
+        matches!(&ev[0], LineEvent::Halted { unacknowledged, .. } if unacknowledged == &vec![0]),
+        "{ev:?}"
     );
     assert_eq!(h.state(), LinkState::Halted);
 }
 
+/// Klipper answers a refused line `!! why`, then its `ok`: the link stops at that line,
+/// naming it and the reply, and sends nothing more (a job must not carry on past it).
 #[test]
-fn marlin_kill_halts_and_other_errors_are_reported() {
+fn klipper_refusal_stops_the_link_at_the_refused_line() {
+    let mut h = connected(Dialect::Klipper);
+    send(&mut h, 0..3);
+    tx(&mut h, t(3));
+    feed(
+        &mut h,
+        "ok
+",
+        t(4),
+    );
+    feed(
+        &mut h,
+        "!! Must unregister from gcode axis first
+ok
+",
+        t(4),
+    );
+    let ev = events(&mut h);
+    assert_eq!(accepted(&ev), vec![0, 1], "{ev:?}");
+    let stopped = ev.iter().find_map(|e| match e {
+        LineEvent::Stopped {
+            reason,
+            unacknowledged,
+        } => Some((reason.clone(), unacknowledged.clone())),
+        _ => None,
+    });
+    let (reason, unacknowledged) = stopped.expect("stopped");
+    assert!(reason.contains("`G1 X1`"), "{reason}");
+    assert!(
+        reason.ends_with("!! Must unregister from gcode axis first"),
+        "{reason}"
+    );
+    assert_eq!(unacknowledged, vec![2]);
+    assert_eq!(h.state(), LinkState::Stopped);
+    assert!(tx(&mut h, t(5)).is_empty());
+}
+
+#[test]
+fn marlin_kill_halts_and_other_errors_stop_at_their_line() {
     let mut h = connected(Dialect::Marlin);
     send(&mut h, 0..2);
     tx(&mut h, t(3));
-    feed(&mut h, "Error:MINTEMP triggered\nok\n", t(4));
+    feed(&mut h, "Error:Printer halted. kill() called!\n", t(5));
+    assert!(matches!(events(&mut h)[..], [LineEvent::Halted { .. }]));
+    assert!(tx(&mut h, t(6)).is_empty());
+
+    let mut h = connected(Dialect::Marlin);
+    send(&mut h, 0..2);
+    tx(&mut h, t(3));
+    feed(&mut h, "Error:Unknown mixer setting\nok\n", t(4));
     let ev = events(&mut h);
     assert_eq!(
         ev[0],
         LineEvent::Error {
-            text: "MINTEMP triggered".into()
+            text: "Unknown mixer setting".into()
         }
     );
     assert_eq!(accepted(&ev), vec![0]);
-    tx(&mut h, t(4));
-    feed(&mut h, "Error:Printer halted. kill() called!\n", t(5));
-    assert!(matches!(events(&mut h)[..], [LineEvent::Halted { .. }]));
-    assert!(tx(&mut h, t(6)).is_empty());
+    assert!(
+        matches!(&ev[2], LineEvent::Stopped { reason, unacknowledged }
+            if reason.contains("line 2 `N2 G1 X0") && reason.ends_with("Error:Unknown mixer setting")
+                && unacknowledged == &vec![1]),
+        "{ev:?}"
+    );
 }
 
 #[test]

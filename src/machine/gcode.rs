@@ -42,6 +42,48 @@ pub struct GcodeSettings {
     /// Klipper only: one axis letter per drive, in drive order; empty: [`DEFAULT_AXES`]
     /// from the first.
     pub axes: Vec<char>,
+    /// Klipper only: each drive's plunger limits, written as the axis' `LIMIT_VELOCITY`
+    /// and `LIMIT_ACCEL` (Klipper leaves a `GCODE_AXIS` unlimited without them); a drive
+    /// past the end takes [`PlungerLimits::default`].
+    pub plunger_limits: Vec<PlungerLimits>,
+}
+
+/// How fast a syringe's plunger may move (`[[machine.syringes]] max_plunger_mm_s`,
+/// `max_plunger_accel_mm_s2`): a syringe pump's lead screw and the slurry's back-pressure
+/// bound it, whatever the toolhead does.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PlungerLimits {
+    /// Highest plunger speed, mm/s of plunger travel. Default 2: about 100 times the
+    /// plunger speed of a 0.4 × 0.2 mm road at 40 mm/s through a 14.5 mm bore, and slow
+    /// enough that a wrong position cannot empty a syringe in a flash.
+    pub max_mm_s: f64,
+    /// Highest plunger acceleration, mm/s². Default 20.
+    pub max_accel_mm_s2: f64,
+}
+
+impl Default for PlungerLimits {
+    fn default() -> Self {
+        PlungerLimits {
+            max_mm_s: 2.0,
+            max_accel_mm_s2: 20.0,
+        }
+    }
+}
+
+impl PlungerLimits {
+    /// Why these limits cannot be written, if they cannot.
+    pub fn check(&self) -> Result<(), String> {
+        for (name, v) in [
+            ("max_plunger_mm_s", self.max_mm_s),
+            ("max_plunger_accel_mm_s2", self.max_accel_mm_s2),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
+                return Err(format!("{name} = {v}: must be above 0 and at most 1000"));
+            }
+        }
+        Ok(())
+    }
 }
 
 impl Default for GcodeSettings {
@@ -51,6 +93,7 @@ impl Default for GcodeSettings {
             barrel_area_mm2: 165.0,
             marlin_direct_mixing: false,
             axes: Vec::new(),
+            plunger_limits: Vec::new(),
         }
     }
 }
@@ -72,6 +115,7 @@ impl GcodeSettings {
             barrel_area_mm2,
             marlin_direct_mixing,
             axes,
+            plunger_limits: Vec::new(),
         }
     }
 
@@ -193,9 +237,27 @@ fn f_mm_min(um_s: u32) -> String {
     fixed((f64::from(um_s) * 0.6).round() as i64, 1)
 }
 
-/// A plunger feed in mm/min to 0.1.
+/// A plunger feed in mm/min to four significant digits: a retract of 0.3 µm over
+/// 150 ms is `F0.1212`. Marlin, RepRapFirmware and Klipper read F as a float, so the
+/// retract lasts what was planned; `F1` when nothing moves (any feed does, and Klipper
+/// refuses 0).
 fn f_plunger(mm_min: f64) -> String {
-    fixed((mm_min * 10.0).round() as i64, 1)
+    if !(mm_min.is_finite() && mm_min > 0.0) {
+        return "1".into();
+    }
+    significant(mm_min)
+}
+
+/// `v` to four significant digits (at most nine decimals; at least one, so 1234.56 is
+/// `1234.6`), written shortest (`2`, not `2.0`).
+fn significant(v: f64) -> String {
+    let digits = (3 - v.abs().log10().floor() as i32).clamp(1, 9);
+    fixed((v * 10f64.powi(digits)).round() as i64, digits as u32)
+}
+
+/// The `[manual_stepper]` section name of axis `c`: `syringe_a` for `A`.
+pub fn stepper_name(c: char) -> String {
+    format!("syringe_{}", c.to_ascii_lowercase())
 }
 
 /// Write the G-code for `moves` (one job, in order) over `drives` syringes into `out`.
@@ -217,6 +279,7 @@ pub fn write_gcode(
             out.push('\n');
         }
     }
+    w.epilogue(&mut lines);
     for l in lines.drain(..) {
         out.push_str(&l);
         out.push('\n');
@@ -340,10 +403,40 @@ impl MoveWriter {
     }
 
     /// The header comments, the flavour's tool set-up and the units and modes, into `out`.
+    /// Klipper: each syringe's axis is released, zeroed and registered again, which
+    /// Klipper accepts whatever state the axis was in (a second job, a resume), so the
+    /// writer's absolute plunger positions start at 0 where the plunger stands.
     pub fn preamble(&mut self, header: &[String], out: &mut Vec<String>) {
         for h in header {
             self.line(format!("; {h}"), out);
         }
+        self.set_up(true, out);
+    }
+
+    /// What a G-code connection starts with (`docs/firmware.md`): the tool set-up, the
+    /// units and modes and, on Klipper, each syringe's axis released (a no-op when it is
+    /// not registered), so a macro can move the plungers between jobs; a job's preamble
+    /// takes the axes again.
+    pub fn connection_prologue(&mut self, out: &mut Vec<String>) {
+        self.set_up(false, out);
+        self.epilogue(out);
+    }
+
+    /// The end of a job: Klipper's syringe axes released (`GCODE_AXIS=`), so a refill or
+    /// purge macro can move the plungers with `MANUAL_STEPPER ... MOVE=`; nothing on the
+    /// other flavours.
+    pub fn epilogue(&mut self, out: &mut Vec<String>) {
+        if self.settings.flavor != Flavor::Klipper {
+            return;
+        }
+        for c in self.axes.clone() {
+            let name = stepper_name(c);
+            self.line(format!("MANUAL_STEPPER STEPPER={name} GCODE_AXIS="), out);
+        }
+        self.modal.axes_units = vec![None; self.drives];
+    }
+
+    fn set_up(&mut self, take_axes: bool, out: &mut Vec<String>) {
         let all: Vec<String> = (0..self.drives).map(|d| d.to_string()).collect();
         match self.settings.flavor {
             Flavor::Rrf => {
@@ -361,22 +454,43 @@ impl MoveWriter {
                 );
                 self.line("T0".into(), out);
             }
-            Flavor::Klipper => {
+            Flavor::Klipper if take_axes => {
                 self.line(
                     "; Klipper: each syringe a manual stepper on its own G1 axis, positions in mm"
                         .into(),
                     out,
                 );
-                for c in self.axes.clone() {
-                    let name = format!("syringe_{}", c.to_ascii_lowercase());
-                    self.line(format!("MANUAL_STEPPER STEPPER={name} SET_POSITION=0"), out);
-                    self.line(format!("MANUAL_STEPPER STEPPER={name} GCODE_AXIS={c}"), out);
-                }
+                self.take_axes(out);
             }
+            Flavor::Klipper => {}
         }
         self.line("G21 ; millimetres".into(), out);
         self.line("G90 ; absolute positions".into(), out);
         self.line("M83 ; relative extrusion".into(), out);
+    }
+
+    /// Klipper: release, zero and register each syringe's axis with its limits.
+    fn take_axes(&mut self, out: &mut Vec<String>) {
+        for (d, c) in self.axes.clone().into_iter().enumerate() {
+            let name = stepper_name(c);
+            let limits = self
+                .settings
+                .plunger_limits
+                .get(d)
+                .copied()
+                .unwrap_or_default();
+            self.line(format!("MANUAL_STEPPER STEPPER={name} GCODE_AXIS="), out);
+            self.line(format!("MANUAL_STEPPER STEPPER={name} SET_POSITION=0"), out);
+            self.line(
+                format!(
+                    "MANUAL_STEPPER STEPPER={name} GCODE_AXIS={c} LIMIT_VELOCITY={} LIMIT_ACCEL={}",
+                    significant(limits.max_mm_s),
+                    significant(limits.max_accel_mm_s2)
+                ),
+                out,
+            );
+        }
+        self.modal.axes_units = vec![None; self.drives];
     }
 
     /// A comment line `; text` into `out`.
@@ -454,7 +568,7 @@ impl MoveWriter {
             })
             .collect();
         let most = units.iter().map(|u| u.abs()).max().unwrap_or(0) as f64 / 1e6;
-        let feed = (most * 60_000.0 / f64::from(duration_ms.max(1))).max(1.0);
+        let feed = most * 60_000.0 / f64::from(duration_ms.max(1));
         let what = if sign < 0.0 { "retract" } else { "prime" };
         match self.settings.flavor {
             Flavor::Rrf => {
@@ -752,7 +866,18 @@ fn summed_axis_travel(gcode: &str, drives: usize) -> Vec<f64> {
     for l in gcode.lines() {
         let code = l.split(';').next().unwrap_or("").trim();
         if let Some((_, axis)) = code.split_once("GCODE_AXIS=") {
-            letters.extend(axis.chars().next());
+            letters.extend(axis.chars().next().filter(|c| !letters.contains(c)));
+            continue;
+        }
+        if let Some((_, at)) = code.split_once(" SET_POSITION=") {
+            let axis = code
+                .split_once("STEPPER=syringe_")
+                .and_then(|(_, rest)| rest.chars().next())
+                .map(|c| c.to_ascii_uppercase());
+            let d = letters.iter().position(|&l| Some(l) == axis);
+            if let (Some(d), Ok(to)) = (d.filter(|&d| d < drives), at.trim().parse::<f64>()) {
+                position[d] = to;
+            }
             continue;
         }
         if !code.starts_with("G1 ") {
@@ -822,7 +947,11 @@ mod tests {
         assert_eq!(mm(-5), "-0.005");
         assert_eq!(f_mm_min(10_000), "600");
         assert_eq!(f_mm_min(403), "24.2");
-        assert_eq!(f_plunger(0.96), "1");
+        assert_eq!(f_plunger(0.96), "0.96");
+        assert_eq!(f_plunger(0.121_249), "0.1212");
+        assert_eq!(f_plunger(1234.56), "1234.6");
+        assert_eq!(f_plunger(0.0), "1");
+        assert_eq!(significant(2.0), "2");
     }
 
     /// A line carries the words that change the firmware's state; after `G28`, a
@@ -864,7 +993,7 @@ mod tests {
                 "G0 X1 Y0 Z0.2 F2400",
                 "G1 X2 E0.006061:0 F600",
                 "G1 X3 E0.00606:0",
-                "G1 E-0.000303:-0.000303 F1 ; retract",
+                "G1 E-0.000303:-0.000303 F0.1818 ; retract",
                 "G1 X4 E0:0.006061 F600",
                 "G1 X4 Y0 Z0.2 E0:0.00606",
                 "G28",
@@ -897,8 +1026,30 @@ mod tests {
         let mut text = String::new();
         let stats = write_gcode(&moves, 2, &klipper(vec!['u', 'V']), &[], &mut text).unwrap();
         let lines: Vec<&str> = text.lines().collect();
-        assert!(lines.contains(&"MANUAL_STEPPER STEPPER=syringe_u SET_POSITION=0"));
-        assert!(lines.contains(&"MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=V"));
+        // Released, zeroed and taken again, whatever state the axis was in; released
+        // at the end so a macro can move the plunger.
+        let u = lines
+            .iter()
+            .position(|l| l.starts_with("MANUAL_STEPPER STEPPER=syringe_u"))
+            .unwrap();
+        assert_eq!(
+            lines[u..u + 3],
+            [
+                "MANUAL_STEPPER STEPPER=syringe_u GCODE_AXIS=",
+                "MANUAL_STEPPER STEPPER=syringe_u SET_POSITION=0",
+                "MANUAL_STEPPER STEPPER=syringe_u GCODE_AXIS=U LIMIT_VELOCITY=2 LIMIT_ACCEL=20",
+            ]
+        );
+        assert!(lines.contains(
+            &"MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=V LIMIT_VELOCITY=2 LIMIT_ACCEL=20"
+        ));
+        assert_eq!(
+            lines[lines.len() - 2..],
+            [
+                "MANUAL_STEPPER STEPPER=syringe_u GCODE_AXIS=",
+                "MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=",
+            ]
+        );
         // 300 nl in a 100 mm² barrel: 0.003 mm; the retract pulls 0.0005 back and the
         // prime pushes it again; the second move adds 0.003 to U only. Words that do
         // not change what the firmware holds are left out (modal).
@@ -906,7 +1057,8 @@ mod tests {
             lines.contains(&"G1 X1 Y0 Z0.2 U0.003 V0.001 F600"),
             "{lines:?}"
         );
-        assert!(lines.contains(&"G1 U0.0025 V0.0005 F1 ; retract"));
+        // 0.0005 mm in 100 ms: 0.3 mm/min, so the retract lasts what was planned.
+        assert!(lines.contains(&"G1 U0.0025 V0.0005 F0.3 ; retract"));
         assert!(lines.contains(&"G1 U0.003 V0.001 ; prime"));
         assert!(lines.contains(&"G1 X2 U0.006 F600"));
         assert_eq!(stats.extrude_e_mm, vec![0.006, 0.001]);
@@ -922,7 +1074,7 @@ mod tests {
         let mut out = Vec::new();
         let mut w = MoveWriter::new(3, &klipper(Vec::new())).unwrap();
         w.preamble(&[], &mut out);
-        assert!(out.iter().any(|l| l.ends_with("GCODE_AXIS=C")));
+        assert!(out.iter().any(|l| l.contains("GCODE_AXIS=C ")));
         let refuse = |axes: Vec<char>, drives| MoveWriter::new(drives, &klipper(axes)).err();
         assert_eq!(
             refuse(vec!['A'], 2),
@@ -967,6 +1119,7 @@ mod tests {
             for m in &moves {
                 w.move_lines(m, &mut lines);
             }
+            w.epilogue(&mut lines);
             let streamed: Vec<&str> = lines.iter().map(String::as_str).collect();
             assert_eq!(file.lines().collect::<Vec<_>>(), streamed, "{mix:?}");
         }

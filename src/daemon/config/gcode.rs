@@ -101,6 +101,18 @@ pub struct GcodeLink {
     pub mix: MixWriting,
     /// Barrel cross-section, mm² (E = V / 1000 / A).
     pub barrel_area_mm2: f64,
+    /// Each syringe's plunger limits (Klipper's `LIMIT_VELOCITY`, `LIMIT_ACCEL`).
+    pub plunger_limits: Vec<crate::machine::gcode::PlungerLimits>,
+}
+
+impl GcodeLink {
+    /// How edod writes this machine's moves: what `edoctl plan --machine` writes too.
+    pub fn settings(&self) -> crate::machine::gcode::GcodeSettings {
+        crate::machine::gcode::GcodeSettings {
+            plunger_limits: self.plunger_limits.clone(),
+            ..crate::machine::gcode::GcodeSettings::for_mix(&self.mix, self.barrel_area_mm2)
+        }
+    }
 }
 
 /// A wrong value: the dotted key and what is wrong.
@@ -153,6 +165,7 @@ impl GcodeConfig {
             link,
             mix,
             barrel_area_mm2,
+            plunger_limits: syringes.iter().map(SyringeConfig::plunger_limits).collect(),
         })
     }
 
