@@ -429,9 +429,16 @@ impl MoveWriter {
         if self.settings.flavor != Flavor::Klipper {
             return;
         }
-        for c in self.axes.clone() {
+        for (d, c) in self.axes.clone().into_iter().enumerate() {
             let name = stepper_name(c);
             self.line(format!("MANUAL_STEPPER STEPPER={name} GCODE_AXIS="), out);
+            // A move to where the plunger stands: nothing moves, but Kalico steps the
+            // end of the job it still holds for the axis (its SET_POSITION, unlike
+            // Klipper's, does not), so the next job's SET_POSITION=0 is clean.
+            let at = self.ext[d].printed_units + self.aux[d].printed_units;
+            if at != 0 {
+                self.line(format!("MANUAL_STEPPER STEPPER={name} MOVE={}", e(at)), out);
+            }
         }
         self.modal.axes_units = vec![None; self.drives];
     }
@@ -1044,10 +1051,12 @@ mod tests {
             &"MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=V LIMIT_VELOCITY=2 LIMIT_ACCEL=20"
         ));
         assert_eq!(
-            lines[lines.len() - 2..],
+            lines[lines.len() - 4..],
             [
                 "MANUAL_STEPPER STEPPER=syringe_u GCODE_AXIS=",
+                "MANUAL_STEPPER STEPPER=syringe_u MOVE=0.006",
                 "MANUAL_STEPPER STEPPER=syringe_v GCODE_AXIS=",
+                "MANUAL_STEPPER STEPPER=syringe_v MOVE=0.001",
             ]
         );
         // 300 nl in a 100 mm² barrel: 0.003 mm; the retract pulls 0.0005 back and the
