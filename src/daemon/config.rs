@@ -583,9 +583,8 @@ impl Config {
                     "must be positive".into(),
                 ));
             }
-            if let Err(e) = s.plunger_limits().check() {
-                let key = e.split(' ').next().unwrap_or("max_plunger_mm_s");
-                return Err(bad(&format!("machine.syringes[{i}].{key}"), e));
+            if let Err((key, why)) = s.plunger_limits().check() {
+                return Err(bad(&format!("machine.syringes[{i}].{key}"), why));
             }
         }
         for (key, v) in [
@@ -745,6 +744,19 @@ mod tests {
     fn bad_values_name_their_key() {
         let e = Config::from_toml("[api]\nmode = \"rw\"\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("api.mode"), "{e}");
+        for (key, value) in [
+            ("max_plunger_mm_s", "0.0"),
+            ("max_plunger_mm_s", "nan"),
+            ("max_plunger_accel_mm_s2", "-1.0"),
+            ("max_plunger_accel_mm_s2", "1e9"),
+        ] {
+            let toml = format!(
+                "[[machine.syringes]]\nname = \"A\"\nbarrel_diameter_mm = 10.0\n\
+                 capacity_ml = 10.0\n{key} = {value}\n"
+            );
+            let e = Config::from_toml(&toml, "m.toml").unwrap_err().to_string();
+            assert!(e.contains(&format!("machine.syringes[0].{key}")), "{e}");
+        }
         let e = Config::from_toml("[machine]\nsyringes = []\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("machine.syringes"), "{e}");
         let e = Config::from_toml("[state]\nkeep_finished_jobs = 0\n", "m.toml").unwrap_err();

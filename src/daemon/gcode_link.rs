@@ -345,12 +345,15 @@ impl GcodeLink {
     /// machine running normally, the writer's epilogue releases the syringe axes; the
     /// next writer's preamble takes them again (at 0 where the plungers stand).
     fn release_axes_if_idle(&mut self) {
+        if !self.release_axes_when_idle {
+            return;
+        }
         let idle = self.pending.is_empty()
             && self.host.queued_len() == 0
             && self.host.in_flight_len() == 0
             && self.stop == Stop::None
             && self.host.state() == LinkState::Streaming;
-        if !(self.release_axes_when_idle && idle) {
+        if !idle {
             return;
         }
         self.release_axes_when_idle = false;

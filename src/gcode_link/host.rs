@@ -1113,7 +1113,9 @@ impl LineHost {
             return;
         }
         self.note_free_counts(&ok);
-        if let Some(reply) = self.refused.take() {
+        // An error before an `ok` with none of edod's lines in flight refused nothing
+        // edod sent.
+        if let Some(reply) = self.refused.take().filter(|_| !self.in_flight.is_empty()) {
             self.timeouts_in_row = 0;
             self.stop_refused(reply);
             return;
@@ -1361,9 +1363,7 @@ impl LineHost {
     /// The `ok` for a refused line came: that line was taken (and refused), nothing
     /// more goes out and the job's owner hears which line and why.
     fn stop_refused(&mut self, reply: String) {
-        let Some(front) = self.in_flight.front().map(|f| f.number) else {
-            return;
-        };
+        let front = self.in_flight.front().map_or(0, |f| f.number);
         let text = self.sent(front).map_or_else(String::new, |s| {
             String::from_utf8_lossy(&s.wire).trim().to_string()
         });

@@ -1185,3 +1185,27 @@ fn an_unreadable_resend_request_does_not_count_its_ok_and_the_probe_finds_the_li
         assert_eq!(accepted(&events(&mut h)), vec![0, 1], "{bad:?}");
     }
 }
+
+/// An error and `ok` with no line of edod's in flight (an operator's macro on another
+/// input, say) refuse nothing edod sent: the link goes on.
+#[test]
+fn an_error_with_no_line_in_flight_stops_nothing() {
+    let mut h = connected(Dialect::Klipper);
+    feed(&mut h, "!! Move out of range\nok\n", t(3));
+    let ev = events(&mut h);
+    assert!(
+        !ev.iter().any(|e| matches!(e, LineEvent::Stopped { .. })),
+        "{ev:?}"
+    );
+    assert_eq!(h.state(), LinkState::Streaming);
+    send(&mut h, 0..1);
+    assert_eq!(tx(&mut h, t(4)).len(), 1, "lines still go out");
+    feed(&mut h, "ok\n", t(5));
+    let ev = events(&mut h);
+    assert_eq!(
+        accepted(&ev),
+        vec![0],
+        "the old error does not refuse it: {ev:?}"
+    );
+    assert_eq!(h.state(), LinkState::Streaming);
+}

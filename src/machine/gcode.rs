@@ -72,14 +72,14 @@ impl Default for PlungerLimits {
 }
 
 impl PlungerLimits {
-    /// Why these limits cannot be written, if they cannot.
-    pub fn check(&self) -> Result<(), String> {
+    /// Why these limits cannot be written, if they cannot: the setting's name and why.
+    pub fn check(&self) -> Result<(), (&'static str, String)> {
         for (name, v) in [
             ("max_plunger_mm_s", self.max_mm_s),
             ("max_plunger_accel_mm_s2", self.max_accel_mm_s2),
         ] {
             if !(v.is_finite() && v > 0.0 && v <= 1000.0) {
-                return Err(format!("{name} = {v}: must be above 0 and at most 1000"));
+                return Err((name, format!("{v}: must be above 0 and at most 1000")));
             }
         }
         Ok(())
