@@ -553,6 +553,20 @@ fn finish_paths(
     paths
 }
 
+/// A job's first move: it homes (`G28` in G-code), as every job edod streams and every
+/// file `edoctl plan --gcode` writes does. Its index is 0; the layers' moves are
+/// numbered from [`FIRST_LAYER_MOVE_INDEX`].
+pub fn home_move(job_id: u32) -> Move {
+    Move {
+        job_id,
+        index: 0,
+        kind: MoveKind::Home,
+    }
+}
+
+/// The index of a job's first layer move, after [`home_move`].
+pub const FIRST_LAYER_MOVE_INDEX: u32 = 1;
+
 /// Turn one planned layer into machine moves numbered from `first_index`, continuing
 /// from `state` (see the module doc).
 pub fn layer_moves(

@@ -133,6 +133,13 @@ impl Client {
         }
     }
 
+    /// Submit `job`: its id.
+    fn submit(&mut self, job: &str) -> u64 {
+        self.call("job.submit", json!({ "job": job })).unwrap()["id"]
+            .as_u64()
+            .unwrap()
+    }
+
     fn job(&mut self, id: u64) -> Value {
         self.call("job.get", json!({"id": id})).unwrap()
     }
@@ -199,6 +206,7 @@ fn sim_with_keepalive(
     let record = dir.join("run.jsonl");
     let mut gcode = hil_sim::GcodeOptions::new(dialect(firmware), 2);
     gcode.keepalive_interval_ms = keepalive_ms;
+    gcode.console = Some(dir.join("console.gcode"));
     let h = hil_sim::spawn(hil_sim::SimConfig {
         link: Some(dir.join("tty")),
         speed: 50.0,
@@ -326,6 +334,102 @@ fn assert_ran_once_in_order(ran: &[String], expected: &[String], repeats_allowed
     repeats
 }
 
+/// Lines a G-code connection sends of its own, in no file (`docs/firmware.md`, "What
+/// edod streams"): the handshake, and `M400` when nothing else is left to send.
+const LINK_ONLY: [&str; 4] = ["M110", "M115", "M555", "M400"];
+
+/// `edoctl plan JOB --machine EDOD.TOML --gcode FILE` is what edod streams: on `firmware`,
+/// what the simulated firmware ran for [`JOB`] (its console log, less the link's own
+/// lines) is the connection prologue and then the file's lines, less comments, one for
+/// one: the job's first line to the Klipper epilogue.
+fn plan_machine_equals_what_edod_streams(firmware: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), firmware, 3);
+    let d = Daemon::start(dir.path(), &sim.path().display().to_string(), firmware, "");
+    let mut c = d.client();
+    c.wait_connected();
+    let id = c.submit(JOB);
+    c.wait_state(id, "done");
+    let job = dir.path().join("job.toml");
+    std::fs::write(&job, JOB).unwrap();
+    let file = dir.path().join("job.gcode");
+    let out = Command::new(env!("CARGO_BIN_EXE_edoctl"))
+        .args(["plan", "--quiet", "--machine"])
+        .arg(dir.path().join("edod.toml"))
+        .arg("--gcode")
+        .arg(&file)
+        .arg(&job)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let config = edo::daemon::config::Config::load(&dir.path().join("edod.toml")).unwrap();
+    let settings = config.gcode_link().unwrap().unwrap().settings();
+    let mut prologue = Vec::new();
+    edo::machine::gcode::MoveWriter::new(2, &settings)
+        .unwrap()
+        .connection_prologue(&mut prologue);
+    let text = std::fs::read_to_string(&file).unwrap();
+    let expected: Vec<String> = prologue
+        .iter()
+        .flat_map(|l| streamed_lines(l))
+        .chain(streamed_lines(&text))
+        .map(str::to_string)
+        .collect();
+    // The Klipper epilogue goes once every line was acknowledged: wait for the last.
+    let console = dir.path().join("console.gcode");
+    let ran = || -> Vec<String> {
+        std::fs::read_to_string(&console)
+            .unwrap()
+            .lines()
+            .filter(|l| !LINK_ONLY.contains(&command_word(l).unwrap_or_default().as_str()))
+            .map(str::to_string)
+            .collect()
+    };
+    let t = Instant::now();
+    while ran().last() != expected.last() && t.elapsed() < Duration::from_secs(10) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    let ran = ran();
+    let first_difference = ran.iter().zip(&expected).position(|(a, b)| a != b);
+    assert_eq!(
+        (first_difference, ran.len()),
+        (None, expected.len()),
+        "{firmware}: edod streamed {} lines, the file has {}; first difference at {:?}: ran {:?}, file {:?}",
+        ran.len(),
+        expected.len(),
+        first_difference,
+        first_difference.and_then(|k| ran.get(k)),
+        first_difference.and_then(|k| expected.get(k)),
+    );
+    assert!(
+        expected.len() > 200,
+        "{} lines: too small a job",
+        expected.len()
+    );
+}
+
+#[test]
+fn plan_machine_equals_what_edod_streams_to_rrf() {
+    plan_machine_equals_what_edod_streams("rrf");
+}
+
+#[test]
+fn plan_machine_equals_what_edod_streams_to_marlin() {
+    plan_machine_equals_what_edod_streams("marlin");
+}
+
+#[test]
+fn plan_machine_equals_what_edod_streams_to_klipper() {
+    plan_machine_equals_what_edod_streams("klipper");
+}
+
 /// A graded job on `firmware` with `faults`: done, every line of the offline file ran
 /// once and in order, and the per-drive volumes are the file's E totals. RRF: a line
 /// may run twice, right after itself, and no more lines than edod sent again after a
@@ -342,9 +446,7 @@ fn job_streams_the_offline_file(firmware: &str, faults: &str, seed: u64) {
     for f in faults.split(',').filter(|f| !f.is_empty()) {
         sim.command(hil_sim::Command::parse(f).unwrap());
     }
-    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
-        .as_u64()
-        .unwrap();
+    let id = c.submit(JOB);
     let done = c.wait_state(id, "done");
     let planned = planned_job();
     assert_eq!(done["total_moves"].as_u64(), Some(planned.len() as u64));
@@ -622,9 +724,7 @@ fn job_streaming(
     let d = Daemon::start(dir, &sim.path().display().to_string(), firmware, "");
     let mut c = d.client();
     c.wait_connected();
-    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
-        .as_u64()
-        .unwrap();
+    let id = c.submit(JOB);
     c.wait("streaming", |c| c.executed(id) > 200);
     (sim, record, d, c, id)
 }
@@ -656,7 +756,18 @@ fn sigkill_mid_job_interrupts_and_resumes(
     drop(c);
     drop(d);
     sim.stop().unwrap();
-    resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed)
+    let repeated = resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed);
+    keep_console_for_the_peer(dir.path(), firmware);
+    repeated
+}
+
+/// What the firmware ran, for tests/peers/run_klipper_peer.sh to run through Klipper's
+/// own klippy: copied to `EDO_RESUMED_STREAM_<FIRMWARE>` when that is set.
+fn keep_console_for_the_peer(dir: &Path, firmware: &str) {
+    let var = format!("EDO_RESUMED_STREAM_{}", firmware.to_uppercase());
+    if let Some(to) = std::env::var_os(var) {
+        std::fs::copy(dir.join("console.gcode"), to).unwrap();
+    }
 }
 
 /// The recording of [`JOB`] run on `firmware`, interrupted after at least `before` lines
@@ -678,13 +789,36 @@ fn resumed_job_skipped_nothing(
         .take_while(|(a, b)| a == b)
         .count();
     assert!(first >= before, "first run: {first} of {before} lines");
-    // The tail after the resume's service moves is the file from the resumed move on.
-    let resumed_at = (0..=first)
-        .find(|&s| ran.ends_with(&expected[s..]) && ran.len() - (expected.len() - s) >= first)
-        .expect("the job's end runs in order after the resume, nothing skipped");
-    let service = ran.len() - (expected.len() - resumed_at) - first;
-    // Home, prime, the lifted travel and the descent to where the job stopped.
-    assert!(service <= 4, "{service} service moves");
+    // Then the resume's service moves: home, prime and, once any move ran, the lifted
+    // travel and the descent to where the job stopped. Counted, not matched: the descent
+    // reads as the job's own travel when that was the last move run (the same X Y Z).
+    assert_eq!(
+        ran.get(first).map(String::as_str),
+        Some("G28"),
+        "the resume homes first"
+    );
+    let position_known = ran[..first]
+        .iter()
+        .any(|l| l.starts_with("G0 X") || l.starts_with("G1 X"));
+    let service = if position_known { 4 } else { 2 };
+    // The tail after them is the file from the resumed move to its end.
+    let tail = ran
+        .len()
+        .checked_sub(first + service)
+        .expect("the service moves ran");
+    let resumed_at = expected
+        .len()
+        .checked_sub(tail)
+        .expect("no more lines after the resume than the file has");
+    assert_eq!(
+        &ran[first + service..],
+        &expected[resumed_at..],
+        "the job's end runs in order after the resume, nothing skipped"
+    );
+    assert!(
+        resumed_at <= first,
+        "resumed at {resumed_at}, after the {first} lines run: skipped"
+    );
     let repeated = first - resumed_at;
     eprintln!(
         "{firmware}: ran {first} before the resume, resumed at {resumed_at}: {repeated} repeated"
@@ -850,9 +984,7 @@ fn octoprint_virtual_printer_through_edod_runs_the_offline_file() {
     let d = Daemon::start_timed(dir.path(), &port, "marlin", (2000, 2000), "");
     let mut c = d.client();
     c.wait_connected();
-    let id = c.call("job.submit", json!({"job": JOB})).unwrap()["id"]
-        .as_u64()
-        .unwrap();
+    let id = c.submit(JOB);
     c.wait_state(id, "done");
     let status = c.call("machine.status", json!({})).unwrap();
     drop(c);

@@ -42,6 +42,10 @@ pub struct GcodeOptions {
     /// Marlin: the `busy:` keepalive interval, ms (default: the model's 2 s, `M113 S2`);
     /// tests scale it down with their timeouts.
     pub keepalive_interval_ms: Option<u64>,
+    /// A console log: every line the firmware ran, in order, one per line, as text (no
+    /// `N`, no checksum; lines it refused are not in it). What a Klipper pty received
+    /// across edod's restarts, which tests/peers/run_klipper_peer.sh runs through klippy.
+    pub console: Option<PathBuf>,
 }
 
 impl GcodeOptions {
@@ -60,6 +64,7 @@ impl GcodeOptions {
             rx_buffer_bytes: None,
             command_slots: None,
             keepalive_interval_ms: None,
+            console: None,
         }
     }
 
@@ -194,6 +199,7 @@ struct GcodeSim<'a> {
     /// does not change which moves start a busy period.
     busy_rng: SimRng,
     recorder: Option<BufWriter<File>>,
+    console: Option<BufWriter<File>>,
     start: Instant,
     firmware: Firmware,
     machine: GcodeMachine,
@@ -239,6 +245,14 @@ impl<'a> GcodeSim<'a> {
             )),
             None => None,
         };
+        let console = match &opts.console {
+            Some(p) => {
+                Some(BufWriter::new(File::create(p).with_context(|| {
+                    format!("create console log {}", p.display())
+                })?))
+            }
+            None => None,
+        };
         let area_mm2 = f64::from(cfg.barrel_area_um2) / 1e6;
         let mixer = cfg
             .mixer_options()
@@ -248,6 +262,7 @@ impl<'a> GcodeSim<'a> {
             faults: cfg.faults.clone(),
             port,
             recorder,
+            console,
             start: Instant::now(),
             firmware: Firmware::new(opts.firmware_config(), Micros(0)),
             machine: GcodeMachine::new(opts.mix.clone(), cfg.syringes, area_mm2),
@@ -394,6 +409,10 @@ impl<'a> GcodeSim<'a> {
         let now = Micros(now_us);
         self.firmware.handle_timeout(now);
         while let Some(line) = self.firmware.poll_line() {
+            if let Some(w) = self.console.as_mut() {
+                // A console log that cannot be written is the test's loss, not the run's.
+                let _ = writeln!(w, "{}", line.text).and_then(|_| w.flush());
+            }
             match self.machine.command(&line.text) {
                 Some(mv) => self.waiting.push_back((mv, line.text, line.is_move)),
                 // An arc or a move the interpreter does not draw: its block frees at once.

@@ -577,7 +577,12 @@ fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Re
     let slices = job.layer_slices(0, stack);
     let plans = crate::plan::plan_layers(&slices, &job.plan, None)?;
     let mut state = StreamState::new();
-    let mut layers = crate::pipeline::job_layer_moves(&plans, &settings, 0, 0, &mut state)?;
+    let first = crate::pipeline::FIRST_LAYER_MOVE_INDEX;
+    let mut layers = crate::pipeline::job_layer_moves(&plans, &settings, 0, first, &mut state)?;
+    // edod homes first (its planner's move 0).
+    if let Some(lm) = layers.first_mut() {
+        lm.moves.insert(0, crate::pipeline::home_move(0));
+    }
     for lm in &mut layers {
         placement
             .put_on_machine(&mut lm.moves, &volume)

@@ -5,7 +5,6 @@
 use crate::job::Job;
 use crate::machine::gcode::{Flavor, GcodeSettings, GcodeStats, MoveWriter};
 use crate::machine::placement::{BuildVolume, Placement};
-use crate::machine::{Move, MoveKind};
 use crate::pipeline::{for_each_layer_moves, LayerStats, ProcessSettings, StreamState};
 use crate::plan::LayerPlan;
 use anyhow::{Context, Result};
@@ -113,12 +112,7 @@ fn write_moves(
     w: &mut MoveWriter,
     out: &mut LineSink<'_>,
 ) -> Result<GcodeSummary> {
-    let home = Move {
-        job_id: 0,
-        index: 0,
-        kind: MoveKind::Home,
-    };
-    w.move_lines(&home, &mut out.lines);
+    w.move_lines(&crate::pipeline::home_move(0), &mut out.lines);
     out.flush_lines()?;
     let mut moves = 1;
     let mut stats = Vec::with_capacity(layers.len());
@@ -126,7 +120,7 @@ fn write_moves(
     for_each_layer_moves(
         layers,
         process,
-        (0, 1),
+        (0, crate::pipeline::FIRST_LAYER_MOVE_INDEX),
         &mut state,
         LAYERS_PER_BATCH,
         |layer, mut lm| -> Result<()> {

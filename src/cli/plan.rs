@@ -47,6 +47,69 @@ pub struct PlanArgs {
     pub gcode: crate::cli::gcode::GcodeArgs,
     #[command(flatten)]
     pub mixer: MixerArgs,
+    /// Plan as edod plans on the machine of this edod.toml: its syringes, flow cap,
+    /// mixing chamber and build volume (`[machine]`) and, for --gcode, its firmware,
+    /// mix writing, barrel and plunger limits (`[machine.gcode]`). The G-code file is
+    /// then line for line what edod streams for the job (docs/gcode.md).
+    #[arg(long, value_name = "EDOD.TOML", conflicts_with_all = MACHINE_OPTIONS)]
+    pub machine: Option<PathBuf>,
+}
+
+/// The options `--machine` gives values to: it takes them from edod.toml.
+const MACHINE_OPTIONS: [&str; 9] = [
+    "build_volume",
+    "flavor",
+    "barrel_area",
+    "marlin_direct_mixing",
+    "axes",
+    "mixer",
+    "mixer_volume_nl",
+    "mixer_peclet",
+    "no_feed_forward",
+];
+
+/// edod's configuration, read for `--machine`.
+struct Machine {
+    path: PathBuf,
+    config: crate::daemon::config::Config,
+}
+
+impl Machine {
+    fn load(path: &Path) -> Result<Self> {
+        let config = crate::daemon::config::Config::load(path)
+            .map_err(|e| anyhow::anyhow!("--machine: {e}"))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            config,
+        })
+    }
+
+    /// The process settings edod streams `job` with on this machine.
+    fn process_settings(
+        &self,
+        job: &Job,
+        job_path: &Path,
+    ) -> Result<crate::pipeline::ProcessSettings> {
+        crate::daemon::planner::process_settings(
+            job,
+            &self.config.machine,
+            &job_path.display().to_string(),
+        )
+        .map_err(|e| anyhow::anyhow!("--machine {}: {e}", self.path.display()))
+    }
+
+    /// How edod writes this machine's G-code.
+    fn gcode_settings(&self) -> Result<crate::machine::gcode::GcodeSettings> {
+        match self.config.gcode_link() {
+            Ok(Some(g)) => Ok(g.settings()),
+            Ok(None) => anyhow::bail!(
+                "--machine {}: machine.protocol is \"edo\": edod streams edo's own link to this \
+                 machine, not G-code (--gcode needs machine.protocol = \"gcode\")",
+                self.path.display()
+            ),
+            Err((key, why)) => anyhow::bail!("--machine {}: {key}: {why}", self.path.display()),
+        }
+    }
 }
 
 /// The machine's mixing chamber (edod.toml `[machine.mixer]`), for planning offline.
@@ -240,6 +303,10 @@ pub fn plan_with_progress(job: &Job, slices: &[LayerSlice], quiet: bool) -> Resu
 /// (on standard error when the report goes to standard output).
 pub fn run(args: &PlanArgs) -> Result<()> {
     let job = load_job(&args.job)?;
+    let machine = args.machine.as_deref().map(Machine::load).transpose()?;
+    let build_volume = machine
+        .as_ref()
+        .map_or(args.build_volume, |m| m.config.machine.build_volume_mm);
     let started = Instant::now();
     let (slices, notes) = job_layers(&job, &args.job, args.layers.clone(), args.quiet)?;
     let layers = plan_with_progress(&job, &slices, args.quiet)
@@ -249,12 +316,17 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
     // Where edod would put the part on a machine of this build volume (checked when
     // the option was parsed).
-    let volume =
-        BuildVolume::new(args.build_volume).map_err(|e| anyhow::anyhow!("--build-volume: {e}"))?;
+    let volume = BuildVolume::new(build_volume).map_err(|e| match &machine {
+        Some(m) => anyhow::anyhow!(
+            "--machine {}: machine.build_volume_mm: {e}",
+            m.path.display()
+        ),
+        None => anyhow::anyhow!("--build-volume: {e}"),
+    })?;
     let placed = bounds.map(|b| (b, place_part(&job, b, &volume)));
     report.placement = placed
         .as_ref()
-        .map(|(b, p)| crate::report::PlacementReport::new(job.placement, args.build_volume, *b, p));
+        .map(|(b, p)| crate::report::PlacementReport::new(job.placement, build_volume, *b, p));
 
     let to_stdout = args.report.as_deref() == Some("-");
     let mut human: Box<dyn Write> = if to_stdout {
@@ -263,7 +335,10 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         Box::new(std::io::stdout())
     };
     // The purge position is a point of the bed: in the part's coordinates for planning.
-    let process = args.mixer.apply(process_settings(&job))?;
+    let process = match &machine {
+        Some(m) => m.process_settings(&job, &args.job)?,
+        None => args.mixer.apply(process_settings(&job))?,
+    };
     let process = match &placed {
         Some((_, Ok(p))) => placed_settings(&process, p),
         _ => process,
@@ -289,9 +364,12 @@ pub fn run(args: &PlanArgs) -> Result<()> {
                 Some((_, Err(e))) => anyhow::bail!("--gcode {}: {e}", path.display()),
                 None => anyhow::bail!("--gcode {}: the part has no extent", path.display()),
             };
-            let settings = args.gcode.settings();
+            let settings = match &machine {
+                Some(m) => m.gcode_settings()?,
+                None => args.gcode.settings(),
+            };
             let g = crate::cli::gcode::write(&job, &layers, &process, &settings, placement, path)?;
-            Some((path, g))
+            Some((path, settings.flavor, g))
         }
         None => None,
     };
@@ -310,8 +388,8 @@ pub fn run(args: &PlanArgs) -> Result<()> {
             dir.join("layer-*-roads.svg").display()
         )?;
     }
-    if let Some((path, g)) = gcode {
-        writeln!(human, "  {}", gcode_summary(args.gcode.flavor, &g, path))?;
+    if let Some((path, flavor, g)) = gcode {
+        writeln!(human, "  {}", gcode_summary(flavor, &g, path))?;
     }
     Ok(())
 }

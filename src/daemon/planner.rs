@@ -477,6 +477,11 @@ impl LayerSource for JobSource {
             &self.job.plan,
         )
         .map_err(|e| format!("layer {} (z = {:.3} mm): {e}", s.index, l.z_mm));
+        // The job starts by homing, as its G-code file does (`edoctl plan --gcode`).
+        let home = (self.next_index == 0).then(|| {
+            self.next_index = crate::pipeline::FIRST_LAYER_MOVE_INDEX;
+            crate::pipeline::home_move(0)
+        });
         Some(plan.and_then(|plan| {
             self.preview_svg = self
                 .draw_previews
@@ -491,7 +496,7 @@ impl LayerSource for JobSource {
             .map_err(|e| format!("layer {}: {e}", s.index))?;
             self.next_index = lm.next_index;
             // Into the machine frame, and nothing outside the build volume.
-            let mut moves = lm.moves;
+            let mut moves = home.into_iter().chain(lm.moves).collect::<Vec<_>>();
             self.placement
                 .unwrap_or_default()
                 .put_on_machine(&mut moves, &self.volume)
@@ -537,8 +542,10 @@ mod tests {
         // 0.4 mm extruded in 0.2 mm layers: known before planning.
         assert_eq!(src.layer_count(), Some(2));
         let first = src.next_layer().unwrap().unwrap();
+        // The job homes first, as its G-code file does.
+        assert!(matches!(first[0].kind, MoveKind::Home));
         assert!(matches!(
-            first[0].kind,
+            first[1].kind,
             MoveKind::LayerMark { layer: 0, .. }
         ));
         assert!(first.iter().enumerate().all(|(i, m)| m.index == i as u32));

@@ -372,6 +372,10 @@ pub struct LineHost {
     /// Recovery probes sent again after a timeout, whose answers (`Error:`, `Resend:`,
     /// `ok`) may still come during the handshake that follows.
     late_probe_answers: u32,
+    /// The recovery's answer came (Marlin's `Error:` and `Resend:`, RRF's JSON) and the
+    /// `ok` that ends it has not: when the read split there, it arrives after
+    /// [`LineHost::connect`] and must not count as the handshake's.
+    recovery_ok_owed: bool,
 }
 
 impl LineHost {
@@ -420,6 +424,7 @@ impl LineHost {
             paused: false,
             priority: None,
             late_probe_answers: 0,
+            recovery_ok_owed: false,
             cfg,
         }
     }
@@ -429,6 +434,7 @@ impl LineHost {
     pub fn connect(&mut self, now: Micros) -> Vec<u64> {
         let dropped = self.unacknowledged();
         self.clear_stream();
+        self.swallow_oks = u32::from(std::mem::take(&mut self.recovery_ok_owed));
         self.queued.clear();
         self.history.clear();
         self.reader.clear();
@@ -573,6 +579,8 @@ impl LineHost {
     /// The caller's port closed or vanished (USB re-enumeration: on native-USB boards, a
     /// firmware restart). Reported as [`LineEvent::Reset`] unless nothing was going on.
     pub fn port_closed(&mut self) {
+        // What the firmware still had to say went with the port.
+        self.recovery_ok_owed = false;
         match self.state {
             LinkState::Idle | LinkState::Reset => {}
             LinkState::Recovering => {
@@ -1589,6 +1597,8 @@ impl LineHost {
             });
             return self.reset("the firmware's line counter went back");
         }
+        // Marlin's `ok` follows its `Resend:`, RRF's its JSON.
+        self.recovery_ok_owed = true;
         let tag = self.sent(last).and_then(|s| s.tag);
         let from = if exact { last + 1 } else { last };
         let resume_tag = (from..self.top)
@@ -1648,8 +1658,8 @@ impl LineHost {
                     text: line.trim().into(),
                 })
             }
-            Reply::Ok(_)
-            | Reply::Resend(_)
+            Reply::Ok(_) => self.recovery_ok_owed = false,
+            Reply::Resend(_)
             | Reply::BadResend(_)
             | Reply::Busy(_)
             | Reply::Wait

@@ -822,6 +822,51 @@ fn a_late_probe_answer_during_the_handshake_does_not_restart_it() {
     assert_eq!(h.state(), LinkState::Streaming);
 }
 
+/// The probe's answer split across two reads, the caller connecting in between (a
+/// loaded host): the `ok` that ends the answer comes during the handshake and is not
+/// taken for `M110`'s. Taken, every later `ok` counted for the line after its own, and
+/// the next probe found the firmware "gone back from 1 to 0": a false reset that
+/// interrupted the resumed job (`marlin_sigkill_mid_job_...`, about 1 run in 16 under
+/// load).
+#[test]
+fn the_ok_ending_a_recovery_answer_is_not_the_handshakes() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.recover_last_accepted(t(0)).unwrap();
+    tx(&mut h, t(0));
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 311\nResend: 312\n",
+        t(1),
+    );
+    assert!(matches!(
+        events(&mut h)[..],
+        [LineEvent::LastAccepted(LastAccepted::Known {
+            line_number: 311,
+            ..
+        })]
+    ));
+    h.connect(t(2));
+    assert_eq!(tx(&mut h, t(2)), vec!["N0 M110 N0*125\n"]);
+    feed(&mut h, "ok\n", t(3));
+    assert!(tx(&mut h, t(3)).is_empty(), "the answer's ok is not M110's");
+    feed(&mut h, "ok\n", t(4));
+    assert_eq!(tx(&mut h, t(4)), vec!["N1 M115*39\n"]);
+    // Read whole, the answer's `ok` is dropped before the handshake: none is owed.
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.recover_last_accepted(t(0)).unwrap();
+    tx(&mut h, t(0));
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 311\nResend: 312\nok\n",
+        t(1),
+    );
+    events(&mut h);
+    h.connect(t(2));
+    tx(&mut h, t(2));
+    feed(&mut h, "ok\n", t(3));
+    assert_eq!(tx(&mut h, t(3)), vec!["N1 M115*39\n"]);
+}
+
 #[test]
 fn marlin_recovery_after_link_loss_names_the_line_to_resume_from() {
     let mut h = windowed(3);

@@ -22,9 +22,14 @@ pub const FAULTS: &[&str] = &[
 ];
 
 /// The python of a venv with octoprint (`EDO_OCTOPRINT_PY`); `None`, with a note, when
-/// it is not set: the test is skipped.
+/// it is not set: the test is skipped, unless `EDO_REQUIRE_PEERS` is set (`.ci/run`
+/// sets both), where a missing peer is a failure.
 pub fn python() -> Option<String> {
     let python = std::env::var("EDO_OCTOPRINT_PY").ok();
+    assert!(
+        python.is_some() || std::env::var_os("EDO_REQUIRE_PEERS").is_none(),
+        "EDO_REQUIRE_PEERS is set and EDO_OCTOPRINT_PY is not (the python of a venv with octoprint)"
+    );
     if python.is_none() {
         eprintln!(
             "skipped: EDO_OCTOPRINT_PY is not set (the python of a venv with octoprint; \
