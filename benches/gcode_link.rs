@@ -6,7 +6,7 @@
 //! the protocol core and the firmware model run (wall time per simulated stream).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use edo::gcode_link::testkit::{throughput, ThroughputCase};
+use edo::gcode_link::testkit::{throughput, GcodeHarness, ThroughputCase};
 use edo::gcode_link::{Dialect, Window};
 
 /// (name, firmware, receive buffer, command queue, windowed mode).
@@ -77,7 +77,48 @@ fn print_figures() {
     }
 }
 
+/// A lost `ok` with one line in flight (`docs/firmware.md`, "A lost ok"): 10,000 moves
+/// of 20 ms, 0.2 % of the firmware's `ok`s lost, Marlin one line at a time (a UART) and
+/// RRF: moves per second against the same run without loss, the lines sent untimed (the
+/// timeouts alone) and timed (`send_timed_line`, as edod sends moves).
+fn print_lost_ok_figures() {
+    let lines = 10_000;
+    for (name, dialect) in [("marlin one line", Dialect::Marlin), ("rrf", Dialect::Rrf)] {
+        let run = |drop_ok: f64, timed: bool| {
+            let case = ThroughputCase::one_at_a_time(dialect, 250_000, 1_000);
+            let mut cfg = case.harness_config();
+            cfg.exec_us_per_move = 20_000;
+            cfg.faults.drop_ok = drop_ok;
+            cfg.timed_lines = timed;
+            cfg.seed = 7;
+            let r = GcodeHarness::new(cfg).run(lines, u64::MAX / 4);
+            assert!(r.completed && r.lost == 0, "{name}: {r:?}");
+            r
+        };
+        let clean = run(0.0, true);
+        for timed in [false, true] {
+            let lossy = run(0.002, timed);
+            println!(
+                "lost oks, {name}, {}: {:.1} moves/s against {:.1} without loss ({:.1} %), \
+                 {} timeouts, {} overdue probes, {} lines run twice",
+                if timed {
+                    "timed lines"
+                } else {
+                    "untimed lines"
+                },
+                lossy.moves_per_s(),
+                clean.moves_per_s(),
+                100.0 * lossy.moves_per_s() / clean.moves_per_s(),
+                lossy.host_stats.timeouts,
+                lossy.host_stats.oks_overdue,
+                lossy.duplicates,
+            );
+        }
+    }
+}
+
 fn bench(c: &mut Criterion) {
+    print_lost_ok_figures();
     print_figures();
     let mut g = c.benchmark_group("gcode_link");
     g.sample_size(10);

@@ -267,13 +267,23 @@ impl GcodeLink {
         self
     }
 
-    /// Queue `lines` (a writer's); the tag of the last sent, if any.
-    fn send_lines(&mut self, lines: &[String]) -> Result<Option<u64>, String> {
+    /// Queue `lines` (a writer's); the tag of the last sent, if any. `runs_us`: the
+    /// move's time, given to the link with its motion line so that a lost `ok` is found
+    /// once overdue (`LineHost::send_timed_line`).
+    fn send_lines(
+        &mut self,
+        lines: &[String],
+        runs_us: Option<u64>,
+    ) -> Result<Option<u64>, String> {
         let mut last = None;
         for line in lines.iter().filter_map(|l| streamed(l)) {
             let tag = self.next_tag;
             self.next_tag += 1;
-            self.host.send_line(line, tag).map_err(|e| e.to_string())?;
+            match runs_us {
+                Some(us) => self.host.send_timed_line(line, tag, us),
+                None => self.host.send_line(line, tag),
+            }
+            .map_err(|e| e.to_string())?;
             last = Some(tag);
         }
         Ok(last)
@@ -297,7 +307,7 @@ impl GcodeLink {
     /// Queue `lines` that belong to no move (a prologue, an epilogue), in order with the
     /// moves; `what` names them in the log if the link refuses them.
     fn send_lines_of_no_move(&mut self, lines: &[String], what: &str) {
-        match self.send_lines(lines) {
+        match self.send_lines(lines, None) {
             Ok(last_tag) => self.pending.push_back(Pending {
                 mv: None,
                 sync: false,
@@ -867,7 +877,15 @@ impl LinkAdapter for GcodeLink {
             self.release_axes_when_idle = false;
         }
         let lines = self.lines_of(&mv)?;
-        let last_tag = self.send_lines(&lines)?;
+        // Where the nozzle will stand: the last motion not yet run, else where it is.
+        let from = self
+            .pending
+            .iter()
+            .rev()
+            .find_map(|p| p.to)
+            .unwrap_or(self.status.position);
+        let from = Some(from);
+        let last_tag = self.send_lines(&lines, mv.kind.run_time_us(from))?;
         self.pending.push_back(Pending {
             sync: false,
             mv: Some(MoveRef {

@@ -259,6 +259,9 @@ pub struct LineStats {
     pub protocol_errors: u64,
     /// E-stops sent.
     pub estops: u64,
+    /// Timed lines whose `ok` was overdue for what they wait for (probed before the
+    /// timeout; [`LineHost::send_timed_line`]).
+    pub oks_overdue: u64,
 }
 
 #[derive(Debug)]
@@ -267,6 +270,7 @@ struct Sent {
     tag: Option<u64>,
     wire: Vec<u8>,
     slow: bool,
+    runs: Runs,
 }
 
 #[derive(Debug)]
@@ -275,12 +279,29 @@ struct Flight {
     bytes: usize,
     sent_at: Micros,
     slow: bool,
+    runs: Runs,
 }
 
 #[derive(Debug)]
 struct Queued {
     text: String,
     tag: u64,
+    runs: Runs,
+}
+
+/// How long the firmware takes over a line, as the caller said
+/// ([`LineHost::send_timed_line`]): what its `ok` may wait for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Runs {
+    /// Not said: only the timeouts of [`LineLinkConfig`] apply.
+    Unknown,
+    /// A move of this many µs: its `ok` comes once the planner has a free block, after
+    /// at most the oldest move it holds.
+    Move(u64),
+    /// A dwell (`G4`) of this many µs: it waits for every planned move, then dwells.
+    Dwell(u64),
+    /// Anything else the firmware answers at once (`M163`, `T0`, `G21`).
+    Instant,
 }
 
 /// The last go-back: repeats of the same request that the lines sent before it can still
@@ -376,6 +397,8 @@ pub struct LineHost {
     /// `ok` that ends it has not: when the read split there, it arrives after
     /// [`LineHost::connect`] and must not count as the handshake's.
     recovery_ok_owed: bool,
+    /// The times of the last `planner_moves` timed moves accepted, µs.
+    recent_moves_us: VecDeque<u64>,
 }
 
 impl LineHost {
@@ -425,6 +448,7 @@ impl LineHost {
             priority: None,
             late_probe_answers: 0,
             recovery_ok_owed: false,
+            recent_moves_us: VecDeque::new(),
             cfg,
         }
     }
@@ -548,7 +572,30 @@ impl LineHost {
         self.queued.push_back(Queued {
             text: text.to_string(),
             tag,
+            runs: Runs::Unknown,
         });
+        Ok(())
+    }
+
+    /// [`LineHost::send_line`] for a line the caller knows the firmware's time for:
+    /// `runs_us`, a move's time at its feed or a dwell's length (`G4`); other commands
+    /// (not slow ones, `G28`, `M400`, heating: those keep their timeout) answer at once.
+    /// Its `ok` is then due within what it may wait for (Marlin: the longest of the last
+    /// `planner_moves` moves, for a free planner block; a dwell: all of them and itself)
+    /// times `ok_overdue_factor`, plus `ok_overdue_floor_us`; past that, with every line
+    /// in flight timed, the `ok` is taken for lost and the firmware probed
+    /// (`docs/firmware.md`, "A lost ok").
+    pub fn send_timed_line(&mut self, text: &str, tag: u64, runs_us: u64) -> Result<(), SendError> {
+        self.send_line(text, tag)?;
+        let runs = match command_word(text).as_deref() {
+            Some("G0" | "G1" | "G2" | "G3") => Runs::Move(runs_us),
+            Some("G4") => Runs::Dwell(runs_us),
+            _ if self.is_slow(text) => Runs::Unknown,
+            _ => Runs::Instant,
+        };
+        if let Some(q) = self.queued.back_mut() {
+            q.runs = runs;
+        }
         Ok(())
     }
 
@@ -644,6 +691,9 @@ impl LineHost {
                 self.handshake_timed_out(now)
             }
             LinkState::Streaming if self.ok_deadline().is_some_and(|d| now >= d) => {
+                if self.ok_overdue_at().is_some_and(|d| now >= d) {
+                    self.stats.oks_overdue += 1;
+                }
                 self.on_ok_timeout(now);
             }
             LinkState::Probing | LinkState::Recovering
@@ -943,7 +993,7 @@ impl LineHost {
         command_word(text).is_some_and(|w| self.cfg.slow_commands.contains(&w))
     }
 
-    fn push_flight(&mut self, number: u32, bytes: usize, slow: bool, now: Micros) {
+    fn push_flight(&mut self, number: u32, bytes: usize, (slow, runs): (bool, Runs), now: Micros) {
         if self.in_flight.is_empty() {
             self.last_progress = now;
         }
@@ -952,6 +1002,7 @@ impl LineHost {
             bytes,
             sent_at: now,
             slow,
+            runs,
         });
         self.in_flight_bytes += bytes;
     }
@@ -965,11 +1016,11 @@ impl LineHost {
                 self.stop(format!("line {number} to send again is no longer kept"));
                 return None;
             };
-            let (wire, slow) = (sent.wire.clone(), sent.slow);
+            let (wire, slow, runs) = (sent.wire.clone(), sent.slow, sent.runs);
             if !self.window_open(wire.len()) {
                 return None;
             }
-            self.push_flight(number, wire.len(), slow, now);
+            self.push_flight(number, wire.len(), (slow, runs), now);
             self.next_send += 1;
             self.stats.lines_resent += 1;
             return Some(wire);
@@ -1005,8 +1056,9 @@ impl LineHost {
             tag: Some(q.tag),
             wire: wire.clone(),
             slow,
+            runs: q.runs,
         });
-        self.push_flight(number, wire.len(), slow, now);
+        self.push_flight(number, wire.len(), (slow, q.runs), now);
         self.top += 1;
         self.next_send = self.top;
         self.stats.lines_sent += 1;
@@ -1040,7 +1092,34 @@ impl LineHost {
         if self.in_flight.is_empty() {
             return None;
         }
-        Some(self.last_progress.plus_us(self.current_timeout_us()))
+        let timeout = self.last_progress.plus_us(self.current_timeout_us());
+        Some(self.ok_overdue_at().map_or(timeout, |at| at.min(timeout)))
+    }
+
+    /// When the oldest line's `ok` is overdue for what it may wait for, if every line in
+    /// flight is timed ([`LineHost::send_timed_line`]) and the firmware's `ok`s say
+    /// where it is (Marlin, which the probe answers exactly; not while it keeps a
+    /// handler busy with `busy:` keepalives).
+    fn ok_overdue_at(&self) -> Option<Micros> {
+        if self.cfg.dialect != Dialect::Marlin
+            || self.last_busy.is_some()
+            || self.in_flight.iter().any(|f| f.runs == Runs::Unknown)
+        {
+            return None;
+        }
+        let oldest = self.in_flight.front()?;
+        let planned = self.recent_moves_us.iter();
+        let waits_us = match oldest.runs {
+            Runs::Move(_) => planned.max().copied().unwrap_or(0),
+            Runs::Dwell(own) => planned.sum::<u64>().saturating_add(own),
+            Runs::Instant | Runs::Unknown => 0,
+        };
+        let due_us = waits_us.saturating_mul(u64::from(self.cfg.ok_overdue_factor));
+        Some(
+            oldest
+                .sent_at
+                .plus_us(due_us.saturating_add(self.cfg.ok_overdue_floor_us)),
+        )
     }
 
     fn on_line_streaming(&mut self, line: &str, reply: Reply<'_>, now: Micros) {
@@ -1205,6 +1284,13 @@ impl LineHost {
     fn report_accepted_through(&mut self, number: u32) {
         while self.accepted_next <= number && self.accepted_next < self.top {
             let n = self.accepted_next;
+            if let Some(Runs::Move(us)) = self.sent(n).map(|s| s.runs) {
+                // What the planner may hold: the last `planner_moves` moves accepted.
+                self.recent_moves_us.push_back(us);
+                while self.recent_moves_us.len() > self.cfg.planner_moves {
+                    self.recent_moves_us.pop_front();
+                }
+            }
             if let Some(tag) = self.sent(n).and_then(|s| s.tag) {
                 self.events.push_back(LineEvent::Accepted {
                     tag,
@@ -1454,8 +1540,21 @@ impl LineHost {
 
     // ---- probe and recovery ---------------------------------------------------------
 
-    fn start_probe(&mut self, recover: bool, now: Micros) {
+    /// How long a probe waits for its answer: a recovery (after a lost port or a host
+    /// restart) as long as a handshake attempt at least. Nothing is streamed meanwhile,
+    /// and a recovery given up resumes from the checkpoint and repeats moves: a loaded
+    /// host or a firmware finishing a long move must not cost that.
+    fn probe_timeout_us(&self, recover: bool) -> u64 {
         let timeout = self.current_timeout_us();
+        if recover {
+            timeout.max(self.cfg.handshake_timeout_us)
+        } else {
+            timeout
+        }
+    }
+
+    fn start_probe(&mut self, recover: bool, now: Micros) {
+        let timeout = self.probe_timeout_us(recover);
         self.probe = Some(Probe {
             recover,
             attempts: 1,
@@ -1487,7 +1586,10 @@ impl LineHost {
 
     fn on_probe_timeout(&mut self, now: Micros) {
         self.stats.timeouts += 1;
-        let timeout = self.current_timeout_us();
+        let Some(recover) = self.probe.as_ref().map(|p| p.recover) else {
+            return;
+        };
+        let timeout = self.probe_timeout_us(recover);
         let Some(p) = self.probe.as_mut() else {
             return;
         };

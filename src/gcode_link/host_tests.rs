@@ -797,7 +797,8 @@ fn a_late_probe_answer_during_the_handshake_does_not_restart_it() {
     h.recover_last_accepted(t(0)).unwrap();
     let probe = format!("\n{}", line(PROBE_LINE_NUMBER, "M105"));
     assert_eq!(tx(&mut h, t(0)), vec![probe.clone()]);
-    let late = h.config().ok_timeout_us / 1000 + 1;
+    let c = h.config();
+    let late = c.ok_timeout_us.max(c.handshake_timeout_us) / 1000 + 1;
     h.handle_timeout(t(late));
     assert_eq!(tx(&mut h, t(late)), vec![probe]);
     let answer = "Error:Line Number is not Last Line Number+1, Last Line: 287\nResend: 288\nok\n";
@@ -1253,4 +1254,56 @@ fn an_error_with_no_line_in_flight_stops_nothing() {
         "the old error does not refuse it: {ev:?}"
     );
     assert_eq!(h.state(), LinkState::Streaming);
+}
+
+/// A timed line's lost `ok` (one line in flight, Marlin) is found once overdue for what
+/// the line waits for, not after the 10 s timeout: a move waits for the longest of the
+/// last `planner_moves` moves accepted, a dwell for all of them and its own length.
+#[test]
+fn a_timed_lines_lost_ok_is_probed_once_overdue() {
+    let mut h = connected(Dialect::Marlin);
+    let floor = h.config().ok_overdue_floor_us;
+    // Three moves of 40, 100 and 60 ms accepted: the planner may hold 100 ms at once.
+    for (tag, us) in [(0, 40_000), (1, 100_000), (2, 60_000)] {
+        h.send_timed_line(&format!("G1 X{tag}"), tag, us).unwrap();
+        tx(&mut h, t(tag));
+        feed(&mut h, "ok\n", t(tag));
+    }
+    h.send_timed_line("G1 X3", 3, 20_000).unwrap();
+    assert_eq!(tx(&mut h, t(10)), vec![line(5, "G1 X3")]);
+    // Its `ok` is lost: due 2 x 100 ms + the floor after it went.
+    let due = t(10).plus_us(2 * 100_000 + floor);
+    assert_eq!(h.next_timeout(), Some(due));
+    let before = Micros(due.0 - 1_000);
+    h.handle_timeout(before);
+    assert!(tx(&mut h, before).is_empty(), "nothing before its time");
+    h.handle_timeout(due);
+    assert_eq!(
+        tx(&mut h, due),
+        vec![format!("\n{}", line(PROBE_LINE_NUMBER, "M105"))]
+    );
+    assert_eq!(h.stats().oks_overdue, 1);
+    feed(
+        &mut h,
+        "Error:Line Number is not Last Line Number+1, Last Line: 5\nResend: 6\nok\n",
+        due,
+    );
+    assert_eq!(accepted(&events(&mut h)), vec![0, 1, 2, 3]);
+    // A dwell of 5 s waits for the moves the planner may hold (40 + 100 + 60 + 20 ms)
+    // and itself.
+    h.send_timed_line("G4 P5000", 4, 5_000_000).unwrap();
+    let sent_at = due.plus_us(1_000);
+    tx(&mut h, sent_at);
+    assert_eq!(
+        h.next_timeout(),
+        Some(sent_at.plus_us(2 * (220_000 + 5_000_000) + floor))
+    );
+    // Untimed lines keep the timeouts.
+    let mut h = connected(Dialect::Marlin);
+    h.send_line("G1 X1", 0).unwrap();
+    tx(&mut h, t(0));
+    assert_eq!(
+        h.next_timeout(),
+        Some(t(0).plus_us(h.config().ok_timeout_us))
+    );
 }

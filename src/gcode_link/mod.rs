@@ -157,6 +157,14 @@ pub struct LineLinkConfig {
     /// flight for at least this long, the host probes at once instead of waiting for the
     /// timeout.
     pub wait_grace_us: u64,
+    /// Moves the firmware's planner holds (Marlin `BLOCK_BUFFER_SIZE`, 16): a timed
+    /// move's `ok` waits at most for the longest of the last this many.
+    pub planner_moves: usize,
+    /// A timed line's `ok` is overdue after what it may wait for times this...
+    pub ok_overdue_factor: u32,
+    /// ...plus this, µs (the line's time on the wire, the firmware's loop, acceleration
+    /// the feed leaves out).
+    pub ok_overdue_floor_us: u64,
     /// RRF: the `inputs[]` channel edod is on, for `M409 K"inputs"`.
     pub rrf_input_name: String,
     /// RRF: send `M555 P2` first so that the channel answers `ok` (Marlin compatibility).
@@ -197,6 +205,9 @@ impl LineLinkConfig {
             max_consecutive_resends: 10,
             max_reply_line_bytes: 16_384,
             wait_grace_us: 1_000_000,
+            planner_moves: 16,
+            ok_overdue_factor: 2,
+            ok_overdue_floor_us: 250_000,
             rrf_input_name: "USB".into(),
             rrf_set_marlin_mode: true,
         }

@@ -194,6 +194,9 @@ pub struct GcodeHarnessConfig {
     pub faults: GcodeFaults,
     /// Time a move takes to execute once planned, µs (0: at once).
     pub exec_us_per_move: u64,
+    /// Lines sent with their time (`exec_us_per_move`), as edod sends moves
+    /// ([`LineHost::send_timed_line`]), not untimed.
+    pub timed_lines: bool,
     /// Lines kept queued in the host.
     pub backlog: usize,
     /// Seed of everything random.
@@ -211,6 +214,7 @@ impl GcodeHarnessConfig {
             firmware: FirmwareConfig::for_dialect(dialect),
             faults: GcodeFaults::default(),
             exec_us_per_move: 0,
+            timed_lines: false,
             backlog: 32,
             seed: 1,
         }
@@ -425,11 +429,14 @@ impl GcodeHarness {
             return;
         }
         while self.next_tag < lines && self.host.queued_len() < self.cfg.backlog {
-            if self
-                .host
-                .send_line(&test_line(self.next_tag), u64::from(self.next_tag))
-                .is_err()
-            {
+            let (text, tag) = (test_line(self.next_tag), u64::from(self.next_tag));
+            let sent = if self.cfg.timed_lines {
+                self.host
+                    .send_timed_line(&text, tag, self.cfg.exec_us_per_move)
+            } else {
+                self.host.send_line(&text, tag)
+            };
+            if sent.is_err() {
                 break;
             }
             self.next_tag += 1;

@@ -112,6 +112,31 @@ pub enum MoveKind {
 }
 
 impl MoveKind {
+    /// How long the move runs, µs: a motion from `from` at its feed (acceleration left
+    /// out), a retract, prime or dwell its duration; `None` for a motion whose start is
+    /// not known, a zero feed and a home (its length depends on where the axes stand).
+    pub fn run_time_us(&self, from: Option<PositionUm>) -> Option<u64> {
+        match self {
+            MoveKind::Travel { to, feed_um_s } | MoveKind::Extrude { to, feed_um_s, .. } => {
+                let from = from?;
+                if *feed_um_s == 0 {
+                    return None;
+                }
+                let d = |a: i32, b: i32| f64::from(b) - f64::from(a);
+                let len_um = (d(from.x_um, to.x_um).powi(2)
+                    + d(from.y_um, to.y_um).powi(2)
+                    + d(from.z_um, to.z_um).powi(2))
+                .sqrt();
+                Some((len_um / f64::from(*feed_um_s) * 1e6).ceil() as u64)
+            }
+            MoveKind::Retract { duration_ms, .. }
+            | MoveKind::Prime { duration_ms, .. }
+            | MoveKind::Dwell { duration_ms } => Some(u64::from(*duration_ms) * 1000),
+            MoveKind::LayerMark { .. } => Some(0),
+            MoveKind::Home => None,
+        }
+    }
+
     /// Per-syringe volumes carried by the move (empty for moves without volumes).
     pub fn volumes_nl(&self) -> &[u32] {
         match self {
