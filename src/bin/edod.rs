@@ -20,6 +20,16 @@ struct Cli {
     check_config: Option<PathBuf>,
 }
 
+/// A file size limit (`RLIMIT_FSIZE`, `LimitFSIZE=`) must fail the write (EFBIG), which
+/// the store handles as a full disk (docs/api.md), not kill edod with SIGXFSZ mid-print.
+fn ignore_file_size_signal() {
+    use nix::sys::signal::{signal, SigHandler, Signal};
+    // SAFETY: SIG_IGN installs no handler code; set once at start, before any thread.
+    if let Err(e) = unsafe { signal(Signal::SIGXFSZ, SigHandler::SigIgn) } {
+        eprintln!("edod: cannot ignore SIGXFSZ ({e}): a file size limit would stop edod");
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     if let Some(path) = cli.check_config {
@@ -54,6 +64,7 @@ fn main() -> ExitCode {
     } else {
         builder.init();
     }
+    ignore_file_size_signal();
     let cfg = match edo::daemon::Config::load(&cli.config) {
         Ok(c) => c,
         Err(e) => {

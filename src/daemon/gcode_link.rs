@@ -114,6 +114,8 @@ pub struct GcodeLink {
     /// The port was just opened: what it reads until then is from before (a boot banner
     /// printed while nobody listened) and is dropped; the handshake starts then.
     settle_until: Option<Micros>,
+    /// Lost or stopped links in a row with no line accepted between.
+    link_failures: u32,
     /// Marks for the store: where this connection's line numbers stand in the job's
     /// moves (`None` on Klipper, which has no line numbers).
     marks: Option<Marks>,
@@ -219,6 +221,11 @@ impl ResumeLines {
 /// How long after opening the port its input is dropped before the handshake, µs.
 const SETTLE_US: u64 = 300_000;
 
+/// The first wait before connecting again after failures in a row ([`GcodeLink::back_off`]).
+const BACK_OFF_FIRST_US: u64 = 1_000_000;
+/// The longest.
+const BACK_OFF_MAX_US: u64 = 30_000_000;
+
 impl GcodeLink {
     /// A link to the firmware configured by `cfg` for `drives` syringes holding
     /// `capacity_nl` each.
@@ -251,6 +258,7 @@ impl GcodeLink {
             port_closed: false,
             recover_after_open: false,
             settle_until: None,
+            link_failures: 0,
             marks: cfg.link.dialect.numbers_lines().then(Marks::default),
             resume: None,
         }
@@ -500,6 +508,7 @@ impl GcodeLink {
                     .push_back(Event::MachineConnected(report_of(&self.status)));
             }
             LineEvent::Accepted { tag, .. } => {
+                self.link_failures = 0;
                 self.accepted_upto = Some(tag);
                 self.drain_accepted();
             }
@@ -520,6 +529,10 @@ impl GcodeLink {
             LineEvent::LinkLost { silent_us, .. } => {
                 warn!(silent_ms = silent_us / 1000, "G-code link lost");
                 self.events.push_back(Event::LinkSilent);
+                let sent = !self.pending.is_empty() || !self.accepted.is_empty();
+                if self.back_off(sent, now) {
+                    return;
+                }
                 self.recovering = self.host.recover_last_accepted(now).is_ok();
                 if !self.recovering {
                     self.connect(now);
@@ -529,7 +542,9 @@ impl GcodeLink {
                 warn!(%reason, "G-code link stopped");
                 self.events
                     .push_back(Event::MachineFault(MachineFault::Other(reason)));
-                self.connect(now);
+                if !self.back_off(false, now) {
+                    self.connect(now);
+                }
             }
             LineEvent::LastAccepted(last) => self.on_last_accepted(last, now),
         }
@@ -564,6 +579,26 @@ impl GcodeLink {
         self.events.push_back(Event::MachineReset { last_executed });
         self.stop = Stop::None;
         self.connect(now);
+    }
+
+    /// A lost or stopped link: the second failure in a row with no line accepted between
+    /// waits before connecting again, twice as long each time (1 s up to 30 s), so a
+    /// firmware that refuses every line draws no handshakes at line speed. True when it
+    /// waits: the settle timer then recovers (`recover`: lines were sent) or connects.
+    fn back_off(&mut self, recover: bool, now: Micros) -> bool {
+        self.link_failures = self.link_failures.saturating_add(1);
+        if self.link_failures < 2 {
+            return false;
+        }
+        let wait_us = (BACK_OFF_FIRST_US << (self.link_failures - 2).min(5)).min(BACK_OFF_MAX_US);
+        warn!(
+            failures = self.link_failures,
+            wait_ms = wait_us / 1000,
+            "G-code link: failed again with no line accepted; waiting before connecting again"
+        );
+        self.recover_after_open = recover && self.marks.is_some();
+        self.settle_until = Some(now.plus_us(wait_us));
+        true
     }
 
     /// After a lost link: the moves up to the firmware's last accepted line ran; the
@@ -1011,6 +1046,36 @@ mod tests {
             events.push(e);
         }
         moves
+    }
+
+    /// A firmware that refuses every line: after the first lost link, each next one waits
+    /// before connecting again, 1 s, then 2 s ... up to 30 s, until a line is accepted.
+    #[test]
+    fn failed_links_in_a_row_back_off_before_connecting_again() {
+        let (mut link, _fw) = marlin_rig();
+        let now = Micros(5_000_000);
+        assert!(
+            !link.back_off(false, now),
+            "the first failure connects at once"
+        );
+        for (failures, wait_s) in [(2, 1), (3, 2), (4, 4), (5, 8), (6, 16), (7, 30), (9, 30)] {
+            while link.link_failures + 1 < failures {
+                link.back_off(false, now);
+            }
+            assert!(link.back_off(false, now));
+            assert_eq!(link.next_timeout(), Some(now.plus_us(wait_s * 1_000_000)));
+        }
+        link.translate(
+            LineEvent::Accepted {
+                tag: 0,
+                line_number: 2,
+            },
+            now,
+        );
+        assert!(
+            !link.back_off(false, now),
+            "a line accepted starts the count again"
+        );
     }
 
     /// Marlin, the cable pulled mid-job: the firmware runs what it accepted while the

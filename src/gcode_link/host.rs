@@ -864,8 +864,14 @@ impl LineHost {
                 self.swallow_oks += 1;
             }
             Reply::Resend(_) => {
-                // A line of this attempt was refused: its `ok` follows; start again.
+                // A line of this attempt was refused: its `ok` follows; start again, as
+                // an attempt of its own (a firmware that refuses every line must not
+                // draw handshakes at line speed).
                 self.swallow_oks += 1;
+                self.handshake.attempts += 1;
+                if self.handshake.attempts >= self.cfg.handshake_attempts {
+                    return self.link_lost(now);
+                }
                 self.restart_handshake(false, now);
             }
             Reply::Error {
@@ -1360,6 +1366,17 @@ impl LineHost {
             }
         }
         if j < self.accepted_next {
+            // An `ok` without a line number can be miscounted by at most the lines that
+            // were in flight; further back, the firmware's counter went back (or the
+            // number is garbage): replaying lines it acknowledged would run them twice.
+            let window = u32::try_from(self.window_lines()).unwrap_or(u32::MAX);
+            if self.accepted_next - j > window {
+                return self.stop(format!(
+                    "the firmware asks for line {j}, acknowledged before its last \
+                     acknowledged line {}: not sent again (it would run twice)",
+                    self.accepted_next - 1
+                ));
+            }
             self.protocol_error(format!(
                 "the firmware asks again for line {j}, reported accepted from an `ok` without a \
                  line number (an `ok` was miscounted); sending it again"

@@ -1307,3 +1307,43 @@ fn a_timed_lines_lost_ok_is_probed_once_overdue() {
         Some(t(0).plus_us(h.config().ok_timeout_us))
     );
 }
+
+/// A resend request for a line acknowledged further back than the window (one line in
+/// flight: any line before the last acknowledged one) is a protocol fault: the link
+/// stops naming it and sends nothing again (replayed, 100 acknowledged moves ran twice).
+#[test]
+fn a_resend_request_for_a_line_long_acknowledged_stops_the_link() {
+    let mut h = connected(Dialect::Marlin);
+    for tag in 0..10 {
+        h.send_line(&format!("G1 X{tag}"), tag).unwrap();
+        tx(&mut h, t(tag));
+        feed(&mut h, "ok\n", t(tag));
+    }
+    assert_eq!(accepted(&events(&mut h)).len(), 10);
+    feed(&mut h, "Resend: 4\nok\n", t(20));
+    let ev = events(&mut h);
+    assert!(
+        matches!(&ev[..], [LineEvent::Stopped { reason, .. }]
+            if reason.contains("line 4") && reason.contains("last acknowledged line 11")),
+        "{ev:?}"
+    );
+    assert!(tx(&mut h, t(21)).is_empty(), "nothing sent again");
+}
+
+/// A firmware that answers every handshake line with a resend request: each is an
+/// attempt, and the attempts run out (no handshakes at line speed).
+#[test]
+fn resend_requests_during_the_handshake_count_as_attempts() {
+    let mut h = LineHost::new(cfg(Dialect::Marlin));
+    h.connect(t(0));
+    let mut sent = 0;
+    for k in 0..100 {
+        sent += tx(&mut h, t(k)).len();
+        feed(&mut h, "Resend: 999999\nok\n", t(k));
+        if h.state() == LinkState::Lost {
+            break;
+        }
+    }
+    assert_eq!(h.state(), LinkState::Lost);
+    assert_eq!(sent as u32, h.config().handshake_attempts);
+}
