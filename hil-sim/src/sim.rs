@@ -321,17 +321,36 @@ struct Pty {
     slave_path: PathBuf,
 }
 
+/// A pty whose two ends are close-on-exec from the start. Neither end may leak into a
+/// process spawned meanwhile by another thread (a test's edod): an inherited master keeps
+/// the pty alive, so an unplug would not hang up the host, and an inherited end holds
+/// the tty past the simulator's own close. `openpty` and a later `FD_CLOEXEC` leave a
+/// window for that; `posix_openpt(O_CLOEXEC)` and an `O_CLOEXEC` open of the slave do not.
+fn open_pty_cloexec() -> anyhow::Result<nix::pty::OpenptyResult> {
+    use nix::fcntl::{open, OFlag};
+    use nix::pty::{grantpt, posix_openpt, ptsname_r, unlockpt};
+    use std::os::fd::{FromRawFd, IntoRawFd, OwnedFd};
+    let master =
+        posix_openpt(OFlag::O_RDWR | OFlag::O_NOCTTY | OFlag::O_CLOEXEC).context("posix_openpt")?;
+    grantpt(&master).context("grantpt")?;
+    unlockpt(&master).context("unlockpt")?;
+    let name = ptsname_r(&master).context("ptsname")?;
+    let slave = open(
+        name.as_str(),
+        OFlag::O_RDWR | OFlag::O_NOCTTY | OFlag::O_CLOEXEC,
+        nix::sys::stat::Mode::empty(),
+    )
+    .with_context(|| format!("open {name}"))?;
+    // SAFETY: `into_raw_fd` gives up the only owner of the master's descriptor.
+    let master = unsafe { OwnedFd::from_raw_fd(master.into_raw_fd()) };
+    Ok(nix::pty::OpenptyResult { master, slave })
+}
+
 fn open_pty(link: Option<&Path>) -> anyhow::Result<Pty> {
-    use nix::fcntl::FdFlag;
     use nix::fcntl::{fcntl, FcntlArg, OFlag};
     use nix::sys::termios::{cfmakeraw, tcgetattr, tcsetattr, SetArg};
     use std::os::fd::AsRawFd;
-    let pty = nix::pty::openpty(None, None).context("openpty")?;
-    // Neither end may leak into a process spawned meanwhile (a test's edod): an
-    // inherited master keeps the pty alive, so an unplug would not hang up the host.
-    for fd in [&pty.master, &pty.slave] {
-        fcntl(fd, FcntlArg::F_SETFD(FdFlag::FD_CLOEXEC)).context("fcntl FD_CLOEXEC")?;
-    }
+    let pty = open_pty_cloexec()?;
     let mut t = tcgetattr(&pty.slave).context("tcgetattr on the pty")?;
     cfmakeraw(&mut t);
     tcsetattr(&pty.slave, SetArg::TCSANOW, &t).context("tcsetattr raw on the pty")?;
