@@ -447,3 +447,135 @@ fn mixer_fit_recovers_a_simulated_chamber() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("line 3"), "{err}");
 }
+
+/// edod, killed on drop.
+struct Edod(std::process::Child);
+
+impl Drop for Edod {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// One HTTP/1.1 request to `127.0.0.1:port` (the connection closed after it): the
+/// status line's code and the body.
+fn http(port: u16, method: &str, path: &str, body: &str) -> (u16, String) {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(std::time::Duration::from_secs(60)))
+        .unwrap();
+    write!(
+        s,
+        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    let code = out
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let body = out
+        .split_once("\r\n\r\n")
+        .map_or("", |(_, b)| b)
+        .to_string();
+    (code, body)
+}
+
+/// The dashboard's preview (edod's planner) and `edoctl plan --machine` (the CLI's) plan
+/// the crown alike on a G-code machine with a mixing chamber: the same layers, the same
+/// moves in each (the preview's first layer also holds the job's home move, which the
+/// file writes before its first layer), the same total.
+#[test]
+fn the_dashboard_preview_and_plan_machine_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let config = dir.path().join("edod.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[serial]\nport = {:?}\n\
+             [machine]\nprotocol = \"gcode\"\n[machine.mixer]\nmodel = \"mixed\"\nvolume_nl = 4000\n\
+             [machine.gcode]\nfirmware = \"marlin\"\n\
+             [api]\nsocket = {:?}\n[state]\ndir = {:?}\n\
+             [http]\nlisten = \"127.0.0.1:{port}\"\n",
+            dir.path().join("no-machine").display().to_string(),
+            dir.path().join("edod.sock").display().to_string(),
+            dir.path().join("state").display().to_string(),
+        ),
+    )
+    .unwrap();
+    let _edod = Edod(
+        Command::new(env!("CARGO_BIN_EXE_edod"))
+            .arg("--config")
+            .arg(&config)
+            .env("RUST_LOG", "warn")
+            .stdin(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let t = std::time::Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(t.elapsed().as_secs() < 20, "edod's dashboard did not start");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let job = std::fs::read_to_string(example("tooth-crown.toml")).unwrap();
+    let (code, body) = http(
+        port,
+        "POST",
+        "/api/preview",
+        &serde_json::json!({ "job": job }).to_string(),
+    );
+    assert_eq!(code, 200, "{body}");
+    let preview: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let out = edoctl()
+        .arg("plan")
+        .arg(example("tooth-crown.toml"))
+        .arg("--machine")
+        .arg(&config)
+        .args(["--report", "-"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let cli: Vec<u64> = report["layers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["toolpath"]["moves"].as_u64().unwrap())
+        .collect();
+    let shown: Vec<u64> = preview["layers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["moves"].as_u64().unwrap())
+        .collect();
+    let mut expected = cli.clone();
+    expected[0] += 1; // the home move
+    assert_eq!(shown, expected, "moves per layer: preview against the CLI");
+    assert_eq!(
+        preview["total_moves"].as_u64(),
+        Some(cli.iter().sum::<u64>() + 1)
+    );
+    // Without --machine the CLI plans with the job's own settings: not what edod plans.
+    let own = plan_json(&example("tooth-crown.toml"), None);
+    let own: Vec<u64> = own["layers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["toolpath"]["moves"].as_u64().unwrap_or(0))
+        .collect();
+    assert_ne!(own, cli, "the machine's mixing chamber changes the plan");
+}
