@@ -116,6 +116,8 @@ pub struct GcodeLink {
     settle_until: Option<Micros>,
     /// Lost or stopped links in a row with no line accepted between.
     link_failures: u32,
+    /// When a protocol error was last logged, and how many were not since.
+    protocol_errors_logged: Option<(Micros, u64)>,
     /// Marks for the store: where this connection's line numbers stand in the job's
     /// moves (`None` on Klipper, which has no line numbers).
     marks: Option<Marks>,
@@ -225,6 +227,8 @@ const SETTLE_US: u64 = 300_000;
 const BACK_OFF_FIRST_US: u64 = 1_000_000;
 /// The longest.
 const BACK_OFF_MAX_US: u64 = 30_000_000;
+/// Protocol errors are logged at most once this often ([`GcodeLink::log_protocol_error`]).
+const PROTOCOL_LOG_EVERY_US: u64 = 10_000_000;
 
 impl GcodeLink {
     /// A link to the firmware configured by `cfg` for `drives` syringes holding
@@ -259,6 +263,7 @@ impl GcodeLink {
             recover_after_open: false,
             settle_until: None,
             link_failures: 0,
+            protocol_errors_logged: None,
             marks: cfg.link.dialect.numbers_lines().then(Marks::default),
             resume: None,
         }
@@ -523,7 +528,7 @@ impl GcodeLink {
             LineEvent::Action { text } => info!(%text, "firmware host action"),
             LineEvent::Busy { text } => debug!(%text, "firmware busy"),
             LineEvent::Error { text } => warn!(%text, "firmware error"),
-            LineEvent::ProtocolError { what } => warn!(%what, "G-code link"),
+            LineEvent::ProtocolError { what } => self.log_protocol_error(&what, now),
             LineEvent::Halted { text, .. } => self.on_halted(text),
             LineEvent::Reset { banner, .. } => self.on_reset(&banner, now),
             LineEvent::LinkLost { silent_us, .. } => {
@@ -579,6 +584,18 @@ impl GcodeLink {
         self.events.push_back(Event::MachineReset { last_executed });
         self.stop = Stop::None;
         self.connect(now);
+    }
+
+    /// A protocol error (a stray `ok`, a garbage line, a stale resend request): logged at
+    /// most once every [`PROTOCOL_LOG_EVERY_US`], the next one with how many were not, so
+    /// a firmware spewing them cannot flood the journal (200,000 in a burst were 22 MB).
+    fn log_protocol_error(&mut self, what: &str, now: Micros) {
+        let period_over = |last: Micros, now: Micros| now.since(last) >= PROTOCOL_LOG_EVERY_US;
+        if let Some(not_logged) =
+            super::streamer::log_now(&mut self.protocol_errors_logged, now, period_over)
+        {
+            warn!(%what, not_logged, "G-code link");
+        }
     }
 
     /// A lost or stopped link: the second failure in a row with no line accepted between
@@ -1046,6 +1063,22 @@ mod tests {
             events.push(e);
         }
         moves
+    }
+
+    /// A firmware spewing garbage or stray `ok`s: one warning, then at most one every
+    /// 10 s carrying how many were not logged.
+    #[test]
+    fn protocol_errors_are_logged_at_most_every_ten_seconds() {
+        let (mut link, _fw) = marlin_rig();
+        let error = || LineEvent::ProtocolError {
+            what: "`ok` with no line in flight".into(),
+        };
+        for k in 0..200_000u64 {
+            link.translate(error(), Micros(k * 25));
+        }
+        assert_eq!(link.protocol_errors_logged, Some((Micros(0), 199_999)));
+        link.translate(error(), Micros(10_000_000));
+        assert_eq!(link.protocol_errors_logged, Some((Micros(10_000_000), 0)));
     }
 
     /// A firmware that refuses every line: after the first lost link, each next one waits

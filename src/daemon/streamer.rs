@@ -68,12 +68,16 @@ struct EStopWait {
     reply: Reply<EStopTiming>,
 }
 
-/// For an event logged at most every [`UNDERRUN_LOG_EVERY`]: whether to log the one
-/// at `now`, with how many were not logged since the last (`logged`: when that was and
-/// that count).
-fn log_now(logged: &mut Option<(Instant, u64)>, now: Instant) -> Option<u64> {
+/// For an event logged at most once a period: whether to log the one at `now`, with
+/// how many were not logged since the last (`logged`: when that was and that count);
+/// `period_over(last, now)` says whether a period has passed since the last logged.
+pub(crate) fn log_now<T: Copy>(
+    logged: &mut Option<(T, u64)>,
+    now: T,
+    period_over: impl Fn(T, T) -> bool,
+) -> Option<u64> {
     match logged {
-        Some((at, since)) if now.saturating_duration_since(*at) < UNDERRUN_LOG_EVERY => {
+        Some((at, since)) if !period_over(*at, now) => {
             *since += 1;
             None
         }
@@ -83,6 +87,11 @@ fn log_now(logged: &mut Option<(Instant, u64)>, now: Instant) -> Option<u64> {
             Some(since)
         }
     }
+}
+
+/// A period of [`UNDERRUN_LOG_EVERY`] passed between `last` and `now`.
+fn underrun_period_over(last: Instant, now: Instant) -> bool {
+    now.saturating_duration_since(last) >= UNDERRUN_LOG_EVERY
 }
 
 fn session_seed() -> u64 {
@@ -663,7 +672,11 @@ impl Streamer {
     }
 
     fn log_underrun(&mut self, u: &Underrun) {
-        let Some(since) = log_now(&mut self.underrun_logged, Instant::now()) else {
+        let Some(since) = log_now(
+            &mut self.underrun_logged,
+            Instant::now(),
+            underrun_period_over,
+        ) else {
             return;
         };
         let (in_link, in_flight) = self.link.in_link();
@@ -783,7 +796,6 @@ fn log_port(path: &std::path::Path, log: Option<PortLog>) {
 
 #[cfg(test)]
 mod tests {
-    use super::log_now;
     use std::time::{Duration, Instant};
 
     #[test]
@@ -820,6 +832,9 @@ mod tests {
     fn underruns_are_logged_at_most_every_ten_seconds_with_the_count_between() {
         let t0 = Instant::now();
         let at = |ms: u64| t0 + Duration::from_millis(ms);
+        let log_now = |logged: &mut Option<(Instant, u64)>, now| {
+            super::log_now(logged, now, super::underrun_period_over)
+        };
         let mut logged = None;
         assert_eq!(log_now(&mut logged, at(0)), Some(0));
         // A burst of 500 over the next 5 s: none logged.
