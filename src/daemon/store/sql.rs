@@ -506,6 +506,9 @@ impl Store {
             spec,
             unreadable: None,
         };
+        if bad.is_empty() {
+            check_row(&j, &mut bad);
+        }
         if !bad.is_empty() {
             let what = bad.join("; ");
             // Quarantined earlier: the reason then written stays.
@@ -866,6 +869,21 @@ impl Store {
 
 /// The reason of a job whose row cannot be read starts so.
 pub const UNREADABLE: &str = "stored job unreadable:";
+
+/// What a row that parsed holds that the API would never have stored (a damaged or
+/// edited file): a dry run of no moves, a checkpoint past the job's last move. Such a
+/// job would end `done` with nothing run; it is failed instead, naming the column.
+fn check_row(j: &JobRecord, bad: &mut Vec<String>) {
+    if matches!(j.spec, JobSpec::DryRun { moves: 0 }) {
+        bad.push("spec: a dry run of 0 moves (the API takes 1 or more)".into());
+    }
+    if let Some(total) = j.total_moves.filter(|t| j.checkpoint.next_index > *t) {
+        bad.push(format!(
+            "next_index: {} is past the job's {total} moves",
+            j.checkpoint.next_index
+        ));
+    }
+}
 
 /// Column `name` of `r`, or `None` with what is wrong with it added to `bad`.
 fn column<T: rusqlite::types::FromSql>(
@@ -1264,6 +1282,52 @@ mod tests {
         std::fs::write(&path, vec![0x55; 8192]).unwrap();
         let m = Store::open_checked(dir.path()).err().unwrap().to_string();
         assert!(m.contains("is damaged (file is not a database)"), "{m}");
+    }
+
+    /// Rows that parse but hold what the API never stores (issue 41's probe: a dry run of
+    /// 0 moves ended `done 0/0`; `next_index = 100000` on a 100-move job ended `done
+    /// 100000/100`, nothing run): failed, naming the column, never planned.
+    #[test]
+    fn rows_the_api_would_never_store_are_quarantined() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path()).unwrap();
+        for k in 1..=3 {
+            s.insert(&format!("j{k}"), &JobSpec::DryRun { moves: 100 })
+                .unwrap();
+        }
+        for (id, sql) in [
+            (
+                1,
+                r#"UPDATE jobs SET spec = '{"dry_run":{"moves":0}}' WHERE id = 1"#,
+            ),
+            (
+                2,
+                "UPDATE jobs SET total_moves = 100, next_index = 100000 WHERE id = 2",
+            ),
+        ] {
+            assert_eq!(s.conn.execute(sql, []).unwrap(), 1, "job {id}");
+        }
+        let list = s.list().unwrap();
+        let reason = |k: usize| list[k].reason.clone().unwrap_or_default();
+        assert!(
+            reason(0).contains("spec: a dry run of 0 moves"),
+            "{}",
+            reason(0)
+        );
+        assert!(
+            reason(1).contains("next_index: 100000 is past the job's 100 moves"),
+            "{}",
+            reason(1)
+        );
+        assert!(list[..2].iter().all(|j| j.state == JobState::Failed));
+        assert_eq!(list[2].state, JobState::Queued);
+        let marked: Vec<u32> = s
+            .quarantine_unreadable()
+            .unwrap()
+            .iter()
+            .map(|m| m.0)
+            .collect();
+        assert_eq!(marked, [1, 2]);
     }
 
     #[test]
