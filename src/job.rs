@@ -563,7 +563,18 @@ pub fn check_name(name: &str) -> Result<(), String> {
     if let Some(c) = name.chars().find(|c| c.is_control()) {
         return Err(format!("contains the control character {c:?}"));
     }
+    if let Some(c) = name.chars().find(|c| is_bidi_control(*c)) {
+        return Err(format!(
+            "contains the bidirectional control {c:?} (it would reorder what listings show)"
+        ));
+    }
     Ok(())
+}
+
+/// Unicode's bidirectional formatting characters (marks, embeddings, overrides,
+/// isolates): invisible, they reorder the text around them in a terminal or a page.
+fn is_bidi_control(c: char) -> bool {
+    matches!(c, '\u{200E}' | '\u{200F}' | '\u{061C}' | '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}')
 }
 
 /// The finest nozzle a job may name, mm. Eq (5) puts D_max / D_noz offsets in each
@@ -1356,6 +1367,8 @@ nozzle = 0.5
         for (name, why) in [
             ("  ", "must not be empty"),
             ("crown\\u001b[2J", "control character '\\u{1b}'"),
+            ("evil\\u202etxt.crown", "bidirectional control '\\u{202e}'"),
+            ("a\\u2066b", "bidirectional control '\\u{2066}'"),
             ("two\\nlines", "control character '\\n'"),
         ] {
             let e = err(&GOOD.replace("name = \"t\"", &format!("name = \"{name}\"")));

@@ -633,6 +633,16 @@ impl Config {
                 format!("{:?} is not an octal mode like \"0660\"", self.api.mode),
             ));
         }
+        if self.socket_mode() & 0o002 != 0 {
+            return Err(bad(
+                "api.mode",
+                format!(
+                    "{:?} lets every user on the host write to the socket (submit, cancel, \
+                     e-stop); give access through the group, like \"0660\"",
+                    self.api.mode
+                ),
+            ));
+        }
         if self.api.max_request_bytes < 1024 {
             return Err(bad("api.max_request_bytes", "at least 1024".into()));
         }
@@ -744,6 +754,16 @@ mod tests {
     fn bad_values_name_their_key() {
         let e = Config::from_toml("[api]\nmode = \"rw\"\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("api.mode"), "{e}");
+        // A socket every user may write: refused (issue 41: "0777" passed --check-config).
+        for mode in ["0777", "0662", "0o666"] {
+            let e =
+                Config::from_toml(&format!("[api]\nmode = \"{mode}\"\n"), "m.toml").unwrap_err();
+            assert!(
+                e.to_string().contains("every user on the host"),
+                "{mode}: {e}"
+            );
+        }
+        assert!(Config::from_toml("[api]\nmode = \"0660\"\n", "m.toml").is_ok());
         for (key, value) in [
             ("max_plunger_mm_s", "0.0"),
             ("max_plunger_mm_s", "nan"),
