@@ -1089,6 +1089,17 @@ fn check_extruded_size(
     } else {
         (layers.max_mm, "process.layer")
     };
+    // At least one layer: a height under the thinnest layer (1e-300 mm) would be one
+    // layer at z = 0, the nozzle on the bed.
+    if *height_mm < layers.min_mm {
+        return Err(bad(
+            "geometry.height",
+            format!(
+                "{height_mm} mm is less than one layer ({} mm, process.layer); is the height in mm?",
+                layers.min_mm
+            ),
+        ));
+    }
     let count = (height_mm / thinnest).ceil();
     if count > MAX_LAYERS as f64 {
         return Err(bad(
@@ -1355,6 +1366,11 @@ nozzle = 0.5
         let e = err(&GOOD.replace("inner = [1.0, 0.0]", "inner = [1.0]"));
         assert!(
             e.contains("gradient.inner") && e.contains("2 materials"),
+            "{e}"
+        );
+        let e = err(&GOOD.replace("height = 0.4", "height = 1e-300"));
+        assert!(
+            e.contains("geometry.height") && e.contains("less than one layer"),
             "{e}"
         );
         let e = err(&GOOD.replace("height = 0.4", "height = 400000.0"));
