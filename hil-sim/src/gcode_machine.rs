@@ -153,12 +153,7 @@ impl GcodeMachine {
     /// syringe whose axis letter ends the stepper's name now stands at `v` (the firmware
     /// model refuses it while the axis is registered; a refused line never gets here).
     fn manual_stepper(&mut self, text: &str) {
-        let param = |key: &str| {
-            text.split_ascii_whitespace().find_map(|w| {
-                let (k, v) = w.split_once('=')?;
-                k.eq_ignore_ascii_case(key).then_some(v)
-            })
-        };
+        let param = |key: &str| edo::gcode_link::klipper_param(text, key);
         let drive = param("STEPPER")
             .and_then(|s| s.strip_prefix("syringe_"))
             .and_then(|s| s.chars().next())

@@ -1065,6 +1065,73 @@ mod tests {
         moves
     }
 
+    /// Klipper: once a job ended and every line was acknowledged, edod releases each
+    /// syringe's axis and steps it to where it stands (the file's epilogue), so a refill
+    /// macro can move the plunger and the next job's `SET_POSITION=0` is clean; nothing
+    /// more is sent until the next job's preamble takes the axes again.
+    #[test]
+    fn klipper_axes_are_released_once_a_job_ended_and_ran() {
+        use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
+        let cfg = super::super::config::GcodeLink {
+            link: LineLinkConfig::for_dialect(Dialect::Klipper),
+            mix: MixWriting::Axes(vec!['A', 'B']),
+            barrel_area_mm2: 78.5,
+            plunger_limits: Vec::new(),
+        };
+        let mut link = GcodeLink::new(&cfg, 2, 1_000_000);
+        let mut fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Klipper), Micros(0));
+        let mut ran = Vec::new();
+        let mut t = 0u64;
+        let step = |link: &mut GcodeLink, fw: &mut Firmware, ran: &mut Vec<String>, t: u64| {
+            let now = Micros(t);
+            link.handle_timeout(now);
+            while let Some(b) = link.poll_transmit(now) {
+                fw.handle_bytes(&b, now);
+            }
+            fw.handle_timeout(now);
+            while let Some(line) = fw.poll_line() {
+                if line.is_move {
+                    fw.moves_done(1, now);
+                }
+                ran.push(line.text);
+            }
+            while let Some(b) = fw.poll_transmit() {
+                link.handle_bytes(&b, now);
+            }
+            while link.poll_event(now).is_some() {}
+        };
+        link.reconnect(Micros(0));
+        while !link.has_room(4) {
+            t += 1000;
+            assert!(t < 10_000_000, "did not connect");
+            step(&mut link, &mut fw, &mut ran, t);
+        }
+        for mv in job_moves(6) {
+            link.send_move(mv).unwrap();
+        }
+        link.job_ended(7);
+        for _ in 0..200 {
+            t += 1000;
+            step(&mut link, &mut fw, &mut ran, t);
+        }
+        let last_move = ran.iter().rposition(|l| l.starts_with("G1")).unwrap();
+        let after: Vec<&str> = ran[last_move + 1..]
+            .iter()
+            .map(String::as_str)
+            .filter(|l| *l != "M400")
+            .collect();
+        assert_eq!(
+            after,
+            [
+                "MANUAL_STEPPER STEPPER=syringe_a GCODE_AXIS=",
+                "MANUAL_STEPPER STEPPER=syringe_a MOVE=0.019108",
+                "MANUAL_STEPPER STEPPER=syringe_b GCODE_AXIS=",
+                "MANUAL_STEPPER STEPPER=syringe_b MOVE=0.003822",
+            ],
+            "{ran:#?}"
+        );
+    }
+
     /// A firmware spewing garbage or stray `ok`s: one warning, then at most one every
     /// 10 s carrying how many were not logged.
     #[test]

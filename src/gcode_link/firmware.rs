@@ -793,12 +793,7 @@ impl Firmware {
     /// Klipper's `manual_stepper.py` `cmd_MANUAL_STEPPER`, as far as axis registration
     /// goes: its refusals, word for word (Kalico 2026.10; Klipper v0.13.0-106 and on).
     fn klipper_manual_stepper(&mut self, text: &str) -> Result<(), String> {
-        let param = |key: &str| {
-            text.split_ascii_whitespace().find_map(|w| {
-                let (k, v) = w.split_once('=')?;
-                k.eq_ignore_ascii_case(key).then(|| v.to_string())
-            })
-        };
+        let param = |key: &str| super::klipper_param(text, key);
         let Some(stepper) = param("STEPPER").map(|s| s.to_ascii_lowercase()) else {
             return Err("Error on 'MANUAL_STEPPER': missing STEPPER".into());
         };

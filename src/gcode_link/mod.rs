@@ -244,6 +244,16 @@ pub fn numbered_line(number: u32, text: &str) -> Vec<u8> {
     line
 }
 
+/// A Klipper extended command's parameter (`MANUAL_STEPPER STEPPER=syringe_a
+/// SET_POSITION=0`): the value of the first `KEY=value` word whose key is `key`, in any
+/// case, as Klipper's `gcode.py` reads them; `Some("")` for `KEY=`.
+pub fn klipper_param<'a>(text: &'a str, key: &str) -> Option<&'a str> {
+    text.split_ascii_whitespace().find_map(|w| {
+        let (k, v) = w.split_once('=')?;
+        k.eq_ignore_ascii_case(key).then_some(v)
+    })
+}
+
 /// The first word of a G-code line (`G1`, `M112`, ...), upper case, after an optional
 /// `N<n>` prefix; `G01` reads as `G1`.
 pub fn command_word(text: &str) -> Option<String> {
