@@ -37,6 +37,9 @@ pub struct Ask<'a> {
     pub query: Option<&'a str>,
     /// Its headers.
     pub headers: &'a HeaderMap,
+    /// The authority of an absolute-form request target (`GET http://host/path`), which
+    /// HTTP/1.1 says stands for `Host`.
+    pub authority: Option<&'a str>,
 }
 
 impl Ask<'_> {
@@ -81,7 +84,20 @@ fn loopback_host(host: &str) -> bool {
 impl Guard {
     /// `Ok` if `ask` may go on; the status that refuses it otherwise, with the reason.
     pub fn check(&self, ask: &Ask) -> Result<(), (StatusCode, &'static str)> {
+        // One `Host`, and an absolute-form target naming the same: otherwise which one
+        // the rules below judged and which one a proxy or the page acted on may differ.
+        if ask.headers.get_all(header::HOST).iter().count() > 1 {
+            return Err((StatusCode::BAD_REQUEST, "more than one Host header"));
+        }
         let host = header_str(ask.headers, header::HOST);
+        if let Some(authority) = ask.authority {
+            if !host.is_some_and(|h| h.eq_ignore_ascii_case(authority)) {
+                return Err((
+                    StatusCode::BAD_REQUEST,
+                    "the request target names another host than the Host header",
+                ));
+            }
+        }
         if self.loopback && !host.is_some_and(loopback_host) {
             return Err((
                 StatusCode::FORBIDDEN,
@@ -160,8 +176,35 @@ mod tests {
             path,
             query,
             headers: h,
+            authority: None,
         };
         g.check(&ask).map_or_else(|(s, _)| s.as_u16(), |()| 200)
+    }
+
+    /// Two `Host` headers, or an absolute-form target naming another host than `Host`
+    /// (issue 41's probe: both were accepted): 400, whatever the listener.
+    #[test]
+    fn one_host_and_the_same_in_an_absolute_target() {
+        for loopback in [true, false] {
+            let g = Guard {
+                token: None,
+                loopback,
+            };
+            let mut two = headers(&[(header::HOST, "127.0.0.1:7125")]);
+            two.append(header::HOST, HeaderValue::from_static("evil.example"));
+            assert_eq!(check(&g, Method::GET, "/api/jobs", None, &two), 400);
+            let one = headers(&[(header::HOST, "127.0.0.1:7125")]);
+            let ask = |authority| Ask {
+                method: &Method::GET,
+                path: "/api/jobs",
+                query: None,
+                headers: &one,
+                authority,
+            };
+            let refused = g.check(&ask(Some("evil.example"))).err().map(|(s, _)| s);
+            assert_eq!(refused, Some(StatusCode::BAD_REQUEST));
+            assert!(g.check(&ask(Some("127.0.0.1:7125"))).is_ok());
+        }
     }
 
     #[test]

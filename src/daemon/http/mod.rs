@@ -107,6 +107,7 @@ async fn guarded(State(app): State<Arc<App>>, req: Request, next: Next) -> Respo
         path: req.uri().path(),
         query: req.uri().query(),
         headers: req.headers(),
+        authority: req.uri().authority().map(|a| a.as_str()),
     };
     if let Err((status, why)) = app.guard.check(&ask) {
         return (status, why).into_response();
