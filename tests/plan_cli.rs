@@ -21,6 +21,11 @@ fn plan_json(job: &Path, svg: Option<&Path>) -> serde_json::Value {
     if let Some(dir) = svg {
         cmd.arg("--svg").arg(dir);
     }
+    json_of(&mut cmd)
+}
+
+/// What `cmd` (an edoctl run) printed as JSON; it must succeed.
+fn json_of(cmd: &mut Command) -> serde_json::Value {
     let out = cmd.output().unwrap();
     assert!(
         out.status.success(),
@@ -349,20 +354,14 @@ fn the_mixer_option_is_checked_and_its_limits_reported() {
         );
     }
     let dir = tempfile::tempdir().unwrap();
-    let out = edoctl()
-        .arg("plan")
-        .arg(&job)
-        .args(["--layers", "0", "--report", "-", "--mixer", "mixed"])
-        .args(["--mixer-volume-nl", "1000", "--svg"])
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let report = json_of(
+        edoctl()
+            .arg("plan")
+            .arg(&job)
+            .args(["--layers", "0", "--report", "-", "--mixer", "mixed"])
+            .args(["--mixer-volume-nl", "1000", "--svg"])
+            .arg(dir.path()),
     );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let t = &report["layers"][0]["toolpath"];
     let limited = t["mixer_limited"].as_array().unwrap();
     assert!(!limited.is_empty(), "{t}");
@@ -536,20 +535,14 @@ fn the_dashboard_preview_and_plan_machine_agree() {
     );
     assert_eq!(code, 200, "{body}");
     let preview: serde_json::Value = serde_json::from_str(&body).unwrap();
-    let out = edoctl()
-        .arg("plan")
-        .arg(example("tooth-crown.toml"))
-        .arg("--machine")
-        .arg(&config)
-        .args(["--report", "-"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let report = json_of(
+        edoctl()
+            .arg("plan")
+            .arg(example("tooth-crown.toml"))
+            .arg("--machine")
+            .arg(&config)
+            .args(["--report", "-"]),
     );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let cli: Vec<u64> = report["layers"]
         .as_array()
         .unwrap()
@@ -578,4 +571,48 @@ fn the_dashboard_preview_and_plan_machine_agree() {
         .map(|l| l["toolpath"]["moves"].as_u64().unwrap_or(0))
         .collect();
     assert_ne!(own, cli, "the machine's mixing chamber changes the plan");
+}
+
+/// `--machine` with what a user can get wrong: a file that is not there, a config edod
+/// refuses, a machine on edo's own link asked for G-code, a job of more materials than
+/// the machine has syringes, and an option that --machine gives a value to. Each fails
+/// naming the file or the key, and writes no file.
+#[test]
+fn plan_machine_refuses_what_is_wrong_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let gcode = dir.path().join("out.gcode");
+    let crown = example("tooth-crown.toml");
+    let write = |name: &str, text: &str| {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    };
+    let bad_key = write("bad.toml", "[machine]\nmax_flow_factor = -1.0\n");
+    let edo_link = write("edo.toml", "");
+    let three = write(
+        "three.toml",
+        "[machine]\nprotocol = \"gcode\"\nsyringes = [\
+         { name = \"a\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }, \
+         { name = \"b\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }, \
+         { name = \"c\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }]\n\
+         [machine.gcode]\nfirmware = \"marlin\"\n",
+    );
+    let missing = dir.path().join("missing.toml");
+    for (machine, extra, says) in [
+        (&missing, None, "cannot read"),
+        (&bad_key, None, "machine.max_flow_factor"),
+        (&edo_link, None, "machine.protocol is \"edo\""),
+        (&three, None, "the machine has 3 syringes"),
+        (&edo_link, Some("--flavor=klipper"), "cannot be used with"),
+    ] {
+        let mut cmd = edoctl();
+        cmd.arg("plan").arg(&crown).arg("--machine").arg(machine);
+        cmd.arg("--quiet").arg("--gcode").arg(&gcode);
+        cmd.args(extra);
+        let out = cmd.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{says}: succeeded");
+        assert!(err.contains(says), "{says}: {err}");
+        assert!(!gcode.exists(), "{says}: a file was written");
+    }
 }

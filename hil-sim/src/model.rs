@@ -113,22 +113,17 @@ impl MachineModel {
         let from = self.position;
         let mut exit_composition = None;
         let duration_us = match &mv.kind {
-            MoveKind::Travel { to, feed_um_s } => {
+            MoveKind::Travel { to, .. } => {
                 self.position = *to;
-                motion_us(from, *to, *feed_um_s)
+                mv.kind.run_time_us(Some(from)).unwrap_or(0)
             }
-            MoveKind::Extrude {
-                to,
-                feed_um_s,
-                volumes_nl,
-                ..
-            } => {
+            MoveKind::Extrude { to, volumes_nl, .. } => {
                 self.dispense(volumes_nl)?;
                 let mut padded = volumes_nl.clone();
                 padded.resize(self.syringes.len(), 0);
                 exit_composition = self.chamber.push(&padded);
                 self.position = *to;
-                motion_us(from, *to, *feed_um_s)
+                mv.kind.run_time_us(Some(from)).unwrap_or(0)
             }
             MoveKind::Prime {
                 volumes_nl,
@@ -153,7 +148,12 @@ impl MachineModel {
             }
             MoveKind::Home => {
                 self.position = PositionUm::default();
-                motion_us(from, PositionUm::default(), 50_000)
+                // Homing as a travel to the origin at 50 mm/s.
+                let to_origin = MoveKind::Travel {
+                    to: PositionUm::default(),
+                    feed_um_s: 50_000,
+                };
+                to_origin.run_time_us(Some(from)).unwrap_or(0)
             }
         };
         Ok(Executed {
@@ -176,15 +176,6 @@ impl MachineModel {
         }
         Ok(())
     }
-}
-
-fn motion_us(from: PositionUm, to: PositionUm, feed_um_s: u32) -> u64 {
-    let d = |a: i32, b: i32| (f64::from(a) - f64::from(b)).powi(2);
-    let len_um = (d(from.x_um, to.x_um) + d(from.y_um, to.y_um) + d(from.z_um, to.z_um)).sqrt();
-    if feed_um_s == 0 {
-        return 0;
-    }
-    (len_um / f64::from(feed_um_s) * 1e6) as u64
 }
 
 #[cfg(test)]

@@ -936,8 +936,7 @@ impl LinkAdapter for GcodeLink {
             .rev()
             .find_map(|p| p.to)
             .unwrap_or(self.status.position);
-        let from = Some(from);
-        let last_tag = self.send_lines(&lines, mv.kind.run_time_us(from))?;
+        let last_tag = self.send_lines(&lines, mv.kind.run_time_us(Some(from)))?;
         self.pending.push_back(Pending {
             sync: false,
             mv: Some(MoveRef {
@@ -1040,6 +1039,18 @@ mod tests {
         plugged: bool,
         events: &mut Vec<Event>,
     ) -> usize {
+        let ran = pump_lines(link, fw, now, plugged, events);
+        ran.iter().filter(|l| l.starts_with("G1")).count()
+    }
+
+    /// [`pump`], returning every line the firmware ran.
+    fn pump_lines(
+        link: &mut GcodeLink,
+        fw: &mut crate::gcode_link::Firmware,
+        now: Micros,
+        plugged: bool,
+        events: &mut Vec<Event>,
+    ) -> Vec<String> {
         link.handle_timeout(now);
         while let Some(b) = link.poll_transmit(now) {
             if plugged {
@@ -1047,12 +1058,12 @@ mod tests {
             }
         }
         fw.handle_timeout(now);
-        let mut moves = 0;
+        let mut ran = Vec::new();
         while let Some(line) = fw.poll_line() {
             if line.is_move {
-                moves += usize::from(line.text.starts_with("G1"));
                 fw.moves_done(1, now);
             }
+            ran.push(line.text);
         }
         while let Some(b) = fw.poll_transmit() {
             if plugged {
@@ -1062,7 +1073,7 @@ mod tests {
         while let Some(e) = link.poll_event(now) {
             events.push(e);
         }
-        moves
+        ran
     }
 
     /// Klipper: once a job ended and every line was acknowledged, edod releases each
@@ -1080,31 +1091,13 @@ mod tests {
         };
         let mut link = GcodeLink::new(&cfg, 2, 1_000_000);
         let mut fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Klipper), Micros(0));
-        let mut ran = Vec::new();
+        let (mut ran, mut events) = (Vec::new(), Vec::new());
         let mut t = 0u64;
-        let step = |link: &mut GcodeLink, fw: &mut Firmware, ran: &mut Vec<String>, t: u64| {
-            let now = Micros(t);
-            link.handle_timeout(now);
-            while let Some(b) = link.poll_transmit(now) {
-                fw.handle_bytes(&b, now);
-            }
-            fw.handle_timeout(now);
-            while let Some(line) = fw.poll_line() {
-                if line.is_move {
-                    fw.moves_done(1, now);
-                }
-                ran.push(line.text);
-            }
-            while let Some(b) = fw.poll_transmit() {
-                link.handle_bytes(&b, now);
-            }
-            while link.poll_event(now).is_some() {}
-        };
         link.reconnect(Micros(0));
         while !link.has_room(4) {
             t += 1000;
             assert!(t < 10_000_000, "did not connect");
-            step(&mut link, &mut fw, &mut ran, t);
+            ran.extend(pump_lines(&mut link, &mut fw, Micros(t), true, &mut events));
         }
         for mv in job_moves(6) {
             link.send_move(mv).unwrap();
@@ -1112,7 +1105,7 @@ mod tests {
         link.job_ended(7);
         for _ in 0..200 {
             t += 1000;
-            step(&mut link, &mut fw, &mut ran, t);
+            ran.extend(pump_lines(&mut link, &mut fw, Micros(t), true, &mut events));
         }
         let last_move = ran.iter().rposition(|l| l.starts_with("G1")).unwrap();
         let after: Vec<&str> = ran[last_move + 1..]

@@ -1284,6 +1284,15 @@ mod tests {
         assert!(m.contains("is damaged (file is not a database)"), "{m}");
     }
 
+    /// The ids [`Store::quarantine_unreadable`] marks failed now.
+    fn quarantined(s: &Store) -> Vec<u32> {
+        s.quarantine_unreadable()
+            .unwrap()
+            .iter()
+            .map(|m| m.0)
+            .collect()
+    }
+
     /// Rows that parse but hold what the API never stores (issue 41's probe: a dry run of
     /// 0 moves ended `done 0/0`; `next_index = 100000` on a 100-move job ended `done
     /// 100000/100`, nothing run): failed, naming the column, never planned.
@@ -1321,12 +1330,7 @@ mod tests {
         );
         assert!(list[..2].iter().all(|j| j.state == JobState::Failed));
         assert_eq!(list[2].state, JobState::Queued);
-        let marked: Vec<u32> = s
-            .quarantine_unreadable()
-            .unwrap()
-            .iter()
-            .map(|m| m.0)
-            .collect();
+        let marked = quarantined(&s);
         assert_eq!(marked, [1, 2]);
     }
 
@@ -1378,12 +1382,7 @@ mod tests {
         assert!(view[3].2.contains("remaining_nl: "), "{}", view[3].2);
         assert!(list[..4].iter().all(|j| j.state == JobState::Failed));
         // Marked failed on disk at start, once; the queued list leaves them out.
-        let marked: Vec<u32> = s
-            .quarantine_unreadable()
-            .unwrap()
-            .iter()
-            .map(|m| m.0)
-            .collect();
+        let marked = quarantined(&s);
         assert_eq!(marked, [1, 2, 3, 4]);
         assert!(s.quarantine_unreadable().unwrap().is_empty());
         assert_eq!(
