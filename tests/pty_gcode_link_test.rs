@@ -56,6 +56,8 @@ fn marlin_line_faults_are_counted_and_still_pass() {
     assert!(r.resend_requests > 0 && r.resent > 0, "{r}");
 }
 
+/// The dry run moves relatively (`G91`), so the position cannot tell a lost `ok` from a
+/// dropped line: RRF lines are sent again and reported.
 #[test]
 fn rrf_lost_oks_show_as_maybe_repeated_and_fail() {
     let r = test_on(Dialect::Rrf, "drop-ok=0.05", 80);

@@ -33,7 +33,9 @@ use std::collections::VecDeque;
 
 use tracing::{debug, info, warn};
 
-use crate::gcode_link::{Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState};
+use crate::gcode_link::{
+    Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState, NozzleAt,
+};
 use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveAt};
 use crate::link::{LinkStats, MachineState, Micros, MoveRef, Status};
 use crate::machine::gcode::{GcodeSettings, MoveWriter};
@@ -159,7 +161,13 @@ pub struct ResumeLines {
     /// Each move from the writer's mark on, in order: the number of its last line (or of
     /// the line before it, if it has none) and its index.
     moves: Vec<(u32, u32)>,
+    /// Where each of them leaves the nozzle, µm ([`UNKNOWN_UM`] for an axis not known):
+    /// what RRF's reported position is compared with.
+    ends_um: Vec<[i32; 3]>,
 }
+
+/// An axis position not known, in [`ResumeLines`]' ends.
+const UNKNOWN_UM: i32 = i32::MIN;
 
 impl ResumeLines {
     /// The lines the marks of `job_id` say went out for `moves` (the job's moves, from
@@ -185,7 +193,9 @@ impl ResumeLines {
         w.preamble(&[], &mut lines);
         let count = |lines: &[String]| lines.iter().filter_map(|l| streamed(l)).count() as u32;
         let mut next_line = anchor.line_number + count(&lines);
+        let mut at = lines.iter().fold(NozzleAt::UNKNOWN, |at, l| at.after(l));
         let mut out = Vec::new();
+        let mut ends_um = Vec::new();
         for mv in moves {
             let mv = mv?;
             if mv.index < anchor.move_index {
@@ -203,9 +213,19 @@ impl ResumeLines {
             lines.clear();
             w.move_lines(&mv, &mut lines);
             next_line += count(&lines);
+            at = lines.iter().fold(at, |at, l| at.after(l));
             out.push((next_line.saturating_sub(1), mv.index));
+            ends_um.push(at.xyz_um.map(|v| {
+                v.and_then(|v| i32::try_from(v).ok())
+                    .filter(|v| *v != UNKNOWN_UM)
+                    .unwrap_or(UNKNOWN_UM)
+            }));
         }
-        Ok(Some(Self { job_id, moves: out }))
+        Ok(Some(Self {
+            job_id,
+            moves: out,
+            ends_um,
+        }))
     }
 
     /// The job.
@@ -215,8 +235,49 @@ impl ResumeLines {
 
     /// The last move all of whose lines are at or before line `line`.
     pub fn last_move_through(&self, line: u32) -> Option<u32> {
+        self.position_through(line).map(|k| self.moves[k].1)
+    }
+
+    fn position_through(&self, line: u32) -> Option<usize> {
         let upto = self.moves.partition_point(|&(last, _)| last <= line);
-        upto.checked_sub(1).map(|k| self.moves[k].1)
+        upto.checked_sub(1)
+    }
+
+    /// RRF, whose last line `line` may be one it dropped: the last move that ran, told by
+    /// where the nozzle stands (`at_um`): `Some` when the moves through `line` and through
+    /// the line before it are the same, or end at places `at_um` tells apart (within
+    /// `tolerance_um`) and it is at one of them; the inner `None`: no move of the job ran.
+    pub fn last_move_by_position(
+        &self,
+        line: u32,
+        at_um: [i64; 3],
+        tolerance_um: u32,
+    ) -> Option<Option<u32>> {
+        let with = self.position_through(line);
+        let without = line.checked_sub(1).and_then(|l| self.position_through(l));
+        if with == without {
+            return Some(with.map(|k| self.moves[k].1));
+        }
+        let end = |k: Option<usize>| {
+            let um = k.and_then(|k| self.ends_um.get(k)).copied();
+            NozzleAt {
+                xyz_um: um.map_or([None; 3], |um| {
+                    um.map(|v| (v != UNKNOWN_UM).then_some(i64::from(v)))
+                }),
+                relative: false,
+            }
+        };
+        let (ran, dropped) = (end(with), end(without));
+        if !ran.tells_apart(&dropped, tolerance_um) {
+            return None;
+        }
+        if ran.matches(at_um, tolerance_um) {
+            Some(with.map(|k| self.moves[k].1))
+        } else if dropped.matches(at_um, tolerance_um) {
+            Some(without.map(|k| self.moves[k].1))
+        } else {
+            None
+        }
     }
 }
 
@@ -656,12 +717,35 @@ impl GcodeLink {
     /// lifecycle learns it from the connection's report and resumes after them.
     fn resume_from(&mut self, r: &ResumeLines, last: &LastAccepted) {
         let LastAccepted::Known {
-            line_number, exact, ..
+            line_number,
+            exact,
+            position_um,
+            ..
         } = *last
         else {
             warn!(?last, job = r.job_id(), "G-code link: last accepted line not known after edod's restart: the job resumes from its checkpoint");
             return;
         };
+        let tolerance_um = self.host.config().position_tolerance_um;
+        let by_position = position_um
+            .filter(|_| !exact)
+            .and_then(|at| r.last_move_by_position(line_number, at, tolerance_um));
+        if let Some(ran_through) = by_position {
+            info!(
+                line_number,
+                job = r.job_id(),
+                ?ran_through,
+                ?position_um,
+                "G-code link: the nozzle's position tells which of the interrupted job's moves ran"
+            );
+            if let Some(index) = ran_through {
+                self.status.last_executed = Some(MoveRef {
+                    job_id: r.job_id(),
+                    index,
+                });
+            }
+            return;
+        }
         let through = if exact {
             Some(line_number)
         } else {
@@ -1311,6 +1395,29 @@ mod tests {
             assert_eq!(r.last_move_through(last), Some(index));
         }
         assert_eq!(r.last_move_through(m400_line), Some(19));
+        // RRF's nozzle position: at a move's end that move ran, at the end of the move
+        // before it did not; elsewhere, or where the two ends are one, it cannot tell.
+        let mut told = 0;
+        for k in 1..r.moves.len() {
+            let ((prev_last, prev_index), (last, index)) = (r.moves[k - 1], r.moves[k]);
+            let (end, before) = (r.ends_um[k].map(i64::from), r.ends_um[k - 1].map(i64::from));
+            let unknown = i64::from(UNKNOWN_UM);
+            if prev_last + 1 != last || end.contains(&unknown) || before.contains(&unknown) {
+                continue;
+            }
+            if end == before {
+                assert_eq!(r.last_move_by_position(last, end, 2), None);
+                continue;
+            }
+            assert_eq!(r.last_move_by_position(last, end, 2), Some(Some(index)));
+            assert_eq!(
+                r.last_move_by_position(last, before, 2),
+                Some(Some(prev_index))
+            );
+            assert_eq!(r.last_move_by_position(last, [-9_999_999; 3], 2), None);
+            told += 1;
+        }
+        assert!(told > 10, "{told} moves told apart by position");
         // Another job's marks say nothing of this one; a misplaced M400 is refused.
         assert_eq!(
             ResumeLines::replay(8, &marks, moves.iter().cloned().map(Ok), 2, &settings),

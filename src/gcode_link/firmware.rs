@@ -16,7 +16,8 @@
 //! - **RepRapFirmware** (`src/GCodes/GCodeBuffer/StringParser.cpp`, `GCodes.cpp`): `N` only
 //!   recorded (`lineNumber`, set before the checksum test), a `*` checksum only after an
 //!   `N`; a bad checksum drops the line with no reply. One command at a time; `ok` in
-//!   Marlin mode (`M555 P2`), an empty line in its own mode; `M409 K"inputs"`; a bare
+//!   Marlin mode (`M555 P2`), an empty line in its own mode; `M409 K"inputs"` and
+//!   `K"move.axes"` (`userPosition`: the end of the last move queued); a bare
 //!   `M112` at a line start is seen as it arrives. No busy protocol, no boot banner on USB.
 //! - **Klipper** (`klippy/gcode.py`): `N<n>` skipped, `*` never checked, one `ok` per line
 //!   (after `!! <error>` if it failed); `M112` is acted on as it is read while fewer than
@@ -226,6 +227,9 @@ pub struct Firmware {
     /// Klipper: each `[manual_stepper]` registered as a G-code axis
     /// (`MANUAL_STEPPER ... GCODE_AXIS=A`), by name; a restart forgets them.
     klipper_axes: Vec<(String, char)>,
+    /// Where the lines processed leave the nozzle (RRF's `userPosition`: the end of the
+    /// last move handed to the planner).
+    user_at: super::NozzleAt,
     stats: FirmwareStats,
 }
 
@@ -253,6 +257,7 @@ impl Firmware {
             reject_next: false,
             rrf_marlin_mode: cfg.rrf_marlin_mode,
             klipper_axes: Vec::new(),
+            user_at: super::NozzleAt::UNKNOWN,
             stats: FirmwareStats::default(),
             cfg,
         };
@@ -780,6 +785,7 @@ impl Firmware {
                 return true;
             }
         }
+        self.user_at = self.user_at.after(&cmd.text);
         let replies = self.run_builtin(&word, &cmd.text);
         self.answer(&word, &cmd, replies, length);
         self.processed.push_back(ProcessedLine {
@@ -858,6 +864,9 @@ impl Firmware {
             "M115" => self.m115_lines(),
             "M409" if self.cfg.dialect == Dialect::Rrf && text.contains("inputs") => {
                 vec![self.rrf_inputs_json()]
+            }
+            "M409" if self.cfg.dialect == Dialect::Rrf && text.contains("move.axes") => {
+                vec![super::rrf_axes_json(&self.user_at)]
             }
             _ => Vec::new(),
         }

@@ -4,6 +4,7 @@
 
 use std::collections::VecDeque;
 
+use super::position::{rrf_user_position, NozzleAt, RRF_POSITION_QUERY};
 use super::reply::{self, LineReader, OkReply, ReadItem, Reply};
 use super::{
     command_word, numbered_line, Dialect, LineLinkConfig, Micros, Window, PROBE_LINE_NUMBER,
@@ -97,9 +98,16 @@ pub enum LastAccepted {
         /// The first line to send again, if this host sent it: the line after
         /// `line_number` when `exact`, else `line_number` itself (RRF may have dropped it).
         resume_tag: Option<u64>,
-        /// Marlin: the firmware accepted exactly the lines up to `line_number`. RRF: the
-        /// last line it *parsed*, which a bad checksum may have dropped.
+        /// Marlin: the firmware accepted exactly the lines up to `line_number`. RRF: exact
+        /// when the nozzle's position told whether that line ran (this host sent it and
+        /// it ends elsewhere than the line before it: `line_number` is then the last line
+        /// that ran); else the last line it *parsed*, which a bad checksum may have
+        /// dropped.
         exact: bool,
+        /// RRF: where the nozzle stood (`userPosition` X, Y, Z, µm), for a caller that
+        /// knows where its lines end to tell whether `line_number` ran when this host
+        /// could not (after a host restart).
+        position_um: Option<[i64; 3]>,
     },
     /// The firmware cannot tell (Klipper), did not answer, or restarted.
     Unknown {
@@ -121,8 +129,9 @@ pub enum LineEvent {
         /// The line number it went out with (counted, not sent, on Klipper).
         line_number: u32,
     },
-    /// RRF: no `ok` came within the timeout, so the line was sent again; it runs twice if
-    /// only its `ok` was lost (RRF cannot tell).
+    /// RRF: no `ok` came in time and the nozzle's position could not tell whether the
+    /// line ran (it ends where the line before it does), so it was sent again; it runs
+    /// twice if only its `ok` was lost.
     MaybeRepeated {
         /// The caller's tag.
         tag: u64,
@@ -235,7 +244,7 @@ pub struct LineStats {
     pub lines_repeated: u64,
     /// `ok`s received.
     pub oks: u64,
-    /// `ok`s that belonged to a resend request.
+    /// `ok`s that belonged to a resend request or a probe.
     pub oks_swallowed: u64,
     /// `ok`s with nothing in flight, or for a line the host did not send.
     pub oks_unexpected: u64,
@@ -262,6 +271,13 @@ pub struct LineStats {
     /// Timed lines whose `ok` was overdue for what they wait for (probed before the
     /// timeout; [`LineHost::send_timed_line`]).
     pub oks_overdue: u64,
+    /// RRF: position queries (`M409 K"move.axes"`) sent.
+    pub position_probes: u64,
+    /// RRF: lines whose `ok` was lost, known to have run by the nozzle's position.
+    pub ran_by_position: u64,
+    /// RRF: lines the firmware dropped, known by the nozzle's position and sent again
+    /// (not repeated).
+    pub dropped_by_position: u64,
 }
 
 #[derive(Debug)]
@@ -271,6 +287,8 @@ struct Sent {
     wire: Vec<u8>,
     slow: bool,
     runs: Runs,
+    /// Where the line leaves the nozzle if it and every line before it ran.
+    end: NozzleAt,
 }
 
 #[derive(Debug)]
@@ -334,12 +352,42 @@ struct Handshake {
     identified: bool,
 }
 
+/// What the nozzle's position says of a line ([`LineHost::line_by_position`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ByPosition {
+    /// It stands where the line ends.
+    Ran,
+    /// Where the line before it ends.
+    Dropped,
+    /// The two ends are one place, or not known.
+    Unknown,
+    /// At neither.
+    Elsewhere,
+}
+
+/// What a probe asks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ProbeStage {
+    /// The last line accepted: Marlin's out-of-sequence `M105`, RRF's `M409 K"inputs"`.
+    LastLine,
+    /// RRF: where the nozzle stands (`M409 K"move.axes"`).
+    Position,
+}
+
 #[derive(Debug)]
 struct Probe {
     recover: bool,
     attempts: u32,
     deadline: Micros,
     send_due: bool,
+    stage: ProbeStage,
+    /// RRF recovery: the `lineNumber` read, waiting for the position.
+    last_parsed: Option<u32>,
+    /// RRF position probe: a reply line other than `ok` came since it was sent, so an
+    /// `ok` now belongs to a query, not to the line in flight (RRF answers in order).
+    other_line_seen: bool,
+    /// `ok`s that answered the queries (RRF answers each with JSON and `ok`).
+    query_oks_seen: u32,
 }
 
 const BANNER_LINES: usize = 32;
@@ -399,6 +447,10 @@ pub struct LineHost {
     recovery_ok_owed: bool,
     /// The times of the last `planner_moves` timed moves accepted, µs.
     recent_moves_us: VecDeque<u64>,
+    /// Where the last line put into the history leaves the nozzle.
+    sent_end: NozzleAt,
+    /// Where the line before the history's first leaves it.
+    end_before_history: NozzleAt,
 }
 
 impl LineHost {
@@ -449,6 +501,8 @@ impl LineHost {
             late_probe_answers: 0,
             recovery_ok_owed: false,
             recent_moves_us: VecDeque::new(),
+            sent_end: NozzleAt::UNKNOWN,
+            end_before_history: NozzleAt::UNKNOWN,
             cfg,
         }
     }
@@ -461,6 +515,8 @@ impl LineHost {
         self.swallow_oks = u32::from(std::mem::take(&mut self.recovery_ok_owed));
         self.queued.clear();
         self.history.clear();
+        self.sent_end = NozzleAt::UNKNOWN;
+        self.end_before_history = NozzleAt::UNKNOWN;
         self.reader.clear();
         self.info = FirmwareInfo::new(self.cfg.dialect);
         self.busy_known = false;
@@ -734,6 +790,7 @@ impl LineHost {
                     Ok(line) => self.on_line(&line, now),
                     Err(e) => {
                         self.stats.garbage_lines += 1;
+                        self.note_other_reply();
                         let raw = e.into_bytes();
                         let text = String::from_utf8_lossy(&raw);
                         self.protocol_error(format!(
@@ -745,6 +802,7 @@ impl LineHost {
                 },
                 ReadItem::OverlongStarted => {
                     self.stats.overlong_lines += 1;
+                    self.note_other_reply();
                     self.protocol_error(format!(
                         "reply line longer than {} bytes: dropped up to its end",
                         self.cfg.max_reply_line_bytes
@@ -759,6 +817,9 @@ impl LineHost {
         let reply = reply::parse(line);
         match self.state {
             LinkState::Connecting => self.on_line_handshake(line, reply, now),
+            LinkState::Probing if self.cfg.dialect == Dialect::Rrf => {
+                self.on_line_position_probe(line, reply, now)
+            }
             LinkState::Streaming | LinkState::Probing => self.on_line_streaming(line, reply, now),
             LinkState::Recovering => self.on_line_recovering(line, reply, now),
             LinkState::Idle
@@ -1057,12 +1118,14 @@ impl LineHost {
         let q = self.queued.pop_front()?;
         let slow = self.is_slow(&q.text);
         let number = self.top;
+        self.sent_end = self.sent_end.after(&q.text);
         self.history.push_back(Sent {
             number,
             tag: Some(q.tag),
             wire: wire.clone(),
             slow,
             runs: q.runs,
+            end: self.sent_end,
         });
         self.push_flight(number, wire.len(), (slow, q.runs), now);
         self.top += 1;
@@ -1079,7 +1142,9 @@ impl LineHost {
                 .front()
                 .is_some_and(|s| s.number < self.accepted_next)
         {
-            self.history.pop_front();
+            if let Some(s) = self.history.pop_front() {
+                self.end_before_history = s.end;
+            }
             self.hist_start += 1;
         }
     }
@@ -1103,11 +1168,11 @@ impl LineHost {
     }
 
     /// When the oldest line's `ok` is overdue for what it may wait for, if every line in
-    /// flight is timed ([`LineHost::send_timed_line`]) and the firmware's `ok`s say
-    /// where it is (Marlin, which the probe answers exactly; not while it keeps a
-    /// handler busy with `busy:` keepalives).
+    /// flight is timed ([`LineHost::send_timed_line`]) and a probe can say where the
+    /// firmware is (Marlin, whose probe answers exactly, not while it keeps a handler
+    /// busy with `busy:` keepalives; RRF, whose nozzle position says it).
     fn ok_overdue_at(&self) -> Option<Micros> {
-        if self.cfg.dialect != Dialect::Marlin
+        if self.cfg.dialect == Dialect::Klipper
             || self.last_busy.is_some()
             || self.in_flight.iter().any(|f| f.runs == Runs::Unknown)
         {
@@ -1531,14 +1596,13 @@ impl LineHost {
             return self.link_lost(now);
         }
         match self.cfg.dialect {
-            Dialect::Marlin => self.start_probe(false, now),
-            Dialect::Rrf => self.repeat_oldest(now),
+            Dialect::Marlin | Dialect::Rrf => self.start_probe(false, now),
             Dialect::Klipper => self.last_progress = now,
         }
     }
 
     /// RRF: send the line in flight again (it was dropped for a bad checksum, or its `ok`
-    /// was lost: RRF cannot tell which).
+    /// was lost: the position could not tell which).
     fn repeat_oldest(&mut self, now: Micros) {
         let Some(number) = self.in_flight.front().map(|f| f.number) else {
             return;
@@ -1572,11 +1636,20 @@ impl LineHost {
 
     fn start_probe(&mut self, recover: bool, now: Micros) {
         let timeout = self.probe_timeout_us(recover);
+        let stage = if self.cfg.dialect == Dialect::Rrf && !recover {
+            ProbeStage::Position
+        } else {
+            ProbeStage::LastLine
+        };
         self.probe = Some(Probe {
             recover,
             attempts: 1,
             deadline: now.plus_us(timeout),
             send_due: true,
+            stage,
+            last_parsed: None,
+            other_line_seen: false,
+            query_oks_seen: 0,
         });
         self.state = if recover {
             LinkState::Recovering
@@ -1592,6 +1665,19 @@ impl LineHost {
         }
         p.send_due = false;
         self.stats.probes += 1;
+        if p.stage == ProbeStage::Position {
+            // Numbered and checksummed, so that RRF drops a corrupted query rather than
+            // run what the corruption made of it; RRF only records the number (the line
+            // in flight's, or after `lineNumber` was read, the next).
+            let number = match p.last_parsed {
+                Some(n) => n.saturating_add(1),
+                None => self.in_flight.front().map_or(self.top, |f| f.number),
+            };
+            self.stats.position_probes += 1;
+            let mut bytes = b"\n".to_vec();
+            bytes.extend_from_slice(&numbered_line(number, RRF_POSITION_QUERY));
+            return Some(bytes);
+        }
         if p.recover && self.cfg.dialect == Dialect::Rrf {
             return Some(b"\nM409 K\"inputs\"\n".to_vec());
         }
@@ -1616,11 +1702,19 @@ impl LineHost {
             p.send_due = true;
             p.deadline = now.plus_us(timeout);
         }
-        if p.recover {
+        let (recover, last_parsed) = (p.recover, p.last_parsed);
+        if recover {
             if give_up {
-                self.finish_recovery(LastAccepted::Unknown {
-                    reason: "no answer to the last-line query".into(),
-                });
+                match last_parsed {
+                    // RRF named its line but not the nozzle's position: not exact.
+                    Some(n) => {
+                        self.recovery_answer(n, false, None);
+                        self.recovery_ok_owed = false;
+                    }
+                    None => self.finish_recovery(LastAccepted::Unknown {
+                        reason: "no answer to the last-line query".into(),
+                    }),
+                }
             }
         } else {
             self.timeouts_in_row += 1;
@@ -1666,17 +1760,106 @@ impl LineHost {
         self.last_progress = now;
     }
 
+    /// RRF while the position query is out. RRF answers in order: an `ok` before any
+    /// other reply line is the line in flight's (late, not lost); the JSON says where the
+    /// nozzle stands; the `ok`s after it are the queries'.
+    fn on_line_position_probe(&mut self, line: &str, reply: Reply<'_>, now: Micros) {
+        let Some(p) = self.probe.as_mut() else {
+            return self.on_line_streaming(line, reply, now);
+        };
+        match reply {
+            Reply::Ok(ok) if !p.other_line_seen && !self.in_flight.is_empty() => {
+                self.on_ok(ok, now)
+            }
+            Reply::Ok(_) => {
+                p.query_oks_seen += 1;
+                self.stats.oks += 1;
+                self.stats.oks_swallowed += 1;
+            }
+            Reply::Json(json) => {
+                p.other_line_seen = true;
+                match rrf_user_position(json) {
+                    Ok(Some(at)) => self.on_position(at, now),
+                    // A late answer to another query.
+                    Ok(None) => {}
+                    Err(what) => self.protocol_error(format!("M409 answer not understood: {what}")),
+                }
+            }
+            Reply::Empty => {}
+            _ => {
+                // An answer to the query (a corrupted one refused), or the line's own
+                // late refusal: which cannot be told, and the position decides anyway.
+                p.other_line_seen = true;
+                self.events.push_back(LineEvent::Echo {
+                    text: line.trim().into(),
+                });
+            }
+        }
+    }
+
+    /// A reply line that could not be read: during RRF's position query, the `ok`s after
+    /// it are the query's.
+    fn note_other_reply(&mut self) {
+        if self.state == LinkState::Probing {
+            if let Some(p) = self.probe.as_mut() {
+                p.other_line_seen = true;
+            }
+        }
+    }
+
+    /// RRF's nozzle position after a line's `ok` was overdue: the line ran (its `ok` was
+    /// lost) if the nozzle stands where it ends, it was dropped if where the line before
+    /// it ends: acknowledged, or sent again, never run twice. When the position cannot
+    /// tell (the two ends are one place, or the nozzle is at neither) the line is sent
+    /// again ([`LineEvent::MaybeRepeated`]), the second case with a protocol error.
+    fn on_position(&mut self, at: [i64; 3], now: Micros) {
+        let Some(p) = self.probe.take() else {
+            return;
+        };
+        self.swallow_oks += p.attempts.saturating_sub(p.query_oks_seen);
+        self.state = LinkState::Streaming;
+        self.last_progress = now;
+        self.timeouts_in_row = 0;
+        let Some(front) = self.in_flight.front().map(|f| f.number) else {
+            return;
+        };
+        match self.line_by_position(front, at) {
+            ByPosition::Ran => {
+                self.stats.ran_by_position += 1;
+                self.acknowledge_front();
+            }
+            ByPosition::Dropped => {
+                self.stats.dropped_by_position += 1;
+                self.drop_flights_from(front);
+                self.next_send = front;
+            }
+            ByPosition::Elsewhere => {
+                self.protocol_error(format!(
+                    "the nozzle stands at X{} Y{} Z{} mm, neither where line {front} ends nor \
+                     where the line before it ends: line {front} is sent again",
+                    at[0] as f64 / 1000.0,
+                    at[1] as f64 / 1000.0,
+                    at[2] as f64 / 1000.0
+                ));
+                self.repeat_oldest(now);
+            }
+            ByPosition::Unknown => self.repeat_oldest(now),
+        }
+    }
+
     fn on_line_recovering(&mut self, line: &str, reply: Reply<'_>, now: Micros) {
         if let Some(last_line) = self.pending_error.take() {
             if reply == Reply::Resend(last_line.saturating_add(1)) {
-                return self.recovery_answer(last_line, true);
+                return self.recovery_answer(last_line, true, None);
             }
         }
         match reply {
             Reply::Error {
                 last_line: Some(l), ..
             } if self.cfg.dialect == Dialect::Marlin => self.pending_error = Some(l),
-            Reply::Json(json) if self.cfg.dialect == Dialect::Rrf => self.on_rrf_inputs(json),
+            Reply::Json(json) if self.cfg.dialect == Dialect::Rrf => {
+                self.on_rrf_recovery_json(json, now)
+            }
             Reply::Start | Reply::ResetReason(_) if self.cfg.dialect == Dialect::Marlin => {
                 self.finish_recovery(LastAccepted::Unknown {
                     reason: "the firmware restarted".into(),
@@ -1689,19 +1872,78 @@ impl LineHost {
         }
     }
 
-    fn on_rrf_inputs(&mut self, json: &str) {
+    /// RRF's answers to the recovery: `lineNumber` (`M409 K"inputs"`), then the nozzle's
+    /// position (`M409 K"move.axes"`), which tells whether that line ran.
+    fn on_rrf_recovery_json(&mut self, json: &str, now: Micros) {
+        let stage = self.probe.as_ref().map(|p| p.stage);
+        if stage == Some(ProbeStage::Position) {
+            match rrf_user_position(json) {
+                Ok(Some(at)) => return self.on_recovery_position(at),
+                Ok(None) => return,
+                Err(what) => {
+                    return self.protocol_error(format!("M409 answer not understood: {what}"))
+                }
+            }
+        }
         match rrf_input_line_number(json, &self.cfg.rrf_input_name) {
             Ok(None) => {}
             // The query's own unnumbered line counted one.
             Ok(Some(n)) => {
                 let n = u32::try_from(n.saturating_sub(1)).unwrap_or(u32::MAX);
-                self.recovery_answer(n, false);
+                let timeout = self.probe_timeout_us(true);
+                if let Some(p) = self.probe.as_mut() {
+                    p.stage = ProbeStage::Position;
+                    p.last_parsed = Some(n);
+                    p.attempts = 1;
+                    p.send_due = true;
+                    p.deadline = now.plus_us(timeout);
+                }
             }
             Err(what) => self.protocol_error(format!("M409 answer not understood: {what}")),
         }
     }
 
-    fn recovery_answer(&mut self, last: u32, exact: bool) {
+    /// RRF recovery: the line `lineNumber` names ran if the nozzle stands where it ends
+    /// and that is not where the line before it ends; it was dropped if the nozzle stands
+    /// where the line before ends. Else (this host did not send it, or the two end at one
+    /// place) the caller is told the position and `lineNumber`, not exact.
+    fn on_recovery_position(&mut self, at: [i64; 3]) {
+        let Some(n) = self.probe.as_ref().and_then(|p| p.last_parsed) else {
+            return;
+        };
+        match self.line_by_position(n, at) {
+            ByPosition::Ran => self.recovery_answer(n, true, Some(at)),
+            ByPosition::Dropped if n > 0 => self.recovery_answer(n - 1, true, Some(at)),
+            _ => self.recovery_answer(n, false, Some(at)),
+        }
+    }
+
+    /// Whether line `number` ran, by where the nozzle stands (`at`).
+    fn line_by_position(&self, number: u32, at: [i64; 3]) -> ByPosition {
+        let tol = self.cfg.position_tolerance_um;
+        let before = if number == self.hist_start {
+            Some(self.end_before_history)
+        } else {
+            number
+                .checked_sub(1)
+                .and_then(|b| self.sent(b))
+                .map(|s| s.end)
+        };
+        let (Some(end), Some(before)) = (self.sent(number).map(|s| s.end), before) else {
+            return ByPosition::Unknown;
+        };
+        if !end.tells_apart(&before, tol) {
+            ByPosition::Unknown
+        } else if end.matches(at, tol) {
+            ByPosition::Ran
+        } else if before.matches(at, tol) {
+            ByPosition::Dropped
+        } else {
+            ByPosition::Elsewhere
+        }
+    }
+
+    fn recovery_answer(&mut self, last: u32, exact: bool, position_um: Option<[i64; 3]>) {
         let known_next = if exact {
             self.confirmed_next
         } else {
@@ -1728,6 +1970,7 @@ impl LineHost {
             tag,
             resume_tag,
             exact,
+            position_um,
         });
     }
 

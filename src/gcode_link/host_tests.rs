@@ -536,24 +536,117 @@ fn wait_with_old_lines_in_flight_probes_at_once() {
     assert_eq!(h.state(), LinkState::Probing);
 }
 
-#[test]
-fn rrf_timeout_sends_the_line_again_and_says_so() {
+fn rrf_query(n: u32) -> String {
+    format!("\n{}", line(n, "M409 K\"move.axes\" F\"f\""))
+}
+
+fn rrf_at(x_mm: f64) -> String {
+    format!(
+        "{{\"key\":\"move.axes\",\"flags\":\"f\",\"result\":[{{\"machinePosition\":{x_mm},\"userPosition\":{x_mm}}},{{\"userPosition\":0}},{{\"userPosition\":0}}]}}\n"
+    )
+}
+
+/// RRF with line 2 (`G1 X0`) acknowledged and line 3 (`G1 X1`) in flight past its
+/// timeout: the host asks where the nozzle stands.
+fn rrf_line_3_overdue() -> (LineHost, Micros) {
     let mut h = connected(Dialect::Rrf);
-    send(&mut h, 0..2);
+    send(&mut h, 0..3);
     assert_eq!(tx(&mut h, t(3)), vec![line(2, "G1 X0")]);
-    let deadline = h.next_timeout().unwrap();
-    assert_eq!(deadline, t(3).plus_us(4_000_000));
-    assert_eq!(tx(&mut h, deadline), vec![line(2, "G1 X0")]);
-    assert_eq!(
-        events(&mut h),
-        vec![LineEvent::MaybeRepeated {
-            tag: 0,
-            line_number: 2
-        }]
-    );
-    feed(&mut h, "ok\n", deadline);
+    feed(&mut h, "ok\n", t(4));
+    assert_eq!(tx(&mut h, t(4)), vec![line(3, "G1 X1")]);
     assert_eq!(accepted(&events(&mut h)), vec![0]);
-    assert_eq!(tx(&mut h, deadline), vec![line(3, "G1 X1")]);
+    let deadline = h.next_timeout().unwrap();
+    assert_eq!(deadline, t(4).plus_us(4_000_000));
+    assert_eq!(tx(&mut h, deadline), vec![rrf_query(3)]);
+    assert_eq!(h.state(), LinkState::Probing);
+    (h, deadline)
+}
+
+#[test]
+fn rrf_lost_ok_is_known_by_the_nozzles_position_and_nothing_runs_twice() {
+    let (mut h, at) = rrf_line_3_overdue();
+    feed(&mut h, &format!("{}ok\n", rrf_at(1.0)), at);
+    let ev = events(&mut h);
+    assert_eq!(accepted(&ev), vec![1]);
+    assert!(!ev
+        .iter()
+        .any(|e| matches!(e, LineEvent::MaybeRepeated { .. })));
+    assert_eq!(tx(&mut h, at), vec![line(4, "G1 X2")]);
+    feed(&mut h, "ok\n", at);
+    assert_eq!(accepted(&events(&mut h)), vec![2]);
+    assert_eq!(h.stats().ran_by_position, 1);
+    assert_eq!(h.stats().lines_repeated, 0);
+}
+
+#[test]
+fn rrf_dropped_line_is_known_by_position_and_sent_again_not_repeated() {
+    let (mut h, at) = rrf_line_3_overdue();
+    feed(&mut h, &format!("{}ok\n", rrf_at(0.0)), at);
+    assert!(events(&mut h).is_empty());
+    assert_eq!(tx(&mut h, at), vec![line(3, "G1 X1")]);
+    feed(&mut h, "ok\n", at);
+    assert_eq!(accepted(&events(&mut h)), vec![1]);
+    assert_eq!(h.stats().dropped_by_position, 1);
+    assert_eq!(h.stats().lines_repeated, 0);
+}
+
+#[test]
+fn rrf_late_ok_before_the_position_counts_once_for_its_line() {
+    let (mut h, at) = rrf_line_3_overdue();
+    feed(&mut h, &format!("ok\n{}ok\n", rrf_at(1.0)), at);
+    assert_eq!(accepted(&events(&mut h)), vec![1]);
+    assert_eq!(tx(&mut h, at), vec![line(4, "G1 X2")]);
+    feed(&mut h, "ok\n", at);
+    assert_eq!(accepted(&events(&mut h)), vec![2]);
+    assert_eq!(h.stats().oks_unexpected, 0);
+}
+
+#[test]
+fn rrf_query_answered_late_owes_one_ok_per_query() {
+    let (mut h, at) = rrf_line_3_overdue();
+    let again = h.next_timeout().unwrap();
+    assert_eq!(
+        tx(&mut h, again),
+        vec![rrf_query(3)],
+        "no answer: asked again"
+    );
+    // Both answers, in order; the first decides, the rest are swallowed.
+    feed(&mut h, &format!("{}ok\n", rrf_at(1.0)), again);
+    assert_eq!(accepted(&events(&mut h)), vec![1]);
+    feed(&mut h, &format!("{}ok\n", rrf_at(1.0)), again);
+    assert_eq!(tx(&mut h, again), vec![line(4, "G1 X2")]);
+    feed(&mut h, "ok\n", again);
+    assert_eq!(accepted(&events(&mut h)), vec![2]);
+    let _ = at;
+}
+
+#[test]
+fn rrf_position_that_cannot_tell_sends_the_line_again_and_says_so() {
+    let mut h = connected(Dialect::Rrf);
+    h.send_line("G1 X5", 0).unwrap();
+    h.send_line("G1 E-0.2", 1).unwrap();
+    assert_eq!(tx(&mut h, t(3)), vec![line(2, "G1 X5")]);
+    feed(&mut h, "ok\n", t(4));
+    assert_eq!(tx(&mut h, t(4)).len(), 1);
+    let deadline = h.next_timeout().unwrap();
+    assert_eq!(tx(&mut h, deadline), vec![rrf_query(3)]);
+    feed(&mut h, &format!("{}ok\n", rrf_at(5.0)), deadline);
+    let ev = events(&mut h);
+    assert!(ev.contains(&LineEvent::MaybeRepeated {
+        tag: 1,
+        line_number: 3
+    }));
+    assert_eq!(tx(&mut h, deadline), vec![line(3, "G1 E-0.2")]);
+    // Nowhere near either end: said, and sent again.
+    let (mut h, at) = rrf_line_3_overdue();
+    feed(&mut h, &format!("{}ok\n", rrf_at(40.0)), at);
+    let ev = events(&mut h);
+    assert!(ev
+        .iter()
+        .any(|e| matches!(e, LineEvent::ProtocolError { what } if what.contains("neither"))));
+    assert!(ev
+        .iter()
+        .any(|e| matches!(e, LineEvent::MaybeRepeated { .. })));
 }
 
 #[test]
@@ -779,7 +872,8 @@ fn marlin_recovery_after_a_host_restart_uses_the_probe() {
             line_number: 40,
             tag: None,
             resume_tag: None,
-            exact: true
+            exact: true,
+            position_um: None
         })]
     );
     assert_eq!(h.state(), LinkState::Idle);
@@ -891,7 +985,8 @@ fn marlin_recovery_after_link_loss_names_the_line_to_resume_from() {
             line_number: 3,
             tag: Some(1),
             resume_tag: Some(2),
-            exact: true
+            exact: true,
+            position_um: None
         })]
     );
     assert_eq!(h.state(), LinkState::Lost);
@@ -903,13 +998,17 @@ fn rrf_recovery_reads_line_number_from_m409() {
     h.recover_last_accepted(t(0)).unwrap();
     assert_eq!(tx(&mut h, t(0)), vec!["\nM409 K\"inputs\"\n"]);
     feed(&mut h, "{\"key\":\"inputs\",\"flags\":\"\",\"result\":[{\"name\":\"HTTP\",\"lineNumber\":3},null,{\"name\":\"USB\",\"lineNumber\":57}]}\nok\n", t(1));
+    assert!(events(&mut h).is_empty(), "the position is asked next");
+    assert_eq!(tx(&mut h, t(1)), vec![rrf_query(57)]);
+    feed(&mut h, &rrf_at(12.5), t(2));
     assert_eq!(
         events(&mut h),
         vec![LineEvent::LastAccepted(LastAccepted::Known {
             line_number: 56,
             tag: None,
             resume_tag: None,
-            exact: false
+            exact: false,
+            position_um: Some([12_500, 0, 0])
         })]
     );
     let mut h = LineHost::new(cfg(Dialect::Rrf));

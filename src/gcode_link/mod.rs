@@ -30,8 +30,8 @@
 //! | line | `N<n> <text>*<xor>` | `N<n> <text>*<xor>` | `<text>` (N and `*` are ignored by Klipper) |
 //! | handshake | `N0 M110 N0*125`, `N1 M115*39` | `M555 P2`, then as Marlin | `M115` |
 //! | window | 1 line; opt-in: the configured number or ADVANCED_OK's free command slots (`B`+1); bytes ≤ receive buffer − e-stop reserve | 1 line (a bad line is dropped silently and the lines after it would run) | 8 lines (Klipper scans for M112 only below 20 pending lines) |
-//! | lost line / `ok` | timeout → out-of-sequence probe `N2000000000 M105`: its error names the last line accepted; go back to the one after | timeout → the line is sent again, reported as [`LineEvent::MaybeRepeated`] | nothing is lost on a pty: timeout → [`LineEvent::LinkLost`] |
-//! | last accepted | the same probe | `M409 K"inputs"` → `lineNumber` (may be a dropped line: not exact) | not possible |
+//! | lost line / `ok` | overdue or timeout → out-of-sequence probe `N2000000000 M105`: its error names the last line accepted; go back to the one after | overdue or timeout → `M409 K"move.axes"`: the nozzle at the line's end → it ran; at the end of the line before → sent again; the two ends one place → sent again, reported as [`LineEvent::MaybeRepeated`] | nothing is lost on a pty: timeout → [`LineEvent::LinkLost`] |
+//! | last accepted | the same probe | `M409 K"inputs"` → `lineNumber`, then the position as above (exact unless the two ends are one place) | not possible |
 //! | e-stop | `\nM112\n` (at once with EMERGENCY_PARSER) | `\nM112\n` (urgent scan at line start) | `\nM112\n` (scanned while < 20 lines pending) |
 //!
 //! Rules of the RepRapFirmware window: RRF 3.5 drops a line whose checksum is bad with no
@@ -41,6 +41,7 @@
 
 mod firmware;
 mod host;
+mod position;
 mod reply;
 pub mod testkit;
 
@@ -52,6 +53,8 @@ pub use host::{
     FirmwareInfo, FreeCounts, LastAccepted, LineEvent, LineHost, LineStats, LinkState,
     RecoverError, SendError,
 };
+
+pub use position::{mm_to_um, rrf_axes_json, rrf_user_position, NozzleAt, RRF_POSITION_QUERY};
 
 pub use crate::link::Micros;
 
@@ -165,6 +168,10 @@ pub struct LineLinkConfig {
     /// ...plus this, µs (the line's time on the wire, the firmware's loop, acceleration
     /// the feed leaves out).
     pub ok_overdue_floor_us: u64,
+    /// RRF: how far the firmware's reported position (`userPosition`, three decimals)
+    /// may be from where a line ends and still be that line's end, µm; two lines whose
+    /// ends are closer than twice this cannot be told apart by position.
+    pub position_tolerance_um: u32,
     /// RRF: the `inputs[]` channel edod is on, for `M409 K"inputs"`.
     pub rrf_input_name: String,
     /// RRF: send `M555 P2` first so that the channel answers `ok` (Marlin compatibility).
@@ -205,9 +212,11 @@ impl LineLinkConfig {
             max_consecutive_resends: 10,
             max_reply_line_bytes: 16_384,
             wait_grace_us: 1_000_000,
-            planner_moves: 16,
+            // Marlin `BLOCK_BUFFER_SIZE`; RRF's DDA ring.
+            planner_moves: if dialect == Dialect::Rrf { 40 } else { 16 },
             ok_overdue_factor: 2,
             ok_overdue_floor_us: 250_000,
+            position_tolerance_um: 2,
             rrf_input_name: "USB".into(),
             rrf_set_marlin_mode: true,
         }
