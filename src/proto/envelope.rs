@@ -41,8 +41,9 @@ const NOT_VERSION_2: &str = "\"jsonrpc\" must be \"2.0\"";
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum Id {
-    /// A number, kept as sent.
-    Number(serde_json::Number),
+    /// A number, echoed exactly as sent ([`Request::from_line`]: `18446744073709551616`,
+    /// `-0` and `1e5` stay what they were, not a float).
+    Number(NumberText),
     /// A string.
     String(String),
     /// `null`: also the id of an error about a request whose id could not be read.
@@ -51,8 +52,46 @@ pub enum Id {
 
 impl From<u64> for Id {
     fn from(n: u64) -> Id {
-        Id::Number(n.into())
+        Id::Number(NumberText(n.to_string()))
     }
+}
+
+/// A JSON number as its text, written back unchanged.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NumberText(String);
+
+impl NumberText {
+    /// `text` if it is one JSON number.
+    pub fn parse(text: &str) -> Option<NumberText> {
+        let text = text.trim();
+        matches!(serde_json::from_str(text), Ok(Value::Number(_))).then(|| NumberText(text.into()))
+    }
+
+    /// The number as sent.
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+}
+
+impl Serialize for NumberText {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        let raw = serde_json::value::RawValue::from_string(self.0.clone())
+            .map_err(serde::ser::Error::custom)?;
+        raw.serialize(s)
+    }
+}
+
+impl<'de> Deserialize<'de> for NumberText {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        serde_json::Number::deserialize(d).map(|n| NumberText(n.to_string()))
+    }
+}
+
+/// The raw `id` of a request line, for [`Request::from_line`].
+#[derive(Deserialize)]
+struct RawId<'a> {
+    #[serde(borrow, default)]
+    id: Option<&'a serde_json::value::RawValue>,
 }
 
 /// An error object: its code (the table in `docs/api.md`) and a message for a person
@@ -185,7 +224,25 @@ impl Request {
             id: Id::Null,
             error: ApiError::new(ApiError::PARSE, format!("not JSON: {e}")),
         })?;
-        Request::from_value(v)
+        // A number id as sent: the parsed value holds it as an f64 beyond 64 bits.
+        let raw_number = serde_json::from_slice::<RawId<'_>>(line)
+            .ok()
+            .and_then(|r| r.id)
+            .and_then(|raw| NumberText::parse(raw.get()));
+        let exact = |id: Id| match (id, &raw_number) {
+            (Id::Number(_), Some(raw)) => Id::Number(raw.clone()),
+            (id, _) => id,
+        };
+        match Request::from_value(v) {
+            Ok(r) => Ok(Request {
+                id: r.id.map(exact),
+                ..r
+            }),
+            Err(refusal) => Err(Refusal {
+                id: exact(refusal.id),
+                ..refusal
+            }),
+        }
     }
 
     /// Check a JSON value is a request object (see [`Request::from_line`]).
@@ -351,5 +408,33 @@ mod tests {
         let wrong: Result<Response<Value>, _> =
             serde_json::from_str(r#"{"jsonrpc":"1.0","id":1,"result":1}"#);
         assert!(wrong.is_err());
+    }
+
+    #[test]
+    fn number_ids_are_echoed_exactly_as_sent() {
+        for id in [
+            "18446744073709551616",
+            "-0",
+            "1e5",
+            "-170141183460469231731687303715884105728",
+            "7",
+            "1.50",
+        ] {
+            let line = format!(r#"{{"jsonrpc":"2.0","id":{id},"method":"server.info"}}"#);
+            let r = Request::from_line(line.as_bytes()).unwrap();
+            let answer =
+                serde_json::to_string(&Response::<Value>::new(r.id.unwrap(), Ok(json!(true))))
+                    .unwrap();
+            assert_eq!(
+                answer,
+                format!(r#"{{"jsonrpc":"2.0","id":{id},"result":true}}"#)
+            );
+            // Refused requests too.
+            let line = format!(r#"{{"jsonrpc":"1.0","id":{id},"method":"server.info"}}"#);
+            let e = Request::from_line(line.as_bytes()).unwrap_err();
+            assert_eq!(e.id, Id::Number(NumberText::parse(id).unwrap()));
+        }
+        assert_eq!(NumberText::parse("\"1\""), None);
+        assert_eq!(NumberText::parse("1 2"), None);
     }
 }

@@ -44,7 +44,7 @@ fn error_response(e: ApiError) -> Response {
 /// Call `method` through the dispatcher; its result as the body, or its error with the
 /// matching status.
 async fn call(app: &App, method: &str, params: Option<Value>) -> Response {
-    let line = match serde_json::to_vec(&Request::new(Some(Id::Number(1.into())), method, params)) {
+    let line = match serde_json::to_vec(&Request::new(Some(Id::from(1)), method, params)) {
         Ok(l) => l,
         Err(e) => return error_response(ApiError::new(ApiError::INTERNAL, e.to_string())),
     };
