@@ -741,8 +741,8 @@ fn job_streaming(
 /// resumed silently); resumed, it runs to the end, nothing skipped, the resume's service
 /// moves between. Marlin and RRF name their last accepted line and edod the move it
 /// belongs to (`docs/firmware.md`): at most `repeats_allowed` moves run twice (Marlin
-/// none, RRF one); Klipper resumes from the last stored checkpoint. Returns how many
-/// moves ran twice.
+/// none, RRF one); Klipper's nozzle position after `M400` (`GET_POSITION`) names the last move
+/// that ran. Returns how many moves ran twice.
 fn sigkill_mid_job_interrupts_and_resumes(
     firmware: &str,
     seed: u64,
@@ -764,7 +764,7 @@ fn sigkill_mid_job_interrupts_and_resumes(
     drop(c);
     drop(d);
     sim.stop().unwrap();
-    let repeated = resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed);
+    let repeated = resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed, true);
     keep_console_for_the_peer(dir.path(), firmware);
     repeated
 }
@@ -781,12 +781,14 @@ fn keep_console_for_the_peer(dir: &Path, firmware: &str) {
 /// The recording of [`JOB`] run on `firmware`, interrupted after at least `before` lines
 /// ran and resumed: the file's start, the resume's service moves, then the file from the
 /// move resumed at to its end; nothing skipped, at most `repeats_allowed` of the file's
-/// move lines ran twice. Returns how many did.
+/// move lines ran twice (`after_sigkill`: on Klipper, only where the nozzle's position
+/// could not tell). Returns how many did.
 fn resumed_job_skipped_nothing(
     record: &Path,
     firmware: &str,
     before: usize,
     repeats_allowed: usize,
+    after_sigkill: bool,
 ) -> usize {
     let expected = motions(&move_lines(&offline(&planned_job(), firmware)));
     let ran = motions(&ran(record));
@@ -846,6 +848,21 @@ fn resumed_job_skipped_nothing(
             );
         }
     }
+    if firmware == "klipper" && after_sigkill && first > 0 && resumed_at > 0 {
+        // The move edod took for the last run ends where the nozzle stopped: a repeat
+        // only where two stretches of the job end at one place.
+        let xyz = |l: &str| -> Vec<String> {
+            l.split_whitespace()
+                .filter(|w| w.starts_with(['X', 'Y', 'Z']))
+                .map(str::to_string)
+                .collect()
+        };
+        assert_eq!(
+            xyz(&expected[resumed_at - 1]),
+            xyz(&expected[first - 1]),
+            "klipper: resumed after line {resumed_at}, but the nozzle stopped after line {first}"
+        );
+    }
     eprintln!(
         "{firmware}: ran {first} before the resume, resumed at {resumed_at}: {repeated} repeated"
     );
@@ -868,6 +885,8 @@ fn rrf_sigkill_mid_job_resumes_running_every_positioned_move_once() {
     sigkill_mid_job_interrupts_and_resumes("rrf", 11, 1);
 }
 
+/// Klipper: where the nozzle stopped names the last move that ran; only where two
+/// stretches of the job end at one place may moves run again.
 #[test]
 fn klipper_sigkill_mid_job_interrupts_and_resumes_skipping_nothing() {
     sigkill_mid_job_interrupts_and_resumes("klipper", 10, usize::MAX);
@@ -917,7 +936,7 @@ fn fault_mid_job_interrupts_and_resumes(
     drop(d);
     let summary = sim.stop().unwrap();
     eprintln!("{firmware} {reason:?}: {summary:?}");
-    resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed)
+    resumed_job_skipped_nothing(&record, firmware, before, repeats_allowed, false)
 }
 
 /// A machine reset loses the firmware's queue and planner: the job is interrupted, not

@@ -164,6 +164,8 @@ pub struct ResumeLines {
     /// Where each of them leaves the nozzle, µm ([`UNKNOWN_UM`] for an axis not known):
     /// what RRF's reported position is compared with.
     ends_um: Vec<[i32; 3]>,
+    /// Klipper ([`ResumeLines::by_position`]): no line numbers, only where moves end.
+    by_position: bool,
 }
 
 /// An axis position not known, in [`ResumeLines`]' ends.
@@ -225,7 +227,68 @@ impl ResumeLines {
             job_id,
             moves: out,
             ends_um,
+            by_position: false,
         }))
+    }
+
+    /// Klipper, which numbers no lines: the interrupted job's moves `from_index` (the
+    /// last one its checkpoint says ran) to `from_index + span` (what Klipper may have
+    /// held and run since), with where each leaves the nozzle, for
+    /// [`ResumeLines::last_move_at`]. `moves`: the job's moves from its first.
+    pub fn by_position(
+        job_id: u32,
+        from_index: u32,
+        span: u32,
+        moves: impl IntoIterator<Item = Result<Move, String>>,
+    ) -> Result<Self, String> {
+        let mut at = [UNKNOWN_UM; 3];
+        let (mut out, mut ends_um) = (Vec::new(), Vec::new());
+        for mv in moves {
+            let mv = mv?;
+            if mv.index > from_index.saturating_add(span) {
+                break;
+            }
+            match &mv.kind {
+                MoveKind::Travel { to, .. } | MoveKind::Extrude { to, .. } => {
+                    at = [to.x_um, to.y_um, to.z_um];
+                }
+                MoveKind::Home => at = [UNKNOWN_UM; 3],
+                _ => {}
+            }
+            if mv.index >= from_index {
+                out.push((0, mv.index));
+                ends_um.push(at);
+            }
+        }
+        Ok(Self {
+            job_id,
+            moves: out,
+            ends_um,
+            by_position: true,
+        })
+    }
+
+    /// Klipper: the last move that ran, from where the nozzle stopped (`at_um`, `GET_POSITION`
+    /// after `M400`): the moves ending there (within `tolerance_um`) that come first and
+    /// in a row, the last of them. Moves in a row that end at one place are a road's end
+    /// and its retract, a travel's end, its prime and dwell: taking the last never runs a
+    /// retract twice (the plungers never run backwards), and the resume primes anyway.
+    /// `None` when no move ends there.
+    pub fn last_move_at(&self, at_um: [i64; 3], tolerance_um: u32) -> Option<u32> {
+        let tol = i64::from(tolerance_um);
+        let here = |end: &[i32; 3]| {
+            end.iter()
+                .zip(at_um)
+                .all(|(e, a)| *e != UNKNOWN_UM && (i64::from(*e) - a).abs() <= tol)
+        };
+        let first = self.ends_um.iter().position(here)?;
+        let run = self.ends_um[first..].iter().take_while(|e| here(e)).count();
+        Some(self.moves[first + run - 1].1)
+    }
+
+    /// Whether this is [`ResumeLines::by_position`]'s.
+    pub fn is_by_position(&self) -> bool {
+        self.by_position
     }
 
     /// The job.
@@ -333,7 +396,7 @@ impl GcodeLink {
     /// After edod's restart: `resume` says which of the interrupted job's moves ran once
     /// the firmware names its last accepted line, asked before the first handshake.
     pub fn with_resume(mut self, resume: Option<ResumeLines>) -> Self {
-        self.resume = resume.filter(|_| self.marks.is_some());
+        self.resume = resume.filter(|r| self.marks.is_some() || r.is_by_position());
         if let Some(m) = self.marks.as_mut().filter(|_| self.resume.is_some()) {
             // The stored marks stay until the firmware answered (or did not).
             m.clear = true;
@@ -716,6 +779,20 @@ impl GcodeLink {
     /// accepted line ran (RRF: up to the line before it, which it may have dropped); the
     /// lifecycle learns it from the connection's report and resumes after them.
     fn resume_from(&mut self, r: &ResumeLines, last: &LastAccepted) {
+        if let LastAccepted::Position { xyz_um } = *last {
+            let tolerance_um = self.host.config().position_tolerance_um;
+            match r.last_move_at(xyz_um, tolerance_um) {
+                Some(index) => {
+                    info!(job = r.job_id(), ran_through = index, ?xyz_um, "G-code link: where Klipper's nozzle stopped tells which of the interrupted job's moves ran");
+                    self.status.last_executed = Some(MoveRef {
+                        job_id: r.job_id(),
+                        index,
+                    });
+                }
+                None => warn!(job = r.job_id(), ?xyz_um, "G-code link: Klipper's nozzle stopped where none of the interrupted job's last moves ends: the job resumes from its checkpoint"),
+            }
+            return;
+        }
         let LastAccepted::Known {
             line_number,
             exact,
@@ -1350,6 +1427,71 @@ mod tests {
             )),
             "{events:?}"
         );
+    }
+
+    #[test]
+    fn klipper_resume_takes_the_last_move_of_the_first_run_ending_where_the_nozzle_stopped() {
+        let to = |x_um: i32| PositionUm {
+            x_um,
+            y_um: 0,
+            z_um: 200,
+        };
+        let kinds = [
+            MoveKind::Home,
+            MoveKind::Travel {
+                to: to(1_000),
+                feed_um_s: 10_000,
+            },
+            MoveKind::Dwell { duration_ms: 100 },
+            MoveKind::Travel {
+                to: to(2_000),
+                feed_um_s: 10_000,
+            },
+            MoveKind::Dwell { duration_ms: 100 },
+            MoveKind::Travel {
+                to: to(1_000),
+                feed_um_s: 10_000,
+            },
+            MoveKind::Travel {
+                to: to(3_000),
+                feed_um_s: 10_000,
+            },
+        ];
+        let moves = kinds.into_iter().enumerate().map(|(i, kind)| {
+            Ok(Move {
+                job_id: 3,
+                index: i as u32,
+                kind,
+            })
+        });
+        let r = ResumeLines::by_position(3, 1, 100, moves).unwrap();
+        assert!(r.is_by_position());
+        // A travel and the dwell after it: the dwell (never a retract run twice).
+        assert_eq!(r.last_move_at([2_000, 0, 200], 2), Some(4));
+        assert_eq!(r.last_move_at([3_001, 0, 200], 2), Some(6));
+        // Two runs end at X1: the first (repeats, never skips).
+        assert_eq!(r.last_move_at([1_000, 0, 200], 2), Some(2));
+        assert_eq!(r.last_move_at([9_000, 0, 200], 2), None);
+        // Moves before the span's start are not candidates; after it, not planned.
+        let short = ResumeLines::by_position(3, 3, 1, r_moves()).unwrap();
+        assert_eq!(short.last_move_at([1_000, 0, 200], 2), None);
+        assert_eq!(short.last_move_at([2_000, 0, 200], 2), Some(4));
+        fn r_moves() -> impl Iterator<Item = Result<Move, String>> {
+            (0..7u32).map(|i| {
+                Ok(Move {
+                    job_id: 3,
+                    index: i,
+                    kind: MoveKind::Travel {
+                        to: PositionUm {
+                            x_um: [0, 1_000, 1_000, 2_000, 2_000, 1_000, 3_000][i as usize],
+                            y_um: 0,
+                            z_um: 200,
+                        },
+                        feed_um_s: 10_000,
+                    },
+                })
+            })
+        }
     }
 
     #[test]

@@ -251,6 +251,9 @@ async fn gcode_resume_lines(
     opened: &store::Opened,
 ) -> Option<super::gcode_link::ResumeLines> {
     let g = cfg.gcode_link().ok().flatten()?;
+    if g.link.dialect == crate::gcode_link::Dialect::Klipper {
+        return klipper_resume_moves(cfg, opened).await;
+    }
     let job_id = opened
         .gcode_marks
         .iter()
@@ -262,17 +265,9 @@ async fn gcode_resume_lines(
     let (cfg, marks) = (cfg.clone(), opened.gcode_marks.clone());
     let reader = opened.stores.reader.clone();
     let replayed = tokio::task::spawn_blocking(move || {
-        let (job, mesh) = reader
-            .source_blocking(job_id)
-            .map_err(|e| format!("job {job_id}: {e}"))?;
+        let moves = replanned_moves(&reader, job_id, &cfg)?;
         let drives = cfg.machine.syringes.len();
-        let mut source = super::planner::source_of(&job, mesh.as_deref(), drives, &cfg)?;
-        let moves = std::iter::from_fn(move || source.next_layer()).flat_map(|layer| match layer {
-            Ok(moves) => moves.into_iter().map(Ok).collect::<Vec<_>>(),
-            Err(e) => vec![Err(e)],
-        });
-        let settings = g.settings();
-        super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &settings)
+        super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &g.settings())
     })
     .await;
     match replayed {
@@ -286,6 +281,77 @@ async fn gcode_resume_lines(
         }
         Err(e) => {
             warn!(job = job_id, "G-code marks not replayed: {e}");
+            None
+        }
+    }
+}
+
+/// Job `job_id`'s moves planned again from its stored source, layer by layer as they are
+/// taken (on a blocking thread: it waits for the store's reader).
+fn replanned_moves(
+    reader: &store::Reader,
+    job_id: u32,
+    cfg: &Config,
+) -> Result<impl Iterator<Item = Result<crate::machine::Move, String>>, String> {
+    let (job, mesh) = reader
+        .source_blocking(job_id)
+        .map_err(|e| format!("job {job_id}: {e}"))?;
+    let drives = cfg.machine.syringes.len();
+    let mut source = super::planner::source_of(&job, mesh.as_deref(), drives, cfg)?;
+    Ok(
+        std::iter::from_fn(move || source.next_layer()).flat_map(|layer| match layer {
+            Ok(moves) => moves.into_iter().map(Ok).collect::<Vec<_>>(),
+            Err(e) => vec![Err(e)],
+        }),
+    )
+}
+
+/// How many moves past its checkpoint an interrupted Klipper job is matched against
+/// where the nozzle stopped ([`klipper_resume_moves`]).
+const KLIPPER_RESUME_SPAN_MOVES: u32 = 2_000;
+
+/// After edod's restart on Klipper, which numbers no lines: the interrupted job that had
+/// run moves (its checkpoint past 0), its moves from the last its checkpoint says ran to
+/// what Klipper may have held beyond, with where each ends; where Klipper's nozzle
+/// stopped then says which ran (`docs/firmware.md`). Plans the job once more, up to
+/// there.
+async fn klipper_resume_moves(
+    cfg: &Config,
+    opened: &store::Opened,
+) -> Option<super::gcode_link::ResumeLines> {
+    let mut started = Vec::new();
+    for &id in &opened.interrupted {
+        match opened.stores.reader.get(id).await {
+            Ok(r) if r.checkpoint.next_index > 0 => started.push((id, r.checkpoint.next_index)),
+            Ok(_) => {}
+            Err(e) => warn!(job = id, "interrupted job not read: {e}"),
+        }
+    }
+    let [(job_id, next_index)] = started[..] else {
+        return None;
+    };
+    // What Klipper holds (20 lines pending, 32 in its lookahead), the lines in flight
+    // and what ran between two checkpoint writes (every 100 ms), many times over: a
+    // wider span can only match a move too early (repeated), never skip one.
+    let span = KLIPPER_RESUME_SPAN_MOVES;
+    let cfg = cfg.clone();
+    let reader = opened.stores.reader.clone();
+    let replayed = tokio::task::spawn_blocking(move || {
+        let moves = replanned_moves(&reader, job_id, &cfg)?;
+        super::gcode_link::ResumeLines::by_position(job_id, next_index - 1, span, moves)
+    })
+    .await;
+    match replayed {
+        Ok(Ok(r)) => Some(r),
+        Ok(Err(e)) => {
+            warn!(
+                job = job_id,
+                "job not planned again, it resumes from its checkpoint: {e}"
+            );
+            None
+        }
+        Err(e) => {
+            warn!(job = job_id, "job not planned again: {e}");
             None
         }
     }

@@ -868,6 +868,9 @@ impl Firmware {
             "M409" if self.cfg.dialect == Dialect::Rrf && text.contains("move.axes") => {
                 vec![super::rrf_axes_json(&self.user_at)]
             }
+            "GET_POSITION" if self.cfg.dialect == Dialect::Klipper => {
+                super::klipper_get_position_lines(&self.user_at)
+            }
             _ => Vec::new(),
         }
     }

@@ -4,7 +4,10 @@
 
 use std::collections::VecDeque;
 
-use super::position::{rrf_user_position, NozzleAt, RRF_POSITION_QUERY};
+use super::position::{
+    klipper_position_line, rrf_user_position, KlipperPositionLine, NozzleAt,
+    KLIPPER_POSITION_QUERY, RRF_POSITION_QUERY,
+};
 use super::reply::{self, LineReader, OkReply, ReadItem, Reply};
 use super::{
     command_word, numbered_line, Dialect, LineLinkConfig, Micros, Window, PROBE_LINE_NUMBER,
@@ -109,7 +112,13 @@ pub enum LastAccepted {
         /// could not (after a host restart).
         position_um: Option<[i64; 3]>,
     },
-    /// The firmware cannot tell (Klipper), did not answer, or restarted.
+    /// Klipper, which numbers no lines: where the nozzle stopped once every move it held
+    /// ran (`M400`, then `GET_POSITION`), for the caller to find the last move that ran.
+    Position {
+        /// X, Y, Z, µm.
+        xyz_um: [i64; 3],
+    },
+    /// The firmware cannot tell, did not answer, or restarted.
     Unknown {
         /// Why.
         reason: String,
@@ -388,6 +397,8 @@ struct Probe {
     other_line_seen: bool,
     /// `ok`s that answered the queries (RRF answers each with JSON and `ok`).
     query_oks_seen: u32,
+    /// Klipper recovery: `GET_POSITION`'s `gcode:` line, waiting for `gcode base:`.
+    klipper_gcode_um: Option<[i64; 3]>,
 }
 
 const BANNER_LINES: usize = 32;
@@ -699,7 +710,8 @@ impl LineHost {
     /// Ask the firmware for the last line it accepted (after a lost link or a host
     /// restart; before `connect`, which starts numbering again). The answer comes as
     /// [`LineEvent::LastAccepted`]: Marlin through the out-of-sequence probe (exact), RRF
-    /// through `M409 K"inputs"` (`lineNumber`, not exact), Klipper: `Unknown` at once.
+    /// through `M409 K"inputs"` and its nozzle position (exact unless the line ends where
+    /// the one before it does), Klipper as where `GET_POSITION` says it stopped after `M400`.
     pub fn recover_last_accepted(&mut self, now: Micros) -> Result<(), RecoverError> {
         match self.state {
             LinkState::Idle
@@ -708,14 +720,6 @@ impl LineHost {
             | LinkState::Reset
             | LinkState::Halted => {}
             s => return Err(RecoverError::Busy(s)),
-        }
-        if self.cfg.dialect == Dialect::Klipper {
-            self.events
-                .push_back(LineEvent::LastAccepted(LastAccepted::Unknown {
-                    reason: "Klipper has no line numbers: query its API (objects/query) instead"
-                        .into(),
-                }));
-            return Ok(());
         }
         self.before_recovery = self.state;
         self.swallow_oks = 0;
@@ -1627,7 +1631,10 @@ impl LineHost {
     /// host or a firmware finishing a long move must not cost that.
     fn probe_timeout_us(&self, recover: bool) -> u64 {
         let timeout = self.current_timeout_us();
-        if recover {
+        if recover && self.cfg.dialect == Dialect::Klipper {
+            // `M400` waits for every move Klipper holds; asked once, not again.
+            timeout.saturating_mul(u64::from(self.cfg.max_timeouts.max(1)))
+        } else if recover {
             timeout.max(self.cfg.handshake_timeout_us)
         } else {
             timeout
@@ -1650,6 +1657,7 @@ impl LineHost {
             last_parsed: None,
             other_line_seen: false,
             query_oks_seen: 0,
+            klipper_gcode_um: None,
         });
         self.state = if recover {
             LinkState::Recovering
@@ -1681,6 +1689,10 @@ impl LineHost {
         if p.recover && self.cfg.dialect == Dialect::Rrf {
             return Some(b"\nM409 K\"inputs\"\n".to_vec());
         }
+        if self.cfg.dialect == Dialect::Klipper {
+            // Every move Klipper holds runs first; then where it stopped.
+            return Some(format!("\nM400\n{KLIPPER_POSITION_QUERY}\n").into_bytes());
+        }
         // The newline ends any partial line the firmware holds; an empty line is skipped.
         let mut bytes = b"\n".to_vec();
         bytes.extend_from_slice(&numbered_line(PROBE_LINE_NUMBER, "M105"));
@@ -1697,7 +1709,8 @@ impl LineHost {
             return;
         };
         p.attempts += 1;
-        let give_up = p.attempts > self.cfg.max_timeouts;
+        let give_up = p.attempts > self.cfg.max_timeouts
+            || (p.recover && self.cfg.dialect == Dialect::Klipper);
         if !give_up {
             p.send_due = true;
             p.deadline = now.plus_us(timeout);
@@ -1848,6 +1861,34 @@ impl LineHost {
     }
 
     fn on_line_recovering(&mut self, line: &str, reply: Reply<'_>, now: Micros) {
+        if self.cfg.dialect == Dialect::Klipper {
+            match klipper_position_line(line) {
+                Some(KlipperPositionLine::Gcode(at)) => {
+                    if let Some(p) = self.probe.as_mut() {
+                        p.klipper_gcode_um = Some(at);
+                    }
+                    return;
+                }
+                Some(KlipperPositionLine::GcodeBase(base)) => {
+                    let Some(at) = self.probe.as_ref().and_then(|p| p.klipper_gcode_um) else {
+                        return;
+                    };
+                    // The G-code position is the last move's less the `G92` offsets;
+                    // `GET_POSITION`'s `ok` follows.
+                    let xyz_um = [0, 1, 2].map(|k| at[k] - base[k]);
+                    self.recovery_ok_owed = true;
+                    return self.finish_recovery(LastAccepted::Position { xyz_um });
+                }
+                None => {}
+            }
+            if let Reply::KlipperError(text) = reply {
+                // Not ready, shut down: it cannot say where it stopped.
+                self.recovery_ok_owed = true;
+                return self.finish_recovery(LastAccepted::Unknown {
+                    reason: format!("Klipper answered `!! {text}`"),
+                });
+            }
+        }
         if let Some(last_line) = self.pending_error.take() {
             if reply == Reply::Resend(last_line.saturating_add(1)) {
                 return self.recovery_answer(last_line, true, None);

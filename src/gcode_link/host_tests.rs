@@ -1033,9 +1033,55 @@ fn rrf_recovery_reads_line_number_from_m409() {
 }
 
 #[test]
-fn klipper_recovery_is_unknown_and_streaming_refuses_it() {
+fn klipper_recovery_asks_where_the_nozzle_stopped_and_streaming_refuses_it() {
     let mut h = LineHost::new(cfg(Dialect::Klipper));
     h.recover_last_accepted(t(0)).unwrap();
+    assert_eq!(tx(&mut h, t(0)), vec!["\nM400\nGET_POSITION\n"]);
+    feed(
+        &mut h,
+        "ok\n// mcu: stepper_x:0\n// toolhead: X:9 Y:9 Z:9 E:0\n\
+         // gcode: X:1.000000 Y:2.500000 Z:0.300000 E:0.000000\n\
+         // gcode base: X:0.000000 Y:0.000000 Z:0.100000 E:0.000000\n\
+         // gcode homing: X:0 Y:0 Z:0\nok\n",
+        t(1),
+    );
+    let answers: Vec<_> = events(&mut h)
+        .into_iter()
+        .filter(|e| matches!(e, LineEvent::LastAccepted(_)))
+        .collect();
+    assert_eq!(
+        answers,
+        vec![LineEvent::LastAccepted(LastAccepted::Position {
+            xyz_um: [1_000, 2_500, 200]
+        })]
+    );
+    h.connect(t(2));
+    assert_eq!(
+        tx(&mut h, t(2)),
+        vec!["M115\n"],
+        "GET_POSITION's ok was not owed"
+    );
+    // Not ready: it cannot say; no answer: asked once, then not known.
+    let mut h = LineHost::new(cfg(Dialect::Klipper));
+    h.recover_last_accepted(t(0)).unwrap();
+    tx(&mut h, t(0));
+    feed(&mut h, "!! Printer is not ready\nok\n", t(1));
+    assert!(matches!(
+        &events(&mut h)[..],
+        [LineEvent::LastAccepted(LastAccepted::Unknown { reason })] if reason.contains("not ready")
+    ));
+    let mut h = LineHost::new(cfg(Dialect::Klipper));
+    h.recover_last_accepted(t(0)).unwrap();
+    tx(&mut h, t(0));
+    let deadline = h.next_timeout().unwrap();
+    let c = h.config();
+    let patience = c.ok_timeout_us * u64::from(c.max_timeouts);
+    assert_eq!(
+        deadline,
+        t(0).plus_us(patience),
+        "M400 waits for what Klipper holds"
+    );
+    assert!(tx(&mut h, deadline).is_empty(), "not asked again");
     assert!(matches!(
         &events(&mut h)[..],
         [LineEvent::LastAccepted(LastAccepted::Unknown { .. })]

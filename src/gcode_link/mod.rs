@@ -54,7 +54,10 @@ pub use host::{
     RecoverError, SendError,
 };
 
-pub use position::{mm_to_um, rrf_axes_json, rrf_user_position, NozzleAt, RRF_POSITION_QUERY};
+pub use position::{
+    klipper_get_position_lines, klipper_position_line, mm_to_um, rrf_axes_json, rrf_user_position,
+    KlipperPositionLine, NozzleAt, KLIPPER_POSITION_QUERY, RRF_POSITION_QUERY,
+};
 
 pub use crate::link::Micros;
 

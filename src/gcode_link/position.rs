@@ -157,6 +157,63 @@ pub fn rrf_axes_json(at: &NozzleAt) -> String {
     serde_json::json!({"key": "move.axes", "flags": "f", "result": axes}).to_string()
 }
 
+/// Klipper's `GET_POSITION` answer lines that say where the G-code position stands
+/// (`gcode_move.py` `cmd_GET_POSITION`, each line of its `respond_info` behind `// `):
+/// `// gcode: X:.. Y:.. Z:.. E:..` (the last move queued, which after `M400` is where the
+/// nozzle stopped) and `// gcode base: X:.. Y:.. Z:.. E:..` (the `G92` offsets), µm.
+/// `M114` would say the same, but Kalico 2026.10 formats its answer with every axis and
+/// shuts down (`not all arguments converted`) once syringe axes are registered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KlipperPositionLine {
+    /// `gcode:`.
+    Gcode([i64; 3]),
+    /// `gcode base:`.
+    GcodeBase([i64; 3]),
+}
+
+/// Read one line of Klipper's `GET_POSITION` answer ([`KlipperPositionLine`]).
+pub fn klipper_position_line(line: &str) -> Option<KlipperPositionLine> {
+    let rest = line.trim().strip_prefix("//")?.trim_start();
+    let (kind, rest): (fn([i64; 3]) -> KlipperPositionLine, &str) =
+        if let Some(r) = rest.strip_prefix("gcode base:") {
+            (KlipperPositionLine::GcodeBase, r)
+        } else if let Some(r) = rest.strip_prefix("gcode:") {
+            (KlipperPositionLine::Gcode, r)
+        } else {
+            return None;
+        };
+    let mut words = rest.split_ascii_whitespace();
+    let mut at = [0i64; 3];
+    for (slot, axis) in at.iter_mut().zip(["X:", "Y:", "Z:"]) {
+        *slot = mm_to_um(words.next()?.strip_prefix(axis)?)?;
+    }
+    Some(kind(at))
+}
+
+/// Klipper's answer lines to `GET_POSITION` for a nozzle at `at` (axes not known read
+/// 0), as its `respond_info` writes them.
+pub fn klipper_get_position_lines(at: &NozzleAt) -> Vec<String> {
+    let mm = |k: usize| at.xyz_um[k].unwrap_or(0) as f64 / 1000.0;
+    let xyze = format!("X:{:.6} Y:{:.6} Z:{:.6} E:0.000000", mm(0), mm(1), mm(2));
+    vec![
+        "mcu: stepper_x:0 stepper_y:0 stepper_z:0".into(),
+        format!(
+            "stepper: stepper_x:{:.6} stepper_y:{:.6} stepper_z:{:.6}",
+            mm(0),
+            mm(1),
+            mm(2)
+        ),
+        format!("kinematic: X:{:.6} Y:{:.6} Z:{:.6}", mm(0), mm(1), mm(2)),
+        format!("toolhead: {xyze}"),
+        format!("gcode: {xyze}"),
+        "gcode base: X:0.000000 Y:0.000000 Z:0.000000 E:0.000000".into(),
+        "gcode homing: X:0.000000 Y:0.000000 Z:0.000000".into(),
+    ]
+}
+
+/// The query whose answer [`klipper_position_line`] reads.
+pub const KLIPPER_POSITION_QUERY: &str = "GET_POSITION";
+
 /// The query [`rrf_user_position`] reads.
 pub const RRF_POSITION_QUERY: &str = "M409 K\"move.axes\" F\"f\"";
 
@@ -194,6 +251,32 @@ mod tests {
         assert!(b.matches([1_501, 2_000, 3_000], 2));
         assert!(!b.matches([1_000, 2_000, 3_000], 2));
         assert!(!NozzleAt::UNKNOWN.matches([0, 0, 0], 2));
+    }
+
+    #[test]
+    fn klipper_get_position_reads_back() {
+        let at = NozzleAt::UNKNOWN.after("G1 X102.639 Y0.001 Z12.5");
+        let lines = klipper_get_position_lines(&at);
+        let read: Vec<_> = lines
+            .iter()
+            .filter_map(|l| klipper_position_line(&format!("// {l}")))
+            .collect();
+        assert_eq!(
+            read,
+            vec![
+                KlipperPositionLine::Gcode([102_639, 1, 12_500]),
+                KlipperPositionLine::GcodeBase([0, 0, 0])
+            ]
+        );
+        // As Kalico prints it with the syringes registered (extra axes are not listed).
+        assert_eq!(
+            klipper_position_line("// gcode: X:10.000000 Y:20.500000 Z:0.200000 E:0.000000"),
+            Some(KlipperPositionLine::Gcode([10_000, 20_500, 200]))
+        );
+        assert_eq!(klipper_position_line("// gcode homing: X:0 Y:0 Z:0"), None);
+        assert_eq!(klipper_position_line("// toolhead: X:1 Y:2 Z:3 E:0"), None);
+        assert_eq!(klipper_position_line("gcode: X:1 Y:2 Z:3"), None);
+        assert_eq!(klipper_position_line("// gcode: X:1 Y:2"), None);
     }
 
     #[test]

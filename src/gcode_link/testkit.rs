@@ -612,7 +612,8 @@ impl GcodeHarness {
                 self.pending = Pending::Recover;
                 return;
             }
-            LastAccepted::Unknown { .. } => self.ran_next,
+            // The harness's lines are not matched by position: from what it saw run.
+            LastAccepted::Unknown { .. } | LastAccepted::Position { .. } => self.ran_next,
         };
         self.connect(resume);
     }

@@ -92,10 +92,11 @@ for job in config/examples/*.toml; do
 done
 run crown-twice -- "$work/tooth-crown.plan.gcode" "$work/tooth-crown.plan.gcode" || failed=1
 
-# The resumed job: what hil-sim's Klipper ran across edod's SIGKILL and the resume. The
-# plungers never run back by more than one retract (200 nl in the test machine's 78.5 mm2
-# barrel: 0.00255 mm); a resume from positions the plungers do not stand at pulls the
-# whole job's travel back.
+# The resumed job: what hil-sim's Klipper ran across edod's SIGKILL and the resume (edod
+# finds the last move run from where GET_POSITION says the nozzle stopped). The plungers never
+# run back by more than the job's own retract (200 nl in the test machine's 78.5 mm2
+# barrel: 0.00255 mm): a retract run twice would be two, and a resume from positions the
+# plungers do not stand at pulls the whole job's travel back.
 EDO_RESUMED_STREAM_KLIPPER="$work/resumed.console" cargo test -q --locked --test daemon_gcode \
   klipper_sigkill_mid_job_interrupts_and_resumes_skipping_nothing > "$work/resume-test.out" 2>&1 \
   || { echo "klipper peer: the resume test failed:" >&2; tail -20 "$work/resume-test.out" >&2; failed=1; }
