@@ -11,10 +11,16 @@
 //! Files edod creates in the state directory get explicit modes, whatever the umask:
 //! the lock files 0640 (the group may read who runs), the job database and its
 //! `-wal`/`-shm` files 0600 (operators reach jobs through the API).
+//!
+//! Nothing there is followed or trusted blindly: the state directory and the socket's
+//! directory must belong to edod's user (or root) and be writable by no other user
+//! (no group or other write bit), and every file edod opens there is opened without
+//! following a symbolic link (`O_NOFOLLOW`) and must belong to edod's user. What is
+//! refused is named, before anything in it is read, written or chmod-ed.
 
 use std::fs::File;
 use std::io::{Read, Seek, Write};
-use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt, PermissionsExt};
+use std::os::unix::fs::{DirBuilderExt, MetadataExt, OpenOptionsExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -54,9 +60,11 @@ pub fn lock(cfg: &Config) -> Result<InstanceLock> {
     let state_dir = &cfg.state.dir;
     create_dir(state_dir, STATE_DIR_MODE)
         .with_context(|| format!("cannot create state dir {}", state_dir.display()))?;
+    check_dir(state_dir, "state dir ([state] dir)")?;
     let socket = &cfg.api.socket;
     if let Some(dir) = socket.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        check_dir(dir, "socket's directory ([api] socket)")?;
     }
     let holder = format!(
         "pid {}\nsocket {}\nstate {}\n",
@@ -85,17 +93,69 @@ fn create_dir(dir: &Path, mode: u32) -> std::io::Result<()> {
     std::fs::set_permissions(dir, std::fs::Permissions::from_mode(mode))
 }
 
+/// `dir` belongs to edod's user or root and no other user can write in it: else another
+/// user could plant a file or a link where edod writes. `what` names it in the error.
+fn check_dir(dir: &Path, what: &str) -> Result<()> {
+    let meta = std::fs::metadata(dir).with_context(|| format!("cannot read {}", dir.display()))?;
+    let me = nix::unistd::geteuid().as_raw();
+    if meta.uid() != me && meta.uid() != 0 {
+        bail!(
+            "the {what} {} belongs to uid {}, not to edod's user (uid {me}) or root:              refusing it (another user could replace what edod keeps there)",
+            dir.display(),
+            meta.uid()
+        );
+    }
+    let mode = meta.mode() & 0o7777;
+    if mode & 0o022 != 0 {
+        bail!(
+            "the {what} {} has mode {mode:04o}: other users can write in it; refusing              it (chmod go-w, or give edod a directory of its own)",
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// Open `path` in edod's state without following a symbolic link, and check it belongs
+/// to edod's user: a link or another user's file planted there is refused, naming it,
+/// before anything is written or chmod-ed.
+fn open_own(path: &Path, options: &mut std::fs::OpenOptions, what: &str) -> Result<File> {
+    let file = options
+        .custom_flags(nix::libc::O_NOFOLLOW)
+        .open(path)
+        .map_err(|e| match e.raw_os_error() {
+            Some(nix::libc::ELOOP) => anyhow::anyhow!(
+                "{what} {} is a symbolic link: refusing to follow it (remove it)",
+                path.display()
+            ),
+            _ => anyhow::Error::new(e).context(format!("cannot open {what} {}", path.display())),
+        })?;
+    let uid = file
+        .metadata()
+        .with_context(|| format!("cannot read {}", path.display()))?
+        .uid();
+    let me = nix::unistd::geteuid().as_raw();
+    if uid != me {
+        bail!(
+            "{what} {} belongs to uid {uid}, not to edod's user (uid {me}): refusing it",
+            path.display()
+        );
+    }
+    Ok(file)
+}
+
 /// Lock `path` (created mode 0640) and write `holder` into it; `what` names it in the
 /// error when another edod holds it.
 fn take(path: &Path, holder: &str, what: &str) -> Result<Flock<File>> {
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .mode(LOCK_FILE_MODE)
-        .open(path)
-        .with_context(|| format!("cannot open the lock file {}", path.display()))?;
+    let file = open_own(
+        path,
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .mode(LOCK_FILE_MODE),
+        "the lock file",
+    )?;
     set_mode(&file, path, LOCK_FILE_MODE)?;
     let mut lock = match Flock::lock(file, FlockArg::LockExclusiveNonblock) {
         Ok(l) => l,
@@ -149,21 +209,27 @@ fn describe_holder(file: &mut File) -> String {
 /// `-shm` files with the database file's mode; call again after opening the store.
 pub fn secure_db_files(state_dir: &Path) -> Result<()> {
     let db = state_dir.join(DB_FILE);
-    let file = std::fs::OpenOptions::new()
-        .write(true)
-        .create(true)
-        .truncate(false)
-        .mode(DB_FILE_MODE)
-        .open(&db)
-        .with_context(|| format!("cannot open {}", db.display()))?;
+    let file = open_own(
+        &db,
+        std::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .mode(DB_FILE_MODE),
+        "the job database",
+    )?;
     set_mode(&file, &db, DB_FILE_MODE)?;
     for suffix in ["-wal", "-shm"] {
         let mut name = db.as_os_str().to_owned();
         name.push(suffix);
         let path = PathBuf::from(name);
-        if path.exists() {
-            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(DB_FILE_MODE))
-                .with_context(|| format!("cannot set the mode of {}", path.display()))?;
+        if path.symlink_metadata().is_ok() {
+            let file = open_own(
+                &path,
+                std::fs::OpenOptions::new().read(true),
+                "the job database's",
+            )?;
+            set_mode(&file, &path, DB_FILE_MODE)?;
         }
     }
     Ok(())
@@ -206,5 +272,55 @@ mod tests {
             .mode();
         assert_eq!(mode & 0o777, LOCK_FILE_MODE);
         drop(again);
+    }
+
+    #[test]
+    fn links_and_open_directories_in_edods_state_are_refused_naming_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim");
+        std::fs::write(&victim, "precious").unwrap();
+        std::fs::set_permissions(&victim, std::fs::Permissions::from_mode(0o644)).unwrap();
+        let state = dir.path().join("state");
+        std::fs::create_dir(&state).unwrap();
+        std::fs::set_permissions(&state, std::fs::Permissions::from_mode(0o750)).unwrap();
+        let cfg = config(dir.path(), "a.sock");
+        // A link at edod.lock, at <socket>.lock, at edod.db and at its -wal.
+        let planted = [
+            state.join(STATE_LOCK_FILE),
+            socket_lock_path(&cfg.api.socket),
+            state.join(DB_FILE),
+            state.join(format!("{DB_FILE}-wal")),
+        ];
+        for link in &planted {
+            std::os::unix::fs::symlink(&victim, link).unwrap();
+            let e = lock(&cfg)
+                .and_then(|l| secure_db_files(&state).map(|()| l))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("symbolic link") && e.contains(&link.display().to_string()),
+                "{e}"
+            );
+            std::fs::remove_file(link).unwrap();
+        }
+        // The target was never written, truncated or chmod-ed.
+        assert_eq!(std::fs::read_to_string(&victim).unwrap(), "precious");
+        let mode = std::fs::metadata(&victim).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o644);
+        // A state dir or socket dir others can write in.
+        std::fs::set_permissions(&state, std::fs::Permissions::from_mode(0o777)).unwrap();
+        let e = lock(&cfg).unwrap_err().to_string();
+        assert!(e.contains("state dir") && e.contains("0777"), "{e}");
+        std::fs::set_permissions(&state, std::fs::Permissions::from_mode(0o750)).unwrap();
+        let open = dir.path().join("open");
+        std::fs::create_dir(&open).unwrap();
+        std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o1777)).unwrap();
+        let mut cfg = cfg;
+        cfg.api.socket = open.join("a.sock");
+        let e = lock(&cfg).unwrap_err().to_string();
+        assert!(
+            e.contains("socket's directory") && e.contains("1777"),
+            "{e}"
+        );
     }
 }
