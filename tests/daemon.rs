@@ -1420,7 +1420,11 @@ fn twenty_half_sent_large_requests_stay_within_the_memory_budget() {
             let socket = d.socket.clone();
             std::thread::spawn(move || {
                 let s = UnixStream::connect(socket).unwrap();
-                (&s).write_all(&half).unwrap();
+                // edod may close before the write ends: on a loaded machine 600 MiB
+                // from 20 clients can take longer than the idle timeout, and closing a
+                // client that is still sending then is the limit doing its work (its
+                // reply is written first and is read below).
+                let _ = (&s).write_all(&half);
                 let r = read_line_within(&s, Duration::from_secs(30));
                 (r, t.elapsed())
             })
