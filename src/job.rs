@@ -706,8 +706,11 @@ fn plan_options(
     Ok(plan)
 }
 
+/// The thinnest layer: 1 µm, the step of the Z positions edod plans (µm) and writes.
+pub const MIN_LAYER_MM: f64 = 0.001;
+
 /// `process.layer`, `process.cusp` and `process.max_gap`: the layer heights (half
-/// the nozzle, uniform, when `layer` is absent).
+/// the nozzle, uniform, when `layer` is absent), from 1 µm to the nozzle.
 fn layer_heights(
     p: &RawProcess,
     bad: &impl Fn(&str, String) -> JobError,
@@ -730,6 +733,25 @@ fn layer_heights(
             (min, max)
         }
     };
+    if max_mm > p.nozzle {
+        return Err(bad(
+            "process.layer",
+            format!(
+                "a layer of {max_mm} mm is thicker than the nozzle ({} mm): its roads would \
+                 not bond to the layer below; at most the nozzle (slicers keep to 75 % of it)",
+                p.nozzle
+            ),
+        ));
+    }
+    if min_mm < MIN_LAYER_MM {
+        return Err(bad(
+            "process.layer",
+            format!(
+                "a layer of {min_mm} mm is thinner than {MIN_LAYER_MM} mm, the step of the \
+                 Z positions edod plans and writes"
+            ),
+        ));
+    }
     let cusp_mm = p.cusp.unwrap_or(max_mm / 2.0);
     positive(cusp_mm, "process.cusp", bad)?;
     let max_gap_mm = p
@@ -1366,6 +1388,19 @@ nozzle = 0.5
         let e = err(&GOOD.replace("inner = [1.0, 0.0]", "inner = [1.0]"));
         assert!(
             e.contains("gradient.inner") && e.contains("2 materials"),
+            "{e}"
+        );
+        let e = err(&GOOD.replace("nozzle = 0.5", "nozzle = 0.5\nlayer = 0.6"));
+        assert!(
+            e.contains("process.layer") && e.contains("thicker than the nozzle (0.5 mm)"),
+            "{e}"
+        );
+        let e = err(&GOOD.replace(
+            "nozzle = 0.5",
+            "nozzle = 0.5\nlayer = { min = 0.0001, max = 0.3 }",
+        ));
+        assert!(
+            e.contains("process.layer") && e.contains("thinner than 0.001 mm"),
             "{e}"
         );
         let e = err(&GOOD.replace("height = 0.4", "height = 1e-300"));
