@@ -737,6 +737,41 @@ fn job_streaming(
     (sim, record, d, c, id)
 }
 
+/// Marlin going silent mid-job (every line and reply lost) shows in `machine.status` as
+/// `link_problem` within a second, while still connected (its `ok` is overdue for what
+/// the line waits for, and edod asks it where it is); answering again, the problem
+/// clears and the job ends with every line run once.
+#[test]
+fn a_silent_marlin_is_reported_at_once_and_the_job_goes_on_when_it_answers() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record, d, mut c, id) = job_streaming(dir.path(), "marlin", 21);
+    let silent = Instant::now();
+    sim.command(hil_sim::Command::parse("drop=1").unwrap());
+    let mut status = Value::Null;
+    c.wait("link_problem reported", |c| {
+        status = c.call("machine.status", json!({})).unwrap();
+        status["link_problem"].is_string()
+    });
+    assert!(
+        silent.elapsed() < Duration::from_secs(2),
+        "{:?}",
+        silent.elapsed()
+    );
+    assert_eq!(status["connected"], json!(true), "{status}");
+    let problem = status["link_problem"].as_str().unwrap();
+    assert!(problem.contains("Marlin has not acknowledged"), "{problem}");
+    sim.command(hil_sim::Command::parse("drop=0").unwrap());
+    c.wait("link_problem cleared", |c| {
+        c.call("machine.status", json!({})).unwrap()["link_problem"].is_null()
+    });
+    c.wait_state(id, "done");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+    let expected = move_lines(&offline(&planned_job(), "marlin"));
+    assert_ran_once_in_order(&ran(&record), &expected, false);
+}
+
 /// edod killed with SIGKILL mid-job on `firmware`, restarted: the job is interrupted (not
 /// resumed silently); resumed, it runs to the end, nothing skipped, the resume's service
 /// moves between. Marlin and RRF name their last accepted line and edod the move it

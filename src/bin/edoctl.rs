@@ -239,6 +239,9 @@ fn status(c: &mut Client, out: &Output) -> anyhow::Result<()> {
         if let Some(why) = &s.disconnected_reason {
             human.push_str(&format!("\n  why: {why}"));
         }
+        if let Some(problem) = &s.link_problem {
+            human.push_str(&format!("\n  not answering: {problem}"));
+        }
         if let Some(problem) = &s.store_problem {
             human.push_str(&format!(
                 "\n  {problem}: jobs hold until edod's state directory has room"

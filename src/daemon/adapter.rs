@@ -53,4 +53,10 @@ pub trait LinkAdapter: Send {
     fn poll_store_mark(&mut self) -> Option<GcodeMarkWrite> {
         None
     }
+    /// While connected, why the machine does not answer as it should (the G-code link:
+    /// an `ok` overdue and the firmware being asked where it is), for the snapshot's
+    /// `link_problem`; `None` while it answers.
+    fn link_problem(&self) -> Option<String> {
+        None
+    }
 }

@@ -120,6 +120,8 @@ pub struct GcodeLink {
     link_failures: u32,
     /// When a protocol error was last logged, and how many were not since.
     protocol_errors_logged: Option<(Micros, u64)>,
+    /// The host is asking the firmware where it is (an `ok` overdue), and it was logged.
+    silence_noted: bool,
     /// Marks for the store: where this connection's line numbers stand in the job's
     /// moves (`None` on Klipper, which has no line numbers).
     marks: Option<Marks>,
@@ -388,6 +390,7 @@ impl GcodeLink {
             settle_until: None,
             link_failures: 0,
             protocol_errors_logged: None,
+            silence_noted: false,
             marks: cfg.link.dialect.numbers_lines().then(Marks::default),
             resume: None,
         }
@@ -1043,6 +1046,14 @@ impl LinkAdapter for GcodeLink {
         while let Some(e) = self.host.poll_event() {
             self.translate(e, now);
         }
+        let probing = self.host.state() == LinkState::Probing;
+        if probing && !self.silence_noted {
+            self.log_protocol_error(
+                "the firmware did not acknowledge a line in time: asking it where it is",
+                now,
+            );
+        }
+        self.silence_noted = probing;
         if self.port_closed && self.host.state() == LinkState::Reset {
             self.port_closed = false;
         }
@@ -1113,6 +1124,21 @@ impl LinkAdapter for GcodeLink {
 
     fn in_link(&self) -> (usize, u64) {
         (self.host.queued_len(), self.host.in_flight_len() as u64)
+    }
+
+    fn link_problem(&self) -> Option<String> {
+        let firmware = match self.host.config().dialect {
+            Dialect::Marlin => "Marlin",
+            Dialect::Rrf => "RepRapFirmware",
+            Dialect::Klipper => "Klipper",
+        };
+        (self.host.state() == LinkState::Probing).then(|| {
+            format!(
+                "{firmware} has not acknowledged a line in time: edod is asking it where it \
+                 is (the link is declared lost if it stays silent through {} timeouts)",
+                self.host.config().max_timeouts
+            )
+        })
     }
 
     fn identity(&self) -> Option<&str> {

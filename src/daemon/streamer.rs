@@ -727,6 +727,7 @@ impl Streamer {
             faults: s.faults,
             position_mm: mm(s.position),
             active_job: self.lc.active_job(),
+            link_problem: self.link.link_problem().filter(|_| connected),
             underruns: self.lc.underruns(),
             frames_retransmitted: stats.frames_retransmitted,
             srtt_ms: stats.srtt_us as f64 / 1000.0,
@@ -754,6 +755,7 @@ fn machine_notice_due(
     let (at, old) = last;
     let changed = old.connected != snap.connected
         || old.disconnected_reason != snap.disconnected_reason
+        || old.link_problem != snap.link_problem
         || old.queue_held_by != snap.queue_held_by
         || old.store_problem != snap.store_problem
         || old.state != snap.state

@@ -45,6 +45,10 @@ pub struct MachineSnapshot {
     /// `job.start_next`); null when the queue runs.
     #[serde(default)]
     pub queue_held_by: Option<u32>,
+    /// While connected, why the machine does not answer as it should (a G-code firmware
+    /// silent past its line's `ok`, being asked where it is); null while it answers.
+    #[serde(default)]
+    pub link_problem: Option<String>,
     /// Times the machine ran out of moves while a job still had moves to stream.
     pub underruns: u64,
     /// Frames retransmitted on the link.
