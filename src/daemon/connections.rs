@@ -512,6 +512,11 @@ struct ReserveState {
 struct Ticket {
     reserve: Arc<Reserve>,
     id: u64,
+    /// The eviction of its first wait, which starts at admission: a connection whose
+    /// task has not run yet waits for its client too, so a burst of connects can always
+    /// take the oldest place (else, admitted faster than their tasks ran, every place
+    /// read as busy and `edoctl status` behind 300 connects was refused).
+    first_wait: Option<oneshot::Receiver<()>>,
 }
 
 impl Reserve {
@@ -533,9 +538,13 @@ impl Reserve {
         }
         s.open += 1;
         s.next_id += 1;
+        let (tx, rx) = oneshot::channel();
+        let id = s.next_id;
+        s.waiting.push_back((id, tx));
         Some(Ticket {
             reserve: Arc::clone(reserve),
-            id: s.next_id,
+            id,
+            first_wait: Some(rx),
         })
     }
 }
@@ -543,7 +552,10 @@ impl Reserve {
 impl Ticket {
     /// Mark the connection as waiting for its client: the receiver fires when a
     /// newcomer takes its place.
-    fn waiting(&self) -> oneshot::Receiver<()> {
+    fn waiting(&mut self) -> oneshot::Receiver<()> {
+        if let Some(first) = self.first_wait.take() {
+            return first;
+        }
         let (tx, rx) = oneshot::channel();
         if let Ok(mut s) = self.reserve.inner.lock() {
             s.waiting.retain(|(id, _)| *id != self.id);
@@ -585,7 +597,7 @@ fn control_only(shared: &Shared) -> ApiError {
 /// A control connection: `machine.estop` and `machine.status` answered, anything else
 /// refused and the connection closed; closed too when idle or when a newcomer takes its
 /// place while it waits for its client.
-async fn control_client(stream: UnixStream, shared: Arc<Shared>, ticket: Ticket) {
+async fn control_client(stream: UnixStream, shared: Arc<Shared>, mut ticket: Ticket) {
     let (rd, mut wr) = stream.into_split();
     let mut reader = LineReader::new(BufReader::new(rd), CONTROL_LINE);
     let idle = shared.config.api.idle_timeout();
@@ -717,7 +729,7 @@ mod tests {
     #[test]
     fn a_newcomer_takes_the_place_of_the_oldest_waiting_control_connection() {
         let r = Arc::new(Reserve::new(2));
-        let a = Reserve::admit(&r).unwrap();
+        let mut a = Reserve::admit(&r).unwrap();
         let b = Reserve::admit(&r).unwrap();
         let mut a_wait = a.waiting();
         b.busy();
@@ -728,5 +740,28 @@ mod tests {
         assert!(Reserve::admit(&r).is_none(), "b and c are answering");
         drop(b);
         assert!(Reserve::admit(&r).is_some());
+    }
+
+    /// A burst: places admitted before their tasks ran wait for their clients from
+    /// admission, so each newcomer takes the oldest, and the last one (an operator's
+    /// `edoctl status`) gets a place.
+    #[test]
+    fn a_burst_of_control_connections_never_locks_the_last_one_out() {
+        let r = Arc::new(Reserve::new(4));
+        let mut admitted: Vec<Ticket> = (0..300)
+            .map(|k| Reserve::admit(&r).unwrap_or_else(|| panic!("connect {k} refused")))
+            .collect();
+        let last = admitted.pop().unwrap();
+        // Those evicted learn it at their first wait, and close.
+        let mut evicted = 0;
+        for t in &mut admitted {
+            if t.waiting().try_recv().is_ok() {
+                evicted += 1;
+            }
+        }
+        assert_eq!(evicted, 296, "all but the newest four were closed");
+        drop(admitted);
+        last.busy();
+        assert_eq!(r.inner.lock().unwrap().open, 1);
     }
 }
