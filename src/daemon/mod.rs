@@ -99,6 +99,8 @@ pub struct Shared {
     pub alive: std::sync::atomic::AtomicU64,
     /// Memory for requests in flight across all clients (`api.memory_budget_bytes`).
     pub budget: connections::Budget,
+    /// Set when edod starts stopping: previews and layer views stop planning.
+    pub stopping: Arc<std::sync::atomic::AtomicBool>,
 }
 
 /// A store error as the API's: -32001 for a job not there, -32005 when another process

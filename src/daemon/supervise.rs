@@ -407,6 +407,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         port,
         alive: Default::default(),
         budget: super::connections::Budget::new(&cfg.api),
+        stopping: Default::default(),
         config: cfg,
     });
     let streamer = tokio::spawn(
@@ -427,6 +428,9 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     notifier.send("READY=1");
     serve_until(&shared, &streamer, &notifier, stop).await?;
     info!("stopping");
+    shared
+        .stopping
+        .store(true, std::sync::atomic::Ordering::Relaxed);
     notifier.send("STOPPING=1");
     let (tx, rx) = oneshot::channel();
     if shared.control.send(Control::Shutdown(tx)).await.is_ok() {

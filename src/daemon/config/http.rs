@@ -25,6 +25,10 @@ pub struct HttpConfig {
     /// Most bytes of layer views and SVG previews the kept plans hold (default 64 MiB).
     #[serde(default = "default_plan_cache_bytes")]
     pub plan_cache_bytes: usize,
+    /// Longest one request plans a preview or a layer view, s (default 60); a later
+    /// request goes on from where it stopped.
+    #[serde(default = "default_plan_time_limit_s")]
+    pub plan_time_limit_s: f64,
 }
 
 fn default_enabled() -> bool {
@@ -39,6 +43,9 @@ fn default_plan_cache_entries() -> usize {
 fn default_plan_cache_bytes() -> usize {
     64 << 20
 }
+fn default_plan_time_limit_s() -> f64 {
+    60.0
+}
 
 impl Default for HttpConfig {
     fn default() -> Self {
@@ -48,6 +55,7 @@ impl Default for HttpConfig {
             token_file: None,
             plan_cache_entries: default_plan_cache_entries(),
             plan_cache_bytes: default_plan_cache_bytes(),
+            plan_time_limit_s: default_plan_time_limit_s(),
         }
     }
 }
@@ -73,6 +81,15 @@ impl HttpConfig {
             return Ok(());
         }
         let addr = self.listen_addr().map_err(|m| ("http.listen", m))?;
+        if !(self.plan_time_limit_s.is_finite() && self.plan_time_limit_s > 0.0) {
+            return Err((
+                "http.plan_time_limit_s",
+                format!(
+                    "must be a positive number of seconds, got {}",
+                    self.plan_time_limit_s
+                ),
+            ));
+        }
         if self.plan_cache_entries == 0 {
             return Err((
                 "http.plan_cache_entries",
@@ -153,6 +170,13 @@ mod tests {
             ..http("127.0.0.1:7125", None)
         };
         assert_eq!(no_plans.check().unwrap_err().0, "http.plan_cache_entries");
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            let no_time = HttpConfig {
+                plan_time_limit_s: bad,
+                ..http("127.0.0.1:7125", None)
+            };
+            assert_eq!(no_time.check().unwrap_err().0, "http.plan_time_limit_s");
+        }
     }
 
     #[test]

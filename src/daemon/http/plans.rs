@@ -162,6 +162,45 @@ pub struct Plan {
     total_moves: u64,
     bytes: usize,
     keep: Keep,
+    /// Why the last request's planning stopped short of what it asked ([`Stop`]).
+    stopped: Option<String>,
+}
+
+/// When a request's planning stops short: its client left, edod is stopping, or it
+/// planned longer than `http.plan_time_limit_s`. Checked between layers; the plan
+/// stays where it stopped and a later request goes on from there.
+#[derive(Clone)]
+pub struct Stop {
+    /// Set when the request is dropped (its client left) or edod stops.
+    pub flags: Vec<Arc<std::sync::atomic::AtomicBool>>,
+    /// When the request's time is up.
+    pub deadline: std::time::Instant,
+    /// `http.plan_time_limit_s`, for the message.
+    pub limit_s: f64,
+}
+
+impl Stop {
+    /// A stop that never comes (a plan made and read at once, in tests).
+    pub fn never() -> Stop {
+        Stop {
+            flags: Vec::new(),
+            deadline: std::time::Instant::now() + std::time::Duration::from_secs(86_400 * 365),
+            limit_s: f64::INFINITY,
+        }
+    }
+
+    /// Why planning must stop now, if it must.
+    fn reason(&self) -> Option<String> {
+        if self.flags.iter().any(|f| f.load(Ordering::Relaxed)) {
+            return Some("the request was given up (its client left, or edod stopped)".into());
+        }
+        (std::time::Instant::now() >= self.deadline).then(|| {
+            format!(
+                "planning stopped after {} s (http.plan_time_limit_s); ask again to go on",
+                self.limit_s
+            )
+        })
+    }
 }
 
 /// How far a request needs a plan to go.
@@ -205,6 +244,7 @@ impl Plan {
             total_moves: 0,
             bytes: 0,
             keep: Keep::UpTo(usize::MAX),
+            stopped: None,
         }
     }
 
@@ -213,9 +253,18 @@ impl Plan {
         self.source.is_none() || self.layers.len() > want.last_layer() as usize
     }
 
-    /// Plan on until `want` is planned, or the job ends, or planning fails.
-    fn extend(&mut self, want: Want) {
+    /// Plan on until `want` is planned, or the job ends, or planning fails, or `stop`
+    /// says so.
+    fn extend(&mut self, want: Want, stop: &Stop) {
+        self.stopped = None;
+        let mut planned_here = 0;
         while !self.has(want) {
+            // At least one layer a request, so that asking again always goes on.
+            if let Some(why) = stop.reason().filter(|_| planned_here > 0) {
+                self.stopped = Some(why);
+                return;
+            }
+            planned_here += 1;
             let Some(source) = self.source.as_mut() else {
                 return;
             };
@@ -262,7 +311,12 @@ impl Plan {
     /// kept).
     pub fn summary(&self, key: &Key, layer: u32) -> Value {
         let mut problems = self.problems.clone();
-        if self.source.is_some() {
+        if let Some(why) = &self.stopped {
+            problems.push(format!(
+                "only the first {} layers were previewed: {why}",
+                self.layers.len()
+            ));
+        } else if self.source.is_some() {
             problems.push(format!(
                 "only the first {PREVIEW_LAYERS} layers were previewed"
             ));
@@ -289,6 +343,13 @@ impl Plan {
         match self.layers.get(layer as usize) {
             Some(l) if l.kept => Ok(l),
             Some(_) => Err(Miss::NotKept),
+            None if self.stopped.is_some() => Err(Miss::Refused(ApiError::new(
+                ApiError::LIMIT,
+                format!(
+                    "layer {layer} was not planned: {}",
+                    self.stopped.as_deref().unwrap_or_default()
+                ),
+            ))),
             None if self.problems.is_empty() => Err(Miss::Refused(ApiError::new(
                 ApiError::INVALID_PARAMS,
                 format!("the job has no layer {layer} (layers count from 0)"),
@@ -436,10 +497,10 @@ impl PlanCache {
     }
 
     /// Plan `entry` on as far as `want` (the caller holds the one place to plan).
-    fn extend(&self, entry: &Arc<Entry>, want: Want) {
+    fn extend(&self, entry: &Arc<Entry>, want: Want, stop: &Stop) {
         {
             let mut plan = entry.lock();
-            plan.extend(want);
+            plan.extend(want, stop);
             entry
                 .bytes
                 .store(plan.bytes + entry.recipe.bytes(), Ordering::Relaxed);
@@ -456,10 +517,11 @@ impl PlanCache {
         config: &Config,
         limits: &crate::mesh::MeshLimits,
         read: impl Fn(&Plan) -> Result<T, Miss>,
+        stop: &Stop,
     ) -> Result<T, Miss> {
         let mut plan = self.start(recipe, config, limits);
         plan.keep = Keep::Only(layer);
-        plan.extend(Want::Layer(layer));
+        plan.extend(Want::Layer(layer), stop);
         read(&plan)
     }
 }
@@ -520,6 +582,7 @@ impl Planning {
         find: Find,
         want: Want,
         read: &dyn Fn(&Key, &Plan) -> Result<T, Miss>,
+        stop: &Stop,
     ) -> Answer<T> {
         let entry = match find {
             Find::Recipe(r) => {
@@ -528,7 +591,7 @@ impl Planning {
             }
             Find::Key(k) => self.cache.get(&k).ok_or_else(|| no_preview(&k))?,
         };
-        self.cache.extend(&entry, want);
+        self.cache.extend(&entry, want, stop);
         let first = read(&entry.key, &entry.lock());
         match first {
             Ok(v) => Ok(v),
@@ -540,6 +603,7 @@ impl Planning {
                     &self.config,
                     &self.limits,
                     |p| read(&entry.key, p),
+                    stop,
                 );
                 again.map_err(|m| match m {
                     Miss::Refused(e) => e,

@@ -285,12 +285,44 @@ async fn from_plan<T: Send + 'static>(
     }
     let place = plan_slot(app).await?;
     let planning = Arc::clone(&app.plans);
+    // Planning stops between layers when this request is dropped (its client left),
+    // when edod stops, or past `http.plan_time_limit_s`.
+    let given_up = GivenUp::default();
+    let limit_s = app.shared.config.http.plan_time_limit_s;
+    let stop = plans::Stop {
+        flags: vec![Arc::clone(&given_up.0), Arc::clone(&app.shared.stopping)],
+        deadline: std::time::Instant::now()
+            + std::time::Duration::try_from_secs_f64(limit_s).unwrap_or(std::time::Duration::MAX),
+        limit_s,
+    };
     let answer = blocking(move || {
         let _place = place;
-        planning.plan(find, want, &*read)
+        planning.plan(find, want, &*read, &stop)
     })
     .await?;
+    drop(given_up.defuse());
     answer.map_err(error_response)
+}
+
+/// Set when dropped: a request's future dropped before its plan was answered (its
+/// client left) tells the planning thread to stop.
+#[derive(Default)]
+struct GivenUp(Arc<std::sync::atomic::AtomicBool>, bool);
+
+impl GivenUp {
+    /// The answer came: dropping it no longer stops anything.
+    fn defuse(mut self) -> Self {
+        self.1 = true;
+        self
+    }
+}
+
+impl Drop for GivenUp {
+    fn drop(&mut self) {
+        if !self.1 {
+            self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
 }
 
 /// The one place to plan, waited for up to the idle timeout.

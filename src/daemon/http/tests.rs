@@ -52,6 +52,7 @@ async fn shared_with(dir: &std::path::Path, set: impl FnOnce(&mut Config)) -> Ar
         control,
         port: "sim".into(),
         alive: Default::default(),
+        stopping: Default::default(),
     })
 }
 
@@ -463,6 +464,43 @@ async fn preview_of(app: &axum::Router, job: &str) -> serde_json::Value {
     .await;
     assert_eq!(s, StatusCode::OK, "{out:.300}");
     serde_json::from_str(&out).unwrap()
+}
+
+/// A preview past `http.plan_time_limit_s` answers with the layers planned, saying it
+/// stopped; asked again it goes on from there (a layer at least each time). A request
+/// given up (its client left, edod stopping) stops the same way.
+#[tokio::test]
+async fn a_preview_stops_at_its_time_limit_and_goes_on_when_asked_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let sh = shared_with(dir.path(), |c| c.http.plan_time_limit_s = 1e-6).await;
+    let app = super::app(Arc::clone(&sh), loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let job = annulus(30.0).replace("height = 0.4", "height = 1.0");
+    let first = preview_of(&routes, &job).await;
+    assert_eq!(first["ok"], false, "{first:.300}");
+    let said = first["problems"].to_string();
+    assert!(said.contains("http.plan_time_limit_s"), "{said}");
+    assert_eq!(first["layers"].as_array().unwrap().len(), 1, "{first:.300}");
+    let second = preview_of(&routes, &job).await;
+    assert_eq!(
+        second["layers"].as_array().unwrap().len(),
+        2,
+        "{second:.300}"
+    );
+    assert_eq!(
+        app.plans.cache.plans_made(),
+        1,
+        "went on, not planned again"
+    );
+    // edod stopping: the same, with its reason.
+    sh.stopping
+        .store(true, std::sync::atomic::Ordering::Relaxed);
+    let third = preview_of(&routes, &job).await;
+    assert_eq!(third["layers"].as_array().unwrap().len(), 3, "{third:.300}");
+    assert!(
+        third["problems"].to_string().contains("given up"),
+        "{third:.300}"
+    );
 }
 
 /// A preview's layers, its images and the layer views of the job once submitted come
