@@ -1761,17 +1761,49 @@ fn three_mf_bomb(mib: usize, lying: bool) -> Vec<u8> {
     bytes
 }
 
+/// A 3MF of about 1 KB whose components (9 levels of 10 over one tetrahedron) name 4
+/// billion triangles.
+fn three_mf_component_bomb() -> Vec<u8> {
+    let mut model = String::from(
+        "<?xml version=\"1.0\"?><model unit=\"millimeter\" \
+         xmlns=\"http://schemas.microsoft.com/3dmanufacturing/core/2015/02\"><resources>\
+         <object id=\"1\" type=\"model\"><mesh><vertices>\
+         <vertex x=\"0\" y=\"0\" z=\"0\"/><vertex x=\"10\" y=\"0\" z=\"0\"/>\
+         <vertex x=\"0\" y=\"10\" z=\"0\"/><vertex x=\"0\" y=\"0\" z=\"10\"/></vertices>\
+         <triangles><triangle v1=\"0\" v2=\"2\" v3=\"1\"/><triangle v1=\"0\" v2=\"1\" v3=\"3\"/>\
+         <triangle v1=\"1\" v2=\"2\" v3=\"3\"/><triangle v1=\"0\" v2=\"3\" v3=\"2\"/>\
+         </triangles></mesh></object>",
+    );
+    for id in 2..=10 {
+        model.push_str(&format!("<object id=\"{id}\" type=\"model\"><components>"));
+        for _ in 0..10 {
+            model.push_str(&format!("<component objectid=\"{}\"/>", id - 1));
+        }
+        model.push_str("</components></object>");
+    }
+    model.push_str("</resources><build><item objectid=\"10\"/></build></model>");
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated);
+    zip.start_file("3D/3dmodel.model", opts).unwrap();
+    zip.write_all(model.as_bytes()).unwrap();
+    zip.finish().unwrap().into_inner()
+}
+
 #[test]
 fn four_3mf_bombs_at_once_stay_within_the_memory_budget() {
     for lying in [false, true] {
         four_3mf_bombs_at_once(&three_mf_bomb(500, lying));
     }
+    // Components instanced past the limit are counted before any is built (four at
+    // once took edod from 11 MB to 1.4-1.6 GB).
+    four_3mf_bombs_at_once(&three_mf_component_bomb());
 }
 
 fn four_3mf_bombs_at_once(bomb: &[u8]) {
     use base64::Engine as _;
     let dir = tempfile::tempdir().unwrap();
-    eprintln!("3MF bomb: {} bytes, inflating to 500 MiB", bomb.len());
+    eprintln!("3MF bomb: {} bytes", bomb.len());
     let mesh_base64 = base64::engine::general_purpose::STANDARD.encode(bomb);
     let job =
         "name = \"bomb\"\n[geometry]\nmesh = \"part.3mf\"\n[materials]\nnames = [\"A\", \"B\"]\n\

@@ -270,6 +270,36 @@ fn threemf_units_components_and_transforms() {
     assert!(load_bytes(&bytes, &limits()).is_ok());
 }
 
+/// A components bomb (9 levels of 10 components each over one small object) is counted
+/// before anything is built: refused at once with the whole count, not after building
+/// triangles up to the limit (10 million triangles took about 1 GB).
+#[test]
+fn threemf_component_bomb_is_counted_before_it_is_built() {
+    let m = part();
+    let mut levels = String::new();
+    for id in 2..=10 {
+        levels.push_str(&format!("<object id=\"{id}\" type=\"model\"><components>"));
+        for _ in 0..10 {
+            levels.push_str(&format!("<component objectid=\"{}\"/>", id - 1));
+        }
+        levels.push_str("</components></object>");
+    }
+    let xml = model_xml("millimeter", &m, &levels, r#"<item objectid="10"/>"#);
+    let bytes = zip_of(&[("3D/3dmodel.model", &xml)]);
+    let t = std::time::Instant::now();
+    let e = load_bytes(&bytes, &limits()).unwrap_err();
+    let want = m.triangles.len() as u64 * 1_000_000_000;
+    assert!(
+        matches!(e, MeshError::TooManyTriangles { count, .. } if count == want),
+        "{e}"
+    );
+    assert!(
+        t.elapsed() < std::time::Duration::from_secs(1),
+        "{:?}",
+        t.elapsed()
+    );
+}
+
 #[test]
 fn bad_threemf() {
     let e = load_bytes(b"PK\x03\x04 this is not really a zip", &limits()).unwrap_err();

@@ -41,6 +41,10 @@ pub const CONTROL_LINE: usize = 4 << 10;
 /// The methods a control connection may ask.
 pub const CONTROL_METHODS: [&str; 2] = ["machine.estop", "machine.status"];
 
+/// What a triangle of a mesh being checked takes: its three corners (3 x 24 bytes)
+/// and its indices (12 bytes), before repair merges the corners.
+pub const MESH_BYTES_PER_TRIANGLE: usize = 84;
+
 /// The memory budget for requests in flight, in KiB permits.
 pub struct Budget {
     permits: Arc<Semaphore>,
@@ -121,12 +125,15 @@ impl Budget {
     }
 
     /// The limits a mesh check runs under: a decompressed 3MF model part of at most a
-    /// quarter of the budget.
+    /// quarter of the budget, and no more triangles than the half of the budget a 3MF
+    /// check holds can build ([`MESH_BYTES_PER_TRIANGLE`] each).
     pub fn mesh_limits(&self) -> crate::mesh::MeshLimits {
         let d = crate::mesh::MeshLimits::default();
         crate::mesh::MeshLimits {
             max_bytes: d.max_bytes.min((self.total / 4) as u64),
-            ..d
+            max_triangles: d
+                .max_triangles
+                .min((self.total / 2 / MESH_BYTES_PER_TRIANGLE) as u64),
         }
     }
 

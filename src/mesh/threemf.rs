@@ -380,6 +380,20 @@ impl<'a> ModelReader<'a> {
                 message: "the <build> has no items: nothing to print".into(),
             });
         }
+        // The whole expansion counted first, from the objects as read: a few KB of
+        // nested components name billions of triangles, refused before any is built.
+        let mut counted = HashMap::new();
+        let mut count: u64 = 0;
+        for &(id, _) in &self.items {
+            let n = expanded_triangles(&self.objects, id, 0, &mut counted, part)?;
+            count = count.saturating_add(n);
+        }
+        if count > self.limits.max_triangles_checked() {
+            return Err(MeshError::TooManyTriangles {
+                count,
+                limit: self.limits.max_triangles,
+            });
+        }
         let mut mesh = Mesh::default();
         let unit = DAffine3::from_scale(DVec3::splat(self.scale));
         for (id, t) in self.items {
@@ -390,6 +404,39 @@ impl<'a> ModelReader<'a> {
         }
         Ok(mesh)
     }
+}
+
+/// The triangles object `id` expands to with its components (saturating), counted
+/// without building any; each object counted once (`counted`).
+fn expanded_triangles(
+    objects: &HashMap<u64, Object>,
+    id: u64,
+    depth: usize,
+    counted: &mut HashMap<u64, u64>,
+    part: &str,
+) -> Result<u64, MeshError> {
+    let fail = |message: String| MeshError::ThreeMf {
+        part: part.to_string(),
+        message,
+    };
+    if let Some(&n) = counted.get(&id) {
+        return Ok(n);
+    }
+    if depth > MAX_COMPONENT_DEPTH {
+        return Err(fail(format!(
+            "object {id}: components nested deeper than {MAX_COMPONENT_DEPTH} (a reference cycle?)"
+        )));
+    }
+    let obj = objects
+        .get(&id)
+        .ok_or_else(|| fail(format!("reference to object {id}, which is not defined")))?;
+    let mut n = obj.triangles.len() as u64;
+    for &(child, _) in &obj.components {
+        let c = expanded_triangles(objects, child, depth + 1, counted, part)?;
+        n = n.saturating_add(c);
+    }
+    counted.insert(id, n);
+    Ok(n)
 }
 
 /// Append object `id` under transform `t` (object space -> mm), expanding components.
