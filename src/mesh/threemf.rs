@@ -406,6 +406,28 @@ impl<'a> ModelReader<'a> {
     }
 }
 
+/// Object `id`, referenced `depth` components deep: an error for one not defined or
+/// nested too deep (a reference cycle).
+fn object_at<'a>(
+    objects: &'a HashMap<u64, Object>,
+    id: u64,
+    depth: usize,
+    part: &str,
+) -> Result<&'a Object, MeshError> {
+    let fail = |message: String| MeshError::ThreeMf {
+        part: part.to_string(),
+        message,
+    };
+    if depth > MAX_COMPONENT_DEPTH {
+        return Err(fail(format!(
+            "object {id}: components nested deeper than {MAX_COMPONENT_DEPTH} (a reference cycle?)"
+        )));
+    }
+    objects
+        .get(&id)
+        .ok_or_else(|| fail(format!("reference to object {id}, which is not defined")))
+}
+
 /// The triangles object `id` expands to with its components (saturating), counted
 /// without building any; each object counted once (`counted`).
 fn expanded_triangles(
@@ -415,21 +437,10 @@ fn expanded_triangles(
     counted: &mut HashMap<u64, u64>,
     part: &str,
 ) -> Result<u64, MeshError> {
-    let fail = |message: String| MeshError::ThreeMf {
-        part: part.to_string(),
-        message,
-    };
     if let Some(&n) = counted.get(&id) {
         return Ok(n);
     }
-    if depth > MAX_COMPONENT_DEPTH {
-        return Err(fail(format!(
-            "object {id}: components nested deeper than {MAX_COMPONENT_DEPTH} (a reference cycle?)"
-        )));
-    }
-    let obj = objects
-        .get(&id)
-        .ok_or_else(|| fail(format!("reference to object {id}, which is not defined")))?;
+    let obj = object_at(objects, id, depth, part)?;
     let mut n = obj.triangles.len() as u64;
     for &(child, _) in &obj.components {
         let c = expanded_triangles(objects, child, depth + 1, counted, part)?;
@@ -453,14 +464,7 @@ fn emit(
         part: part.to_string(),
         message,
     };
-    if depth > MAX_COMPONENT_DEPTH {
-        return Err(fail(format!(
-            "object {id}: components nested deeper than {MAX_COMPONENT_DEPTH} (a reference cycle?)"
-        )));
-    }
-    let obj = objects
-        .get(&id)
-        .ok_or_else(|| fail(format!("reference to object {id}, which is not defined")))?;
+    let obj = object_at(objects, id, depth, part)?;
     let count = mesh.triangles.len() as u64 + obj.triangles.len() as u64;
     if count > limits.max_triangles_checked() {
         return Err(MeshError::TooManyTriangles {
