@@ -173,6 +173,17 @@ pub struct ResumeLines {
 /// An axis position not known, in [`ResumeLines`]' ends.
 const UNKNOWN_UM: i32 = i32::MIN;
 
+/// Where `mv` leaves the nozzle, from where the moves before it left it (`at`, updated):
+/// its target ([`end_of`]: what the writer writes, to the µm), unknown after a home.
+fn move_end(at: &mut [i32; 3], mv: &Move) -> [i32; 3] {
+    if let Some(to) = end_of(mv) {
+        *at = [to.x_um, to.y_um, to.z_um];
+    } else if matches!(mv.kind, MoveKind::Home) {
+        *at = [UNKNOWN_UM; 3];
+    }
+    *at
+}
+
 impl ResumeLines {
     /// The lines the marks of `job_id` say went out for `moves` (the job's moves, from
     /// its first): a fresh writer's preamble at the writer mark, then each move's lines
@@ -197,7 +208,7 @@ impl ResumeLines {
         w.preamble(&[], &mut lines);
         let count = |lines: &[String]| lines.iter().filter_map(|l| streamed(l)).count() as u32;
         let mut next_line = anchor.line_number + count(&lines);
-        let mut at = lines.iter().fold(NozzleAt::UNKNOWN, |at, l| at.after(l));
+        let mut at = [UNKNOWN_UM; 3];
         let mut out = Vec::new();
         let mut ends_um = Vec::new();
         for mv in moves {
@@ -217,13 +228,8 @@ impl ResumeLines {
             lines.clear();
             w.move_lines(&mv, &mut lines);
             next_line += count(&lines);
-            at = lines.iter().fold(at, |at, l| at.after(l));
             out.push((next_line.saturating_sub(1), mv.index));
-            ends_um.push(at.xyz_um.map(|v| {
-                v.and_then(|v| i32::try_from(v).ok())
-                    .filter(|v| *v != UNKNOWN_UM)
-                    .unwrap_or(UNKNOWN_UM)
-            }));
+            ends_um.push(move_end(&mut at, &mv));
         }
         Ok(Some(Self {
             job_id,
@@ -250,16 +256,10 @@ impl ResumeLines {
             if mv.index > from_index.saturating_add(span) {
                 break;
             }
-            match &mv.kind {
-                MoveKind::Travel { to, .. } | MoveKind::Extrude { to, .. } => {
-                    at = [to.x_um, to.y_um, to.z_um];
-                }
-                MoveKind::Home => at = [UNKNOWN_UM; 3],
-                _ => {}
-            }
+            let end = move_end(&mut at, &mv);
             if mv.index >= from_index {
                 out.push((0, mv.index));
-                ends_um.push(at);
+                ends_um.push(end);
             }
         }
         Ok(Self {
@@ -277,15 +277,21 @@ impl ResumeLines {
     /// retract twice (the plungers never run backwards), and the resume primes anyway.
     /// `None` when no move ends there.
     pub fn last_move_at(&self, at_um: [i64; 3], tolerance_um: u32) -> Option<u32> {
-        let tol = i64::from(tolerance_um);
-        let here = |end: &[i32; 3]| {
-            end.iter()
-                .zip(at_um)
-                .all(|(e, a)| *e != UNKNOWN_UM && (i64::from(*e) - a).abs() <= tol)
-        };
-        let first = self.ends_um.iter().position(here)?;
-        let run = self.ends_um[first..].iter().take_while(|e| here(e)).count();
+        let here = |k: usize| self.end(Some(k)).matches(at_um, tolerance_um);
+        let first = (0..self.moves.len()).find(|&k| here(k))?;
+        let run = (first..self.moves.len()).take_while(|&k| here(k)).count();
         Some(self.moves[first + run - 1].1)
+    }
+
+    /// Where move `k` (of this replay's) leaves the nozzle; nothing known for `None`.
+    fn end(&self, k: Option<usize>) -> NozzleAt {
+        let um = k.and_then(|k| self.ends_um.get(k)).copied();
+        NozzleAt {
+            xyz_um: um.map_or([None; 3], |um| {
+                um.map(|v| (v != UNKNOWN_UM).then_some(i64::from(v)))
+            }),
+            relative: false,
+        }
     }
 
     /// Whether this is [`ResumeLines::by_position`]'s.
@@ -323,16 +329,7 @@ impl ResumeLines {
         if with == without {
             return Some(with.map(|k| self.moves[k].1));
         }
-        let end = |k: Option<usize>| {
-            let um = k.and_then(|k| self.ends_um.get(k)).copied();
-            NozzleAt {
-                xyz_um: um.map_or([None; 3], |um| {
-                    um.map(|v| (v != UNKNOWN_UM).then_some(i64::from(v)))
-                }),
-                relative: false,
-            }
-        };
-        let (ran, dropped) = (end(with), end(without));
+        let (ran, dropped) = (self.end(with), self.end(without));
         if !ran.tells_apart(&dropped, tolerance_um) {
             return None;
         }
@@ -665,7 +662,8 @@ impl GcodeLink {
                 if self.back_off(sent, now) {
                     return;
                 }
-                self.recovering = self.host.recover_last_accepted(now).is_ok();
+                self.recovering =
+                    self.recovery_useful() && self.host.recover_last_accepted(now).is_ok();
                 if !self.recovering {
                     self.connect(now);
                 }
@@ -740,9 +738,17 @@ impl GcodeLink {
             wait_ms = wait_us / 1000,
             "G-code link: failed again with no line accepted; waiting before connecting again"
         );
-        self.recover_after_open = recover && self.marks.is_some();
+        self.recover_after_open = recover && self.recovery_useful();
         self.settle_until = Some(now.plus_us(wait_us));
         true
+    }
+
+    /// Whether the firmware's answer to `recover_last_accepted` says which moves ran:
+    /// always with line numbers (Marlin, RRF: the marks), on Klipper only for an
+    /// interrupted job replayed by position after edod's restart (else where its nozzle
+    /// stopped says nothing edod can use, and `M400` would wait for all it holds).
+    fn recovery_useful(&self) -> bool {
+        self.marks.is_some() || self.resume.is_some()
     }
 
     /// After a lost link: the moves up to the firmware's last accepted line ran; the
@@ -1453,6 +1459,33 @@ mod tests {
             )),
             "{events:?}"
         );
+    }
+
+    /// Klipper's link lost with no interrupted job to place: connected again at once, not
+    /// first asked where it stopped (`M400` waits for all it holds, and the answer would
+    /// go unused); with one, asked.
+    #[test]
+    fn a_lost_klipper_link_asks_where_it_stopped_only_to_place_a_job() {
+        use crate::gcode_link::LineLinkConfig;
+        let cfg = super::super::config::GcodeLink {
+            link: LineLinkConfig::for_dialect(Dialect::Klipper),
+            mix: MixWriting::Axes(vec!['A', 'B']),
+            barrel_area_mm2: 78.5,
+            plunger_limits: Vec::new(),
+        };
+        let lost = || LineEvent::LinkLost {
+            silent_us: 1,
+            unacknowledged: Vec::new(),
+        };
+        let mut link = GcodeLink::new(&cfg, 2, 1_000_000);
+        link.translate(lost(), Micros(1));
+        assert!(!link.recovering);
+        assert_eq!(link.host.state(), LinkState::Connecting);
+        let r = ResumeLines::by_position(3, 0, 10, job_moves(4).into_iter().map(Ok)).unwrap();
+        let mut link = GcodeLink::new(&cfg, 2, 1_000_000).with_resume(Some(r));
+        link.translate(lost(), Micros(1));
+        assert!(link.recovering);
+        assert_eq!(link.host.state(), LinkState::Recovering);
     }
 
     #[test]

@@ -262,12 +262,32 @@ async fn gcode_resume_lines(
     if !opened.interrupted.contains(&job_id) {
         return None;
     }
-    let (cfg, marks) = (cfg.clone(), opened.gcode_marks.clone());
+    let marks = opened.gcode_marks.clone();
+    let drives = cfg.machine.syringes.len();
+    replay_off_runtime(cfg, opened, job_id, move |moves| {
+        super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &g.settings())
+    })
+    .await
+}
+
+/// `replay` of interrupted job `job_id`'s moves, planned again on a blocking thread (off
+/// the runtime: planning takes a core and the store's reader is waited for). What
+/// fails is logged: the job then resumes from its checkpoint.
+async fn replay_off_runtime(
+    cfg: &Config,
+    opened: &store::Opened,
+    job_id: u32,
+    replay: impl FnOnce(
+            &mut dyn Iterator<Item = Result<crate::machine::Move, String>>,
+        ) -> Result<Option<super::gcode_link::ResumeLines>, String>
+        + Send
+        + 'static,
+) -> Option<super::gcode_link::ResumeLines> {
+    let cfg = cfg.clone();
     let reader = opened.stores.reader.clone();
     let replayed = tokio::task::spawn_blocking(move || {
-        let moves = replanned_moves(&reader, job_id, &cfg)?;
-        let drives = cfg.machine.syringes.len();
-        super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &g.settings())
+        let mut moves = replanned_moves(&reader, job_id, &cfg)?;
+        replay(&mut moves)
     })
     .await;
     match replayed {
@@ -275,12 +295,15 @@ async fn gcode_resume_lines(
         Ok(Err(e)) => {
             warn!(
                 job = job_id,
-                "G-code marks not usable, the job resumes from its checkpoint: {e}"
+                "the interrupted job's moves cannot be replayed, it resumes from its checkpoint: {e}"
             );
             None
         }
         Err(e) => {
-            warn!(job = job_id, "G-code marks not replayed: {e}");
+            warn!(
+                job = job_id,
+                "the interrupted job's moves were not replayed: {e}"
+            );
             None
         }
     }
@@ -334,27 +357,10 @@ async fn klipper_resume_moves(
     // and what ran between two checkpoint writes (every 100 ms), many times over: a
     // wider span can only match a move too early (repeated), never skip one.
     let span = KLIPPER_RESUME_SPAN_MOVES;
-    let cfg = cfg.clone();
-    let reader = opened.stores.reader.clone();
-    let replayed = tokio::task::spawn_blocking(move || {
-        let moves = replanned_moves(&reader, job_id, &cfg)?;
-        super::gcode_link::ResumeLines::by_position(job_id, next_index - 1, span, moves)
+    replay_off_runtime(cfg, opened, job_id, move |moves| {
+        super::gcode_link::ResumeLines::by_position(job_id, next_index - 1, span, moves).map(Some)
     })
-    .await;
-    match replayed {
-        Ok(Ok(r)) => Some(r),
-        Ok(Err(e)) => {
-            warn!(
-                job = job_id,
-                "job not planned again, it resumes from its checkpoint: {e}"
-            );
-            None
-        }
-        Err(e) => {
-            warn!(job = job_id, "job not planned again: {e}");
-            None
-        }
-    }
+    .await
 }
 
 /// Run the daemon until SIGTERM or SIGINT.

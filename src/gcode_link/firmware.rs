@@ -785,7 +785,10 @@ impl Firmware {
                 return true;
             }
         }
-        self.user_at = self.user_at.after(&cmd.text);
+        if self.cfg.dialect != Dialect::Marlin {
+            // RRF's `userPosition`, Klipper's `GET_POSITION`.
+            self.user_at = self.user_at.after(&cmd.text);
+        }
         let replies = self.run_builtin(&word, &cmd.text);
         self.answer(&word, &cmd, replies, length);
         self.processed.push_back(ProcessedLine {

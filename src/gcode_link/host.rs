@@ -1122,7 +1122,10 @@ impl LineHost {
         let q = self.queued.pop_front()?;
         let slow = self.is_slow(&q.text);
         let number = self.top;
-        self.sent_end = self.sent_end.after(&q.text);
+        // Only RRF is asked where its nozzle stands while lines stream.
+        if self.cfg.dialect == Dialect::Rrf {
+            self.sent_end = self.sent_end.after(&q.text);
+        }
         self.history.push_back(Sent {
             number,
             tag: Some(q.tag),

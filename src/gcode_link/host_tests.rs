@@ -606,6 +606,11 @@ fn rrf_query_answered_late_owes_one_ok_per_query() {
     let (mut h, at) = rrf_line_3_overdue();
     let again = h.next_timeout().unwrap();
     assert_eq!(
+        again,
+        at.plus_us(4_000_000),
+        "asked again after the ok timeout"
+    );
+    assert_eq!(
         tx(&mut h, again),
         vec![rrf_query(3)],
         "no answer: asked again"
@@ -617,7 +622,7 @@ fn rrf_query_answered_late_owes_one_ok_per_query() {
     assert_eq!(tx(&mut h, again), vec![line(4, "G1 X2")]);
     feed(&mut h, "ok\n", again);
     assert_eq!(accepted(&events(&mut h)), vec![2]);
-    let _ = at;
+    assert_eq!(h.stats().oks_unexpected, 0);
 }
 
 #[test]

@@ -113,7 +113,11 @@ fn axis_words(code: &str) -> [Option<Option<i64>>; 3] {
 
 /// A millimetre value as µm (rounded), if it reads as a finite number.
 pub fn mm_to_um(text: &str) -> Option<i64> {
-    let mm: f64 = text.parse().ok()?;
+    um_of_mm(text.parse().ok()?)
+}
+
+/// `mm` in µm (rounded), if finite and within range.
+fn um_of_mm(mm: f64) -> Option<i64> {
     let um = (mm * 1000.0).round();
     (um.is_finite() && um.abs() < 1e15).then_some(um as i64)
 }
@@ -138,7 +142,7 @@ pub fn rrf_user_position(json: &str) -> Result<Option<[i64; 3]>, String> {
             .and_then(|a| a.get("userPosition"))
             .and_then(|p| p.as_f64())
             .ok_or_else(|| format!("axis {k} has no userPosition"))?;
-        *slot = mm_to_um(&mm.to_string()).ok_or_else(|| format!("axis {k}: {mm} mm"))?;
+        *slot = um_of_mm(mm).ok_or_else(|| format!("axis {k}: {mm} mm"))?;
     }
     Ok(Some(at))
 }

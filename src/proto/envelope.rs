@@ -224,9 +224,16 @@ impl Request {
             id: Id::Null,
             error: ApiError::new(ApiError::PARSE, format!("not JSON: {e}")),
         })?;
-        // A number id as sent: the parsed value holds it as an f64 beyond 64 bits.
-        let raw_number = serde_json::from_slice::<RawId<'_>>(line)
-            .ok()
+        // A number id as sent: the parsed value holds one beyond 64-bit integers (and
+        // `-0`, `1e5`) as an f64; only then is the line read again for its text (a job
+        // line of 60 MiB is not scanned twice for an id of 7).
+        let float_id = v
+            .get("id")
+            .and_then(Value::as_number)
+            .is_some_and(serde_json::Number::is_f64);
+        let raw_number = float_id
+            .then(|| serde_json::from_slice::<RawId<'_>>(line).ok())
+            .flatten()
             .and_then(|r| r.id)
             .and_then(|raw| NumberText::parse(raw.get()));
         let exact = |id: Id| match (id, &raw_number) {

@@ -300,28 +300,18 @@ async fn from_plan<T: Send + 'static>(
         planning.plan(find, want, &*read, &stop)
     })
     .await?;
-    drop(given_up.defuse());
     answer.map_err(error_response)
 }
 
 /// Set when dropped: a request's future dropped before its plan was answered (its
-/// client left) tells the planning thread to stop.
+/// client left) tells the planning thread to stop; dropped after, the planning is over
+/// and the flag, this request's own, is read by no one.
 #[derive(Default)]
-struct GivenUp(Arc<std::sync::atomic::AtomicBool>, bool);
-
-impl GivenUp {
-    /// The answer came: dropping it no longer stops anything.
-    fn defuse(mut self) -> Self {
-        self.1 = true;
-        self
-    }
-}
+struct GivenUp(Arc<std::sync::atomic::AtomicBool>);
 
 impl Drop for GivenUp {
     fn drop(&mut self) {
-        if !self.1 {
-            self.0.store(true, std::sync::atomic::Ordering::Relaxed);
-        }
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
     }
 }
 
