@@ -1210,6 +1210,16 @@ mod tests {
     }
 
     /// An adapter for Marlin (two syringes) and the Marlin model it talks to.
+    /// A Klipper link's settings: two syringes on axes A and B.
+    fn klipper_config() -> super::super::config::GcodeLink {
+        super::super::config::GcodeLink {
+            link: crate::gcode_link::LineLinkConfig::for_dialect(Dialect::Klipper),
+            mix: MixWriting::Axes(vec!['A', 'B']),
+            barrel_area_mm2: 78.5,
+            plunger_limits: Vec::new(),
+        }
+    }
+
     fn marlin_rig() -> (GcodeLink, crate::gcode_link::Firmware) {
         use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
         let cfg = super::super::config::GcodeLink {
@@ -1275,13 +1285,8 @@ mod tests {
     /// more is sent until the next job's preamble takes the axes again.
     #[test]
     fn klipper_axes_are_released_once_a_job_ended_and_ran() {
-        use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
-        let cfg = super::super::config::GcodeLink {
-            link: LineLinkConfig::for_dialect(Dialect::Klipper),
-            mix: MixWriting::Axes(vec!['A', 'B']),
-            barrel_area_mm2: 78.5,
-            plunger_limits: Vec::new(),
-        };
+        use crate::gcode_link::{Firmware, FirmwareConfig};
+        let cfg = klipper_config();
         let mut link = GcodeLink::new(&cfg, 2, 1_000_000);
         let mut fw = Firmware::new(FirmwareConfig::for_dialect(Dialect::Klipper), Micros(0));
         let (mut ran, mut events) = (Vec::new(), Vec::new());
@@ -1466,13 +1471,7 @@ mod tests {
     /// go unused); with one, asked.
     #[test]
     fn a_lost_klipper_link_asks_where_it_stopped_only_to_place_a_job() {
-        use crate::gcode_link::LineLinkConfig;
-        let cfg = super::super::config::GcodeLink {
-            link: LineLinkConfig::for_dialect(Dialect::Klipper),
-            mix: MixWriting::Axes(vec!['A', 'B']),
-            barrel_area_mm2: 78.5,
-            plunger_limits: Vec::new(),
-        };
+        let cfg = klipper_config();
         let lost = || LineEvent::LinkLost {
             silent_us: 1,
             unacknowledged: Vec::new(),
