@@ -2084,3 +2084,215 @@ fn a_full_state_disk_holds_state_changes_and_loses_no_operator_decision() {
         "the cancelled job never ran"
     );
 }
+
+/// A daemon with the dashboard on a free loopback port, `api` added to its `[api]`
+/// table; its address.
+fn start_with_dashboard(
+    dir: &Path,
+    port: &Path,
+    max_request_bytes: usize,
+    api: &str,
+) -> (Daemon, std::net::SocketAddr) {
+    Daemon::write_config(dir, port, max_request_bytes, 1000, api);
+    let addr = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let config = dir.join("edod.toml");
+    let text = std::fs::read_to_string(&config).unwrap();
+    let served = text.replace(
+        "[http]\nenabled = false\n",
+        &format!("[http]\nlisten = \"{addr}\"\n"),
+    );
+    assert_ne!(served, text);
+    std::fs::write(&config, served).unwrap();
+    (Daemon::spawn(dir.join("edod.sock"), config), addr)
+}
+
+/// This process's open-file limit raised to its hard limit (the tests below open
+/// more than 1,024 connections); the limit.
+fn raise_own_open_files() -> u64 {
+    use nix::sys::resource::{getrlimit, setrlimit, Resource};
+    let (_, hard) = getrlimit(Resource::RLIMIT_NOFILE).unwrap();
+    setrlimit(Resource::RLIMIT_NOFILE, hard, hard).unwrap();
+    hard
+}
+
+/// `POST /api/rpc` of `method` on a new connection to `addr`: the answer, and how long
+/// it took.
+fn post_rpc(addr: std::net::SocketAddr, method: &str) -> (String, Duration) {
+    use std::io::Read;
+    let t = Instant::now();
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let body = format!(r#"{{"jsonrpc":"2.0","id":1,"method":"{method}"}}"#);
+    write!(
+        s,
+        "POST /api/rpc HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .unwrap();
+    let mut answer = String::new();
+    s.read_to_string(&mut answer).unwrap();
+    (answer, t.elapsed())
+}
+
+/// 1,100 idle connections to the dashboard (more than the 1,024 open files edod had
+/// by default, all of which they took before): edod counts them against its places
+/// (256 ordinary, 4 control), answers the rest 503 at once and keeps descriptors for
+/// everyone else: `edoctl estop` and `status` on the socket and an e-stop by
+/// `POST /api/rpc` (a newcomer takes an idle control place) are answered at once.
+#[test]
+fn a_thousand_idle_dashboard_connections_do_not_lock_out_the_estop() {
+    assert!(
+        raise_own_open_files() >= 2048,
+        "the test needs 2,048 open files"
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 17);
+    let (d, addr) = start_with_dashboard(dir.path(), sim.path(), 4096, "");
+    let mut c = d.client();
+    c.wait_connected();
+    let limits = std::fs::read_to_string(format!("/proc/{}/limits", d.child.id())).unwrap();
+    let idle: Vec<std::net::TcpStream> = (0..1100)
+        .map(|_| std::net::TcpStream::connect(addr).unwrap())
+        .collect();
+    // Let edod accept them all (the refused ones are answered and closed).
+    std::thread::sleep(Duration::from_millis(500));
+    let fds = std::fs::read_dir(format!("/proc/{}/fd", d.child.id()))
+        .unwrap()
+        .count();
+    let t = Instant::now();
+    let status = d.edoctl_ok(["status"]);
+    let status_took = t.elapsed();
+    let t = Instant::now();
+    let estop = d.edoctl_ok(["estop"]);
+    let estop_took = t.elapsed();
+    let (posted, post_took) = post_rpc(addr, "machine.estop");
+    eprintln!(
+        "1,100 idle dashboard connections: edod holds {fds} descriptors; edoctl status \
+         {status_took:?}, edoctl estop {estop_took:?}, POST machine.estop {post_took:?}"
+    );
+    assert!(!status.is_empty() && !estop.is_empty());
+    assert!(posted.starts_with("HTTP/1.1 200"), "{posted}");
+    assert!(posted.contains("written_after_us"), "{posted}");
+    assert!(fds < 400, "edod holds {fds} descriptors");
+    assert!(estop_took < Duration::from_secs(2) && post_took < Duration::from_secs(2));
+    // edod raised its soft limit to the hard one.
+    let soft = |l: &str| {
+        l.lines()
+            .find(|l| l.starts_with("Max open files"))
+            .and_then(|l| l.split_whitespace().nth(3).map(str::to_owned))
+    };
+    assert_eq!(soft(&limits), Some(raise_own_open_files().to_string()));
+    drop(idle);
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
+/// With a hard limit of open files below what its connection places need, edod refuses
+/// to start, naming the settings and the limit (it would otherwise run out of
+/// descriptors before it refuses connections).
+#[test]
+fn too_few_open_files_for_the_connection_places_refuse_the_start() {
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 18);
+    Daemon::write_config(dir.path(), sim.path(), 4096, 1000, "max_clients = 500");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_edod"));
+    cmd.arg("--config")
+        .arg(dir.path().join("edod.toml"))
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null());
+    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        cmd.pre_exec(|| {
+            nix::sys::resource::setrlimit(nix::sys::resource::Resource::RLIMIT_NOFILE, 400, 400)
+                .map_err(std::io::Error::from)
+        });
+    }
+    let out = cmd.output().unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{said}");
+    assert!(
+        said.contains("api.max_clients = 500")
+            && said.contains("need 568 open files")
+            && said.contains("only 400"),
+        "{said}"
+    );
+    sim.stop().unwrap();
+}
+
+/// 20 clients each send half of a 60 MiB `POST /api/rpc` body and stop: bodies are
+/// read as they arrive and counted against the memory budget (256 MiB), so the ones it
+/// cannot hold are refused at once (503 naming it) and the others answered 408 after
+/// the idle timeout; edod's peak memory stays within the budget and a margin (before:
+/// 11 -> 632 MB, no answer after 30 s).
+#[test]
+fn twenty_half_sent_dashboard_bodies_stay_within_the_memory_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 19);
+    let (d, addr) = start_with_dashboard(dir.path(), sim.path(), 64 << 20, "idle_timeout_s = 4");
+    let mut c = d.client();
+    c.wait_connected();
+    let before = peak_memory(&d);
+    let half: Arc<Vec<u8>> = Arc::new({
+        let mut v = format!(
+            "POST /api/rpc HTTP/1.1\r\nHost: {addr}\r\nContent-Length: {}\r\n\r\n\
+             {{\"jsonrpc\":\"2.0\",\"id\":1,\"method\":\"job.submit\",\"params\":{{\"job\":\"",
+            60 << 20
+        )
+        .into_bytes();
+        v.resize(30 << 20, b'A');
+        v
+    });
+    let t = Instant::now();
+    let clients: Vec<_> = (0..20)
+        .map(|_| {
+            let half = Arc::clone(&half);
+            std::thread::spawn(move || {
+                use std::io::Read;
+                let mut s = std::net::TcpStream::connect(addr).unwrap();
+                // edod may answer and close before the write ends.
+                let _ = s.write_all(&half);
+                s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+                let mut answer = Vec::new();
+                let _ = s.read_to_end(&mut answer);
+                (String::from_utf8_lossy(&answer).into_owned(), t.elapsed())
+            })
+        })
+        .collect();
+    let replies: Vec<(String, Duration)> = clients.into_iter().map(|h| h.join().unwrap()).collect();
+    let peak = peak_memory(&d);
+    let (mut refused, mut timed_out) = (0, 0);
+    for (r, at) in &replies {
+        if r.starts_with("HTTP/1.1 503") {
+            assert!(r.contains("api.memory_budget_bytes = 256.0 MiB"), "{r}");
+            refused += 1;
+        } else {
+            assert!(r.starts_with("HTTP/1.1 408"), "{r:.300}");
+            assert!(r.contains("api.idle_timeout_s"), "{r}");
+            timed_out += 1;
+        }
+        assert!(*at < Duration::from_secs(15), "answered after {at:?}");
+    }
+    eprintln!(
+        "20 half-sent 60 MiB dashboard bodies: {refused} refused over the budget, \
+         {timed_out} timed out; edod VmHWM {} MiB before, {} MiB after",
+        before >> 20,
+        peak >> 20
+    );
+    assert!(refused >= 10, "{refused} refused");
+    assert!(
+        peak < before + (256 << 20) + (32 << 20),
+        "peak {} MiB",
+        peak >> 20
+    );
+    let (answer, _) = post_rpc(addr, "server.info");
+    assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}

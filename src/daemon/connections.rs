@@ -279,7 +279,7 @@ impl<R: AsyncBufRead + Unpin> LineReader<R> {
 
 /// Make room for `need` bytes in `line`, taking what it grows past [`SMALL_LINE`] from
 /// `budget` (doubling, up to `max`); false if the budget has not got it.
-fn grow(
+pub(crate) fn grow(
     line: &mut Vec<u8>,
     held: &mut Held,
     need: usize,
@@ -501,7 +501,7 @@ async fn answer(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, bool) {
 }
 
 /// The connections beyond `max_clients`, for control requests only.
-struct Reserve {
+pub(crate) struct Reserve {
     cap: usize,
     inner: Mutex<ReserveState>,
 }
@@ -516,7 +516,7 @@ struct ReserveState {
 }
 
 /// A control connection's place in the [`Reserve`].
-struct Ticket {
+pub(crate) struct Ticket {
     reserve: Arc<Reserve>,
     id: u64,
     /// The eviction of its first wait, which starts at admission: a connection whose
@@ -527,7 +527,7 @@ struct Ticket {
 }
 
 impl Reserve {
-    fn new(cap: usize) -> Reserve {
+    pub(crate) fn new(cap: usize) -> Reserve {
         Reserve {
             cap,
             inner: Mutex::new(ReserveState::default()),
@@ -537,7 +537,7 @@ impl Reserve {
     /// A place for a new control connection: a free one, or the one of the oldest
     /// connection waiting for its client (which is closed); none if every one is
     /// answering a request.
-    fn admit(reserve: &Arc<Reserve>) -> Option<Ticket> {
+    pub(crate) fn admit(reserve: &Arc<Reserve>) -> Option<Ticket> {
         let mut s = reserve.inner.lock().ok()?;
         if s.open >= reserve.cap {
             let (_, evict) = s.waiting.pop_front()?;
@@ -559,7 +559,7 @@ impl Reserve {
 impl Ticket {
     /// Mark the connection as waiting for its client: the receiver fires when a
     /// newcomer takes its place.
-    fn waiting(&mut self) -> oneshot::Receiver<()> {
+    pub(crate) fn waiting(&mut self) -> oneshot::Receiver<()> {
         if let Some(first) = self.first_wait.take() {
             return first;
         }
@@ -572,7 +572,7 @@ impl Ticket {
     }
 
     /// Mark the connection as answering a request: it keeps its place.
-    fn busy(&self) {
+    pub(crate) fn busy(&self) {
         if let Ok(mut s) = self.reserve.inner.lock() {
             s.waiting.retain(|(id, _)| *id != self.id);
         }
@@ -589,7 +589,7 @@ impl Drop for Ticket {
 }
 
 /// The error for an ordinary request on a control connection.
-fn control_only(shared: &Shared) -> ApiError {
+pub(crate) fn control_only(shared: &Shared) -> ApiError {
     ApiError::new(
         ApiError::LIMIT,
         format!(

@@ -235,6 +235,60 @@ pub fn secure_db_files(state_dir: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Descriptors edod holds besides its clients' connections: the store (the database,
+/// its `-wal` and `-shm`, on its threads), the serial port or the simulator's pty, the
+/// two locks, the listeners, the runtime's own (epoll, eventfds), a mesh file being
+/// read, the journal's stream; with room to spare.
+pub const OWN_DESCRIPTORS: u64 = 64;
+
+/// The open files edod's connection budget needs: each client place on the socket
+/// and, when the dashboard is served, as many again on it (counted apart), plus
+/// [`OWN_DESCRIPTORS`].
+pub fn descriptors_needed(cfg: &Config) -> u64 {
+    let places = (cfg.api.max_clients + cfg.api.control_clients) as u64;
+    let transports = if cfg.http.enabled { 2 } else { 1 };
+    places * transports + OWN_DESCRIPTORS
+}
+
+/// Raise the soft limit of open files to the hard one (the default soft 1024 is a
+/// limit for `select()`, which edod does not use), and refuse to start when even that
+/// cannot hold the connection budget: edod then refuses connections beyond its places
+/// before it runs out of descriptors, so `edoctl estop` always gets one. Returns the
+/// limit.
+pub fn raise_open_files(cfg: &Config) -> Result<u64> {
+    use nix::sys::resource::{getrlimit, setrlimit, Resource};
+    let (soft, hard) = getrlimit(Resource::RLIMIT_NOFILE).context("getrlimit(RLIMIT_NOFILE)")?;
+    let limit = if soft < hard {
+        match setrlimit(Resource::RLIMIT_NOFILE, hard, hard) {
+            Ok(()) => hard,
+            Err(e) => {
+                tracing::warn!(soft, hard, error = %e, "cannot raise the open-file limit");
+                soft
+            }
+        }
+    } else {
+        soft
+    };
+    let need = descriptors_needed(cfg);
+    if limit < need {
+        bail!(
+            "api.max_clients = {} and api.control_clients = {} need {need} open files \
+             ({} client places{}, and {OWN_DESCRIPTORS} of edod's own), but edod may open \
+             only {limit} (its hard limit: `ulimit -Hn`, LimitNOFILE= in the unit); lower \
+             api.max_clients or raise the limit",
+            cfg.api.max_clients,
+            cfg.api.control_clients,
+            cfg.api.max_clients + cfg.api.control_clients,
+            if cfg.http.enabled {
+                " on the socket and as many on the dashboard"
+            } else {
+                " on the socket"
+            },
+        );
+    }
+    Ok(limit)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

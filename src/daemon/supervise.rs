@@ -374,6 +374,9 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
     // First of all: one edod per state directory and socket (nothing read or started
     // before), held until this function returns.
     let _instance = instance::lock(&cfg)?;
+    // Descriptors for every connection place (the dashboard's too): else refuse.
+    let open_files = instance::raise_open_files(&cfg)?;
+    tracing::debug!(open_files, "open-file limit");
     // Then the dashboard's port: taken, edod refuses to start before it opens the store.
     let dashboard_listener = super::http::bind(&cfg.http)
         .await

@@ -10,6 +10,7 @@
 //! is [`guard`]'s. Nothing a client sends is used as a path on the host: the page's
 //! files are a fixed table, and a job is named by its number.
 
+pub mod conn;
 pub mod guard;
 mod layers;
 mod page;
@@ -19,14 +20,13 @@ mod ws;
 
 use std::sync::Arc;
 
-use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::extract::{Request, State};
 use axum::http::StatusCode;
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::Router;
 use tokio::sync::Semaphore;
-use tracing::warn;
 
 pub use guard::Guard;
 
@@ -38,8 +38,6 @@ pub struct App {
     pub shared: Arc<Shared>,
     /// The listener's rules.
     pub guard: Guard,
-    /// One place per WebSocket (`api.max_clients`).
-    pub sockets: Arc<Semaphore>,
     /// Plans made for previews and layer views, one at a time (they take a core).
     pub planning: Arc<Semaphore>,
     /// The plans kept for previews and layer views.
@@ -63,7 +61,6 @@ pub fn app(shared: Arc<Shared>, guard: Guard) -> Arc<App> {
         limits: shared.budget.mesh_limits(),
     });
     Arc::new(App {
-        sockets: Arc::new(Semaphore::new(shared.config.api.max_clients)),
         planning: Arc::new(Semaphore::new(1)),
         plans,
         shared,
@@ -73,7 +70,6 @@ pub fn app(shared: Arc<Shared>, guard: Guard) -> Arc<App> {
 
 /// The routes of `app`, guarded.
 pub fn routes(app: Arc<App>) -> Router {
-    let max = app.shared.config.api.max_request_bytes;
     Router::new()
         .route("/", get(page::index))
         .route("/app.js", get(page::script))
@@ -88,10 +84,13 @@ pub fn routes(app: Arc<App>) -> Router {
         .route("/api/preview", post(rest::preview))
         .route("/api/previews/{id}/layers/{layer}", get(rest::preview_svg))
         .fallback(not_found)
-        .layer(DefaultBodyLimit::max(max))
         .layer(axum::middleware::from_fn_with_state(
             Arc::clone(&app),
             guarded,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::clone(&app),
+            conn::counted,
         ))
         .with_state(app)
 }
@@ -149,15 +148,21 @@ pub async fn bind(http: &crate::daemon::config::HttpConfig) -> Result<Option<Lis
     Ok(Some(Listening { listener, guard }))
 }
 
-/// Serve the dashboard on `listening` until the task is aborted.
+impl Listening {
+    /// `listener` under `guard`'s rules (tests bind their own).
+    pub fn new(listener: tokio::net::TcpListener, guard: Guard) -> Listening {
+        Listening { listener, guard }
+    }
+}
+
+/// Serve the dashboard on `listening` until the task is aborted, each connection under
+/// the connection budget ([`conn`]).
 pub async fn serve(shared: Arc<Shared>, listening: Listening) {
     if let Ok(addr) = listening.listener.local_addr() {
         tracing::info!("dashboard at http://{addr}/");
     }
-    let app = router(shared, listening.guard);
-    if let Err(e) = axum::serve(listening.listener, app).await {
-        warn!("dashboard stopped: {e}");
-    }
+    let app = router(Arc::clone(&shared), listening.guard);
+    conn::serve(listening.listener, app, shared).await;
 }
 
 #[cfg(test)]

@@ -8,10 +8,11 @@ use axum::body::{Body, Bytes};
 use axum::extract::{Path, Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
+use axum::Extension;
 use serde_json::{json, Value};
 
 use super::plans::{self, Find, Key, Miss, Plan, Want};
-use super::App;
+use super::{conn, App};
 use crate::daemon::connections::Session;
 use crate::proto::{ApiError, Id, Request};
 
@@ -90,36 +91,61 @@ pub async fn job(State(app): State<Arc<App>>, Path(id): Path<u32>) -> Response {
     call(&app, "job.get", Some(json!({ "id": id }))).await
 }
 
-/// A body's bytes, over `api.max_request_bytes` refused (413), held from the memory
-/// budget (twice its length, as a socket line) while `f` runs.
-async fn with_budget<F, Fut>(app: &App, body: Bytes, f: F) -> Response
+/// A body read as it arrives ([`conn::read_body`]: 413 over `max`, 503 over the
+/// memory budget, 408 when it does not arrive within the idle timeout), held from the
+/// memory budget at twice its length (as a socket line) while `f` runs.
+async fn with_budget<F, Fut>(app: &App, body: Body, max: usize, f: F) -> Response
 where
     F: FnOnce(Bytes) -> Fut,
     Fut: std::future::Future<Output = Response>,
 {
-    let held = if body.len() > crate::daemon::connections::SMALL_LINE {
-        match app.shared.budget.take(2 * body.len(), "this request").await {
+    let (bytes, reading) = match conn::read_body(&app.shared, body, max).await {
+        Ok(b) => b,
+        Err(r) => return r,
+    };
+    let decoding = if bytes.len() > crate::daemon::connections::SMALL_LINE {
+        match app.shared.budget.take(bytes.len(), "this request").await {
             Ok(h) => Some(h),
             Err(e) => return error_response(e),
         }
     } else {
         None
     };
-    let r = f(body).await;
-    drop(held);
+    let r = f(Bytes::from(bytes)).await;
+    drop((reading, decoding));
     r
 }
 
-/// `POST /api/rpc`: one JSON-RPC request as the body, its response as the answer.
-pub async fn rpc(State(app): State<Arc<App>>, body: Bytes) -> Response {
+/// `POST /api/rpc`: one JSON-RPC request as the body, its response as the answer. On
+/// a control connection ([`conn`]) only `machine.estop` and `machine.status`.
+pub async fn rpc(
+    State(app): State<Arc<App>>,
+    place: Option<Extension<Arc<conn::Conn>>>,
+    body: Body,
+) -> Response {
     let shared = Arc::clone(&app.shared);
-    with_budget(&app, body, |body| async move {
+    let control = place.is_some_and(|Extension(c)| c.control_only());
+    let max = if control {
+        conn::CONTROL_BODY
+    } else {
+        shared.config.api.max_request_bytes
+    };
+    with_budget(&app, body, max, |body| async move {
+        if control && !is_control_request(&body) {
+            return conn::control_refusal(&shared);
+        }
         match Session::default().request(&body, &shared).await {
             Some(r) => json_response(StatusCode::OK, r),
             None => StatusCode::NO_CONTENT.into_response(),
         }
     })
     .await
+}
+
+/// Whether `body` asks one of the methods a control connection may ask.
+fn is_control_request(body: &[u8]) -> bool {
+    Request::from_line(body)
+        .is_ok_and(|r| crate::daemon::connections::CONTROL_METHODS.contains(&r.method.as_str()))
 }
 
 /// What a preview is asked for: a job file and its mesh.
@@ -165,10 +191,11 @@ pub struct LayerQuery {
 pub async fn preview(
     State(app): State<Arc<App>>,
     Query(q): Query<LayerQuery>,
-    body: Bytes,
+    body: Body,
 ) -> Response {
     let app2 = Arc::clone(&app);
-    with_budget(&app, body, move |body| async move {
+    let max = app.shared.config.api.max_request_bytes;
+    with_budget(&app, body, max, move |body| async move {
         let (toml, mesh) = match PreviewAsk::parse(&body) {
             Ok(a) => a,
             Err(e) => return error_response(e),

@@ -308,7 +308,7 @@ async fn a_preview_names_what_a_submission_would_refuse() {
 async fn listen(shared: Arc<Shared>, guard: Guard) -> std::net::SocketAddr {
     let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = l.local_addr().unwrap();
-    tokio::spawn(async move { axum::serve(l, router(shared, guard)).await });
+    tokio::spawn(super::serve(shared, super::Listening::new(l, guard)));
     addr
 }
 
@@ -645,4 +645,188 @@ async fn the_kept_plans_stay_within_their_bounds() {
         StatusCode::OK
     );
     assert_eq!(cache.plans_made(), 2);
+}
+
+/// `req` (an HTTP/1.1 request but its `Host` line, which is added; or nothing) written on a
+/// new connection to `addr`; what edod answers until it closes the connection, and how
+/// long that took (at most 10 s).
+async fn exchange(addr: std::net::SocketAddr, req: &[u8]) -> (String, std::time::Duration) {
+    let s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    exchange_on(s, addr, req).await
+}
+
+async fn exchange_on(
+    mut s: tokio::net::TcpStream,
+    addr: std::net::SocketAddr,
+    req: &[u8],
+) -> (String, std::time::Duration) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let t = std::time::Instant::now();
+    let mut whole = Vec::new();
+    if let Some(line_end) = req.windows(2).position(|w| w == b"\r\n") {
+        whole.extend_from_slice(&req[..line_end + 2]);
+        whole.extend_from_slice(format!("Host: {addr}\r\n").as_bytes());
+        whole.extend_from_slice(&req[line_end + 2..]);
+    }
+    // edod may answer and close before all is written (a refused body).
+    let _ = s.write_all(&whole).await;
+    let mut answer = Vec::new();
+    let read = tokio::time::timeout(
+        std::time::Duration::from_secs(10),
+        s.read_to_end(&mut answer),
+    )
+    .await;
+    assert!(read.is_ok(), "edod did not close the connection");
+    (String::from_utf8_lossy(&answer).into_owned(), t.elapsed())
+}
+
+fn rpc_post(method: &str) -> Vec<u8> {
+    let body = rpc(method);
+    format!(
+        "POST /api/rpc HTTP/1.1\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\
+         Connection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .into_bytes()
+}
+
+/// With every ordinary place taken by subscribed WebSockets, a new connection gets a
+/// control place: it may stop the machine and read its status (the page's e-stop falls
+/// back to `POST /api/rpc`), not open a WebSocket or ask anything else (503 naming
+/// `api.max_clients`). An idle control connection gives its place to a newcomer.
+#[tokio::test]
+async fn beyond_max_clients_the_estop_and_status_still_get_through() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::{Error, Message};
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared_with(dir.path(), |c| {
+        c.api.max_clients = 2;
+        c.api.control_clients = 1;
+    })
+    .await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let mut sockets = Vec::new();
+    for _ in 0..2 {
+        let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/websocket"))
+            .await
+            .unwrap();
+        ws.send(Message::text(rpc("subscribe"))).await.unwrap();
+        ws.next().await.unwrap().unwrap();
+        sockets.push(ws);
+    }
+    match tokio_tungstenite::connect_async(format!("ws://{addr}/websocket")).await {
+        Err(Error::Http(r)) => assert_eq!(r.status(), StatusCode::SERVICE_UNAVAILABLE),
+        other => panic!("a third WebSocket was not refused: {other:?}"),
+    }
+    let (estop, took) = exchange(addr, &rpc_post("machine.estop")).await;
+    assert!(estop.starts_with("HTTP/1.1 200"), "{estop}");
+    assert!(estop.contains("\"acked_after_us\":20"), "{estop}");
+    eprintln!("e-stop by POST with every place taken: {took:?}");
+    let (status, _) = exchange(
+        addr,
+        b"GET /api/status HTTP/1.1\r\nConnection: close\r\n\r\n",
+    )
+    .await;
+    assert!(status.starts_with("HTTP/1.1 200"), "{status}");
+    let (list, _) = exchange(addr, &rpc_post("job.list")).await;
+    assert!(list.starts_with("HTTP/1.1 503"), "{list}");
+    assert!(list.contains("api.max_clients = 2"), "{list}");
+    let (jobs, _) = exchange(addr, b"GET /api/jobs HTTP/1.1\r\n\r\n").await;
+    assert!(jobs.starts_with("HTTP/1.1 503"), "{jobs}");
+    // An idle connection holds the one control place; a newcomer takes it.
+    let idle = tokio::net::TcpStream::connect(addr).await.unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    let (estop, _) = exchange(addr, &rpc_post("machine.estop")).await;
+    assert!(estop.starts_with("HTTP/1.1 200"), "{estop}");
+    let (gone, took) = exchange_on(idle, addr, b"GET / HTTP/1.1\r\n\r\n").await;
+    assert!(
+        gone.is_empty() && took < std::time::Duration::from_secs(1),
+        "{gone}"
+    );
+    // The WebSockets were served throughout.
+    sockets[0]
+        .send(Message::text(rpc("machine.status")))
+        .await
+        .unwrap();
+    let reply = sockets[0]
+        .next()
+        .await
+        .unwrap()
+        .unwrap()
+        .into_text()
+        .unwrap();
+    assert!(reply.contains("executed_total"), "{reply}");
+}
+
+/// A connection that sends nothing, or half a request head, or half a body, is closed
+/// after `api.idle_timeout_s` (2 s here): the half body answered 408 naming it.
+#[tokio::test]
+async fn idle_and_half_sent_requests_are_closed_after_the_idle_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared(dir.path(), 1 << 20).await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let nothing = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let half_head = exchange(addr, b"GET /api/status HTTP/1.1\r\nAccept: */*");
+    let half_body = exchange(
+        addr,
+        b"POST /api/rpc HTTP/1.1\r\nContent-Length: 100\r\n\r\n{\"jsonrpc\":",
+    );
+    let (nothing, half_head, half_body) =
+        tokio::join!(exchange_on(nothing, addr, b""), half_head, half_body);
+    for (what, (answer, took)) in [("nothing", &nothing), ("half a head", &half_head)] {
+        assert!(answer.is_empty(), "{what}: {answer}");
+        assert!(
+            (1500..4000).contains(&took.as_millis()),
+            "{what}: closed after {took:?}"
+        );
+    }
+    let (answer, took) = half_body;
+    assert!(answer.starts_with("HTTP/1.1 408"), "{answer}");
+    assert!(answer.contains("api.idle_timeout_s"), "{answer}");
+    assert!((1500..4000).contains(&took.as_millis()), "{took:?}");
+    // A keep-alive connection is served, then closed once idle.
+    let (answer, took) = exchange(addr, b"GET /api/status HTTP/1.1\r\n\r\n").await;
+    assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+    assert!((1500..4000).contains(&took.as_millis()), "{took:?}");
+}
+
+/// A body is counted against the memory budget as it arrives: with a 4 MiB budget and
+/// one 3 MiB body half sent (held), a second is refused at once (503, naming
+/// `api.memory_budget_bytes`) rather than read.
+#[tokio::test]
+async fn bodies_are_counted_against_the_memory_budget_as_they_arrive() {
+    use tokio::io::AsyncWriteExt;
+    let dir = tempfile::tempdir().unwrap();
+    let shared = shared_with(dir.path(), |c| {
+        c.api.max_request_bytes = 3 << 20;
+        c.api.memory_budget_bytes = Some(4 << 20);
+    })
+    .await;
+    let addr = listen(Arc::clone(&shared), loopback()).await;
+    let head = format!(
+        "POST /api/rpc HTTP/1.1\r\nHost: {addr}\r\nContent-Length: {}\r\n\r\n",
+        3 << 20
+    );
+    let mut first = tokio::net::TcpStream::connect(addr).await.unwrap();
+    first.write_all(head.as_bytes()).await.unwrap();
+    first.write_all(&vec![b' '; 5 << 19]).await.unwrap();
+    tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    let mut req = b"POST /api/rpc HTTP/1.1\r\nContent-Length: 3145728\r\n\r\n".to_vec();
+    req.extend(std::iter::repeat_n(b' ', 5 << 19));
+    let (answer, took) = exchange(addr, &req).await;
+    assert!(answer.starts_with("HTTP/1.1 503"), "{answer}");
+    assert!(
+        answer.contains("api.memory_budget_bytes = 4.0 MiB"),
+        "{answer}"
+    );
+    assert!(took < std::time::Duration::from_secs(1), "{took:?}");
+    // Announced over api.max_request_bytes: 413 before a byte of it is read.
+    let (answer, _) = exchange(
+        addr,
+        b"POST /api/preview HTTP/1.1\r\nContent-Length: 3145729\r\n\r\n",
+    )
+    .await;
+    assert!(answer.starts_with("HTTP/1.1 413"), "{answer}");
+    assert!(answer.contains("api.max_request_bytes"), "{answer}");
+    drop(first);
 }

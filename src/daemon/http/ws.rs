@@ -11,25 +11,29 @@ use std::sync::Arc;
 
 use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::extract::State;
-use axum::http::StatusCode;
-use axum::response::{IntoResponse, Response};
-use tokio::sync::{mpsc, OwnedSemaphorePermit};
+use axum::response::Response;
+use axum::Extension;
+use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tracing::debug;
 
+use super::conn::Conn;
 use super::App;
 use crate::daemon::connections::{error_line, idle_error, queue_notification, too_long, Session};
 use crate::daemon::Shared;
 use crate::proto::Id;
 
-pub async fn upgrade(State(app): State<Arc<App>>, ws: WebSocketUpgrade) -> Response {
-    let Ok(place) = Arc::clone(&app.sockets).try_acquire_owned() else {
-        return (
-            StatusCode::SERVICE_UNAVAILABLE,
-            "edod is serving its most clients (api.max_clients); try again later",
-        )
-            .into_response();
-    };
+/// The upgrade. The WebSocket keeps its connection's place in the connection budget
+/// ([`super::conn`]) until it ends; a control connection may not open one.
+pub async fn upgrade(
+    State(app): State<Arc<App>>,
+    conn: Option<Extension<Arc<Conn>>>,
+    ws: WebSocketUpgrade,
+) -> Response {
+    let place = conn.map(|Extension(c)| c);
+    if place.as_ref().is_some_and(|c| c.control_only()) {
+        return super::conn::control_refusal(&app.shared);
+    }
     let max = app.shared.config.api.max_request_bytes;
     let shared = Arc::clone(&app.shared);
     ws.max_message_size(max)
@@ -38,7 +42,7 @@ pub async fn upgrade(State(app): State<Arc<App>>, ws: WebSocketUpgrade) -> Respo
 }
 
 /// One WebSocket client, until it closes, idles or falls behind.
-async fn client(socket: WebSocket, shared: Arc<Shared>, _place: OwnedSemaphorePermit) {
+async fn client(socket: WebSocket, shared: Arc<Shared>, _place: Option<Arc<Conn>>) {
     use futures_util::{SinkExt, StreamExt};
     let (mut sink, mut stream) = socket.split();
     let (tx, mut rx) = mpsc::channel::<Arc<str>>(shared.config.api.client_queue);

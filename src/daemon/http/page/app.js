@@ -42,6 +42,22 @@ function onMessage(ev) {
   else if (m.error) setLink("edod: " + m.error.message);
 }
 
+// One call by POST /api/rpc: the way when the WebSocket is not open (edod serving its
+// most clients keeps a place for e-stop and status, not for a WebSocket).
+async function post(method, params) {
+  const req = { jsonrpc: "2.0", id: 1, method };
+  if (params !== undefined) req.params = params;
+  const r = await api("/api/rpc", {
+    method: "POST",
+    headers: { "Content-Type": "application/json" },
+    body: JSON.stringify(req),
+  });
+  let m;
+  try { m = await r.json(); } catch { throw new Error("edod answered " + r.status); }
+  if (m.error) throw Object.assign(new Error(m.error.message), { code: m.error.code });
+  return m.result;
+}
+
 function setLink(text) { $("link").textContent = text; }
 
 // A GET or POST of the API, with the token when there is one (beyond loopback every
@@ -407,7 +423,10 @@ $("estop").addEventListener("click", async () => {
   ack.hidden = false;
   ack.textContent = "E-stop sent… waiting for the machine's acknowledgement";
   try {
-    const t = await call("machine.estop");
+    // Over the WebSocket when it is open, else (or if it is lost meanwhile) by POST;
+    // an error edod answers is shown, not sent again.
+    const t = await call("machine.estop")
+      .catch((e) => (e.code === undefined ? post("machine.estop") : Promise.reject(e)));
     ack.textContent = t.acked_after_us !== null
       ? "E-stop acknowledged by the machine after " + (t.acked_after_us / 1000).toFixed(1) + " ms"
       : "E-stop written after " + (t.written_after_us / 1000).toFixed(1) + " ms; the machine has NOT acknowledged it: cut its power";
