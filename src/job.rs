@@ -105,6 +105,8 @@ struct RectSpec {
 #[serde(deny_unknown_fields)]
 struct RawMaterials {
     names: Vec<String>,
+    #[serde(default)]
+    syringes: Option<Vec<String>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -219,8 +221,12 @@ pub struct ZStation {
 pub struct Job {
     pub name: String,
     pub geometry: Geometry,
-    /// One material per syringe, in syringe order.
+    /// One material per syringe.
     pub materials: Vec<String>,
+    /// The machine's syringe (`[[machine.syringes]] name`) each material is loaded in,
+    /// in the order of [`Job::materials`] (`materials.syringes`); unset: each material
+    /// is in the syringe of its own name.
+    pub syringes: Option<Vec<String>>,
     /// The 2D gradient design; with [`Job::z_stations`] its compositions vary with height.
     pub design: GradientDesign,
     /// Stations of a Z-varying gradient, ascending in z (empty: the same in every layer).
@@ -228,6 +234,7 @@ pub struct Job {
     /// Largest change of any volume fraction allowed across one layer where the
     /// composition varies along Z (limits the layer thickness).
     pub z_step: f64,
+
     pub plan: PlanOptions,
     pub layers: LayerHeights,
     /// The `[toolpath]` table: feeds, cessation, flow limits, mixing chamber, purge,
@@ -256,7 +263,12 @@ impl Job {
         let tolerances = Tolerances::default();
 
         check_name(&raw.name).map_err(|m| bad("name", m))?;
-        let materials = materials(raw.materials.names, &bad)?;
+        let materials = materials(raw.materials.names, "materials.names", &bad)?;
+        let syringes = raw
+            .materials
+            .syringes
+            .map(|s| material_syringes(s, materials.len(), &bad))
+            .transpose()?;
         let nozzle_mm = raw.process.nozzle;
         let mut plan = plan_options(&raw.process, tolerances, &bad)?;
         let layers = layer_heights(&raw.process, &bad)?;
@@ -276,6 +288,7 @@ impl Job {
             name: raw.name,
             geometry,
             materials,
+            syringes,
             design,
             z_stations,
             z_step,
@@ -598,36 +611,59 @@ pub const DEFAULT_Z_STEP: f64 = 0.02;
 /// How far f(0) and f(1) of a job's gradient function may be from 0 and 1 (eq 3).
 pub const GRADIENT_FUNCTION_TOLERANCE: f64 = 1e-9;
 
-/// `materials.names`: one material per syringe, 1 to 8 of them, none blank or listed
-/// twice.
+/// `materials.names` (or the `key` of another list of names): one material per
+/// syringe, 1 to 8 of them, none blank, listed twice, or holding control characters.
 fn materials(
     names: Vec<String>,
+    key: &str,
     bad: &impl Fn(&str, String) -> JobError,
 ) -> Result<Vec<String>, JobError> {
     if names.is_empty() {
         return Err(bad(
-            "materials.names",
+            key,
             "list at least one material (one per syringe)".into(),
         ));
     }
     if names.len() > 8 {
         return Err(bad(
-            "materials.names",
+            key,
             format!(
-                "{} materials listed; the machine has at most 8 syringes",
+                "{} names listed; the machine has at most 8 syringes",
                 names.len()
             ),
         ));
     }
     for (i, n) in names.iter().enumerate() {
         if n.trim().is_empty() {
-            return Err(bad("materials.names", format!("name {i} is empty")));
+            return Err(bad(key, format!("name {i} is empty")));
         }
+        check_name(n).map_err(|m| bad(key, format!("name {i} {m}")))?;
         if names[..i].contains(n) {
-            return Err(bad("materials.names", format!("\"{n}\" is listed twice")));
+            return Err(bad(key, format!("\"{n}\" is listed twice")));
         }
     }
     Ok(names)
+}
+
+/// `materials.syringes`: the machine's syringe of each material, one per material,
+/// each named once.
+fn material_syringes(
+    syringes: Vec<String>,
+    materials: usize,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<Vec<String>, JobError> {
+    let syringes = self::materials(syringes, "materials.syringes", bad)?;
+    if syringes.len() != materials {
+        return Err(bad(
+            "materials.syringes",
+            format!(
+                "{} syringes for {materials} materials: name the syringe of each material, \
+                 in the order of materials.names",
+                syringes.len()
+            ),
+        ));
+    }
+    Ok(syringes)
 }
 
 /// `[process]` without the layer keys: the planner's options (r_mach, nozzle,
@@ -1379,6 +1415,38 @@ nozzle = 0.5
         let layers = job.extruded_layers().unwrap();
         assert_eq!(layers.len(), 2);
         assert!((layers[1].z_mm - 0.4).abs() < 1e-12);
+    }
+
+    #[test]
+    fn material_syringes_are_one_per_material_each_named_once() {
+        let with = |syringes: &str| {
+            GOOD.replace(
+                "names = [\"A\", \"B\"]",
+                &format!("names = [\"Ti\", \"HA\"]\nsyringes = {syringes}"),
+            )
+        };
+        let job = Job::from_toml(&with("[\"B\", \"A\"]"), "job.toml").unwrap();
+        assert_eq!(job.syringes, Some(vec!["B".into(), "A".into()]));
+        let e = err(&with("[\"A\"]"));
+        assert!(
+            e.contains("materials.syringes") && e.contains("1 syringes for 2"),
+            "{e}"
+        );
+        let e = err(&with("[\"A\", \"A\"]"));
+        assert!(
+            e.contains("materials.syringes") && e.contains("listed twice"),
+            "{e}"
+        );
+        let e = err(&with("[\"A\", \"B\\u202e\"]"));
+        assert!(
+            e.contains("materials.syringes") && e.contains("bidirectional"),
+            "{e}"
+        );
+        let e = err(&GOOD.replace("names = [\"A\", \"B\"]", "names = [\"A\", \"\\u001b[2J\"]"));
+        assert!(
+            e.contains("materials.names") && e.contains("control character"),
+            "{e}"
+        );
     }
 
     #[test]

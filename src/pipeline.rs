@@ -188,6 +188,12 @@ pub struct ProcessSettings {
     pub seam_corner_min_deg: f64,
     /// Order of sub-regions. Default inner to outer.
     pub sub_region_order: SubRegionOrder,
+    /// The machine's syringe of each material (a job's materials matched to the
+    /// machine's syringes by name, or mapped by `materials.syringes`), where it is not
+    /// the material's own position: every move's volumes are written in the machine's
+    /// syringe order. Default unset (material i in syringe i).
+    #[serde(skip)]
+    pub syringe_of_material: Option<Vec<usize>>,
     /// Syringes on the machine; when set, every composition must have this many
     /// fractions. Default unset (taken from the plan).
     pub syringes: Option<usize>,
@@ -237,6 +243,7 @@ impl Default for ProcessSettings {
             seam_angle_deg: 90.0,
             seam_corner_min_deg: 30.0,
             sub_region_order: SubRegionOrder::InnerToOuter,
+            syringe_of_material: None,
             syringes: None,
             move_deviation_mm: DEFAULT_MOVE_DEVIATION_MM,
             move_width_tolerance: DEFAULT_MOVE_WIDTH_TOLERANCE,
@@ -1181,7 +1188,10 @@ fn purge_zigzag(corner: DVec2, side_mm: f64, spacing_mm: f64, length_mm: f64) ->
 }
 
 impl Builder<'_> {
-    fn push(&mut self, kind: MoveKind) -> Result<(), PipelineError> {
+    fn push(&mut self, mut kind: MoveKind) -> Result<(), PipelineError> {
+        if let Some(syringe_of) = &self.settings.syringe_of_material {
+            to_syringe_order(&mut kind, syringe_of);
+        }
         let index = self.next;
         self.next = self
             .next
@@ -1435,6 +1445,27 @@ impl Builder<'_> {
         self.state.position = Some(DVec3::new(b.x, b.y, self.z_mm));
         Ok(())
     }
+}
+
+/// `kind`'s volumes, given per material, put in the machine's syringe order:
+/// material i's volume on syringe `syringe_of[i]`.
+fn to_syringe_order(kind: &mut MoveKind, syringe_of: &[usize]) {
+    let volumes = match kind {
+        MoveKind::Extrude { volumes_nl, .. }
+        | MoveKind::Retract { volumes_nl, .. }
+        | MoveKind::Prime { volumes_nl, .. } => volumes_nl,
+        _ => return,
+    };
+    let mut by_syringe = vec![0; volumes.len()];
+    for (material, &v) in volumes.iter().enumerate() {
+        if let Some(slot) = syringe_of
+            .get(material)
+            .and_then(|&s| by_syringe.get_mut(s))
+        {
+            *slot = v;
+        }
+    }
+    *volumes = by_syringe;
 }
 
 #[cfg(test)]

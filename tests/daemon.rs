@@ -1070,6 +1070,21 @@ layer = 0.2
             .contains("3 materials (A, B, C) but the machine has 2 syringes (A, B)"),
         "{e}"
     );
+    // Refused at submission: materials in none of the machine's syringes (A, B),
+    // rather than titanium pushed from whichever syringe comes first.
+    let ti_ha = wide
+        .replace("max = [300.0, 20.0]", "max = [20.0, 20.0]")
+        .replace("names = [\"A\", \"B\"]", "names = [\"Ti\", \"HA\"]");
+    assert!(ti_ha.contains("Ti"));
+    let e = c.call("job.submit", json!({"job": ti_ha})).unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    assert!(
+        e["message"]
+            .as_str()
+            .unwrap()
+            .contains("the machine has no syringe \"Ti\" for material \"Ti\""),
+        "{e}"
+    );
     let tall = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 160.0, 16));
     let e = c
         .call(

@@ -43,8 +43,6 @@ fn edod(dir: &Path, tty: &Path, listen: &str, token: bool) -> Kill {
     };
     let cfg = format!(
         "[serial]\nport = {:?}\n\
-         [machine]\nsyringes = [{{ name = \"dentin\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }}, \
-         {{ name = \"enamel\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }}]\n\
          [api]\nsocket = {:?}\n[state]\ndir = {:?}\n\
          [http]\nlisten = {listen:?}\n{token_line}",
         tty.display().to_string(),

@@ -117,7 +117,8 @@ impl Default for SimOptions {
 #[derive(Debug, Clone, Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SyringeConfig {
-    /// Material name (matches the job's `materials`).
+    /// The syringe's name, unique on the machine: a job's material of this name is
+    /// pushed from it (or a job maps its materials: `materials.syringes`).
     pub name: String,
     /// Barrel bore (mm).
     pub barrel_diameter_mm: f64,
@@ -571,6 +572,15 @@ impl Config {
             ));
         }
         for (i, s) in self.machine.syringes.iter().enumerate() {
+            // Jobs name their syringes (`materials.names`, `materials.syringes`).
+            crate::job::check_name(&s.name)
+                .map_err(|why| bad(&format!("machine.syringes[{i}].name"), why))?;
+            if self.machine.syringes[..i].iter().any(|o| o.name == s.name) {
+                return Err(bad(
+                    &format!("machine.syringes[{i}].name"),
+                    format!("\"{}\" names another syringe too", s.name),
+                ));
+            }
             if !(s.barrel_diameter_mm > 0.0 && s.barrel_diameter_mm.is_finite()) {
                 return Err(bad(
                     &format!("machine.syringes[{i}].barrel_diameter_mm"),
@@ -779,6 +789,13 @@ mod tests {
         }
         let e = Config::from_toml("[machine]\nsyringes = []\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("machine.syringes"), "{e}");
+        let twice = "[machine]\nsyringes = [{ name = \"A\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }, \
+                     { name = \"A\", barrel_diameter_mm = 10.0, capacity_ml = 10.0 }]\n";
+        let e = Config::from_toml(twice, "m.toml").unwrap_err().to_string();
+        assert!(
+            e.contains("machine.syringes[1].name") && e.contains("another syringe"),
+            "{e}"
+        );
         let e = Config::from_toml("[state]\nkeep_finished_jobs = 0\n", "m.toml").unwrap_err();
         assert!(e.to_string().contains("state.keep_finished_jobs"), "{e}");
         for (text, key) in [

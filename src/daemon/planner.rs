@@ -282,16 +282,16 @@ pub struct JobSource {
     preview_svg: Option<String>,
 }
 
-/// The process settings a job streams with on a machine: the job's nozzle, the
-/// machine's syringes, flow limit and mixing-chamber volume. `edoctl demo` plans with
-/// the same settings to compare what was built with what edod planned.
-pub fn process_settings(
+/// The machine's syringe of each of `job`'s materials: the one named in
+/// `materials.syringes`, else the one of the material's own name; one material per
+/// syringe. Else the error names the materials, the machine's syringes and the fix.
+pub fn syringe_of_material(
     job: &crate::job::Job,
     machine: &super::config::MachineConfig,
     source_name: &str,
-) -> Result<crate::pipeline::ProcessSettings, String> {
-    if job.materials.len() != machine.syringes.len() {
-        let syringes: Vec<&str> = machine.syringes.iter().map(|s| s.name.as_str()).collect();
+) -> Result<Vec<usize>, String> {
+    let syringes: Vec<&str> = machine.syringes.iter().map(|s| s.name.as_str()).collect();
+    if job.materials.len() != syringes.len() {
         return Err(format!(
             "{source_name}: {} materials ({}) but the machine has {} syringes ({}): \
              materials.names must list one material per syringe",
@@ -301,9 +301,53 @@ pub fn process_settings(
             syringes.join(", ")
         ));
     }
+    let wanted = job.syringes.as_ref().unwrap_or(&job.materials);
+    let key = if job.syringes.is_some() {
+        "materials.syringes"
+    } else {
+        "materials.names"
+    };
+    let mut found = Vec::with_capacity(wanted.len());
+    for (material, name) in job.materials.iter().zip(wanted) {
+        let Some(s) = syringes.iter().position(|s| s == name) else {
+            let fix = if job.syringes.is_some() {
+                "name one of them".to_string()
+            } else {
+                format!(
+                    "name the syringe each material is loaded in, in the order of \
+                     materials.names: [materials] syringes = [{}]",
+                    syringes
+                        .iter()
+                        .map(|s| format!("{s:?}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )
+            };
+            return Err(format!(
+                "{source_name}: {key}: the machine has no syringe \"{name}\" for material \
+                 \"{material}\" (its syringes: {}); {fix}",
+                syringes.join(", ")
+            ));
+        };
+        found.push(s);
+    }
+    Ok(found)
+}
+
+/// The process settings a job streams with on a machine: the job's nozzle, the
+/// machine's syringes, flow limit and mixing-chamber volume. `edoctl demo` plans with
+/// the same settings to compare what was built with what edod planned.
+pub fn process_settings(
+    job: &crate::job::Job,
+    machine: &super::config::MachineConfig,
+    source_name: &str,
+) -> Result<crate::pipeline::ProcessSettings, String> {
+    let syringe_of = syringe_of_material(job, machine, source_name)?;
     // The job's [toolpath] settings, bounded by what this machine is.
     let mut settings = job.toolpath.clone();
     settings.syringes = Some(machine.syringes.len());
+    let identity = syringe_of.iter().enumerate().all(|(m, &s)| m == s);
+    settings.syringe_of_material = (!identity).then_some(syringe_of);
     // A job that leaves max_flow_factor at its default gets what the machine allows.
     let default_cap = crate::pipeline::ProcessSettings::default().max_flow_factor;
     settings.max_flow_factor = if settings.max_flow_factor == default_cap {
@@ -533,6 +577,69 @@ mod tests {
         );
         let text = std::fs::read_to_string(path).unwrap();
         (text, super::super::config::MachineConfig::default())
+    }
+
+    /// The first layer's volumes of `text` on `machine`, move by move.
+    fn first_layer_volumes(
+        text: &str,
+        machine: &super::super::config::MachineConfig,
+    ) -> Vec<Vec<u32>> {
+        let mut src = JobSource::new(text, None, "annulus", machine).unwrap();
+        let layer = src.next_layer().unwrap().unwrap();
+        layer
+            .into_iter()
+            .filter_map(|m| match m.kind {
+                MoveKind::Extrude { volumes_nl, .. } => Some(volumes_nl),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Materials are pushed from the syringe of their name, or the one the job maps
+    /// them to, whatever their order; a material in no syringe is refused naming the
+    /// machine's syringes and the fix.
+    #[test]
+    fn materials_are_matched_to_syringes_by_name() {
+        let (text, machine) = annulus_on_default_machine();
+        assert!(text.contains("names = [\"A\", \"B\"]"));
+        let own = first_layer_volumes(&text, &machine);
+        assert!(own.iter().any(|v| v[0] != v[1]), "a graded layer");
+        // The same design, its materials listed the other way round (and their
+        // compositions with them): the same syringe pushes the same volume.
+        let swapped_text = text
+            .replace("names = [\"A\", \"B\"]", "names = [\"B\", \"A\"]")
+            .replace("inner = [1.0, 0.0]", "inner = [0.0, 1.0]")
+            .replace("outer = [0.0, 1.0]", "outer = [1.0, 0.0]");
+        assert_ne!(swapped_text, text);
+        assert_eq!(first_layer_volumes(&swapped_text, &machine), own);
+        // Mapped explicitly: materials named otherwise, loaded in A and B.
+        let mapped = text.replace(
+            "names = [\"A\", \"B\"]",
+            "names = [\"Ti\", \"HA\"]\nsyringes = [\"A\", \"B\"]",
+        );
+        assert_eq!(first_layer_volumes(&mapped, &machine), own);
+        // Not in any syringe: refused, naming what is there and the fix.
+        let unmapped = text.replace("names = [\"A\", \"B\"]", "names = [\"Ti\", \"HA\"]");
+        let e = JobSource::new(&unmapped, None, "job.toml", &machine)
+            .err()
+            .unwrap();
+        assert!(
+            e.contains("materials.names: the machine has no syringe \"Ti\" for material \"Ti\"")
+                && e.contains("its syringes: A, B")
+                && e.contains("syringes = [\"A\", \"B\"]"),
+            "{e}"
+        );
+        let wrong = text.replace(
+            "names = [\"A\", \"B\"]",
+            "names = [\"Ti\", \"HA\"]\nsyringes = [\"A\", \"C\"]",
+        );
+        let e = JobSource::new(&wrong, None, "job.toml", &machine)
+            .err()
+            .unwrap();
+        assert!(
+            e.contains("materials.syringes: the machine has no syringe \"C\" for material \"HA\""),
+            "{e}"
+        );
     }
 
     #[test]
