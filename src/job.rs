@@ -174,6 +174,8 @@ struct RawProcess {
     cusp: Option<f64>,
     max_gap: Option<f64>,
     thin_regions: Option<crate::plan::ThinRegions>,
+    #[serde(default)]
+    overhang: Option<crate::slice::overhang::Overhang>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -234,7 +236,9 @@ pub struct Job {
     /// Largest change of any volume fraction allowed across one layer where the
     /// composition varies along Z (limits the layer thickness).
     pub z_step: f64,
-
+    /// How far a layer may reach past the one below without support (`[process]
+    /// overhang`).
+    pub overhang: crate::slice::overhang::Overhang,
     pub plan: PlanOptions,
     pub layers: LayerHeights,
     /// The `[toolpath]` table: feeds, cessation, flow limits, mixing chamber, purge,
@@ -280,6 +284,8 @@ impl Job {
         let z_stations = z_stations(g.z, materials.len(), &tolerances, &bad)?;
         let z_step = z_step(g.z_step, !z_stations.is_empty(), &bad)?;
         check_extruded_size(&geometry, &layers, !z_stations.is_empty(), nozzle_mm, &bad)?;
+        let overhang = raw.process.overhang.unwrap_or_default();
+        overhang.check().map_err(|m| bad("process.overhang", m))?;
         let mut toolpath = toolpath_settings(raw.toolpath, nozzle_mm, &bad)?;
         move_merging(&raw.process, nozzle_mm, &mut toolpath, &bad)?;
         Ok(Job {
@@ -292,9 +298,22 @@ impl Job {
             design,
             z_stations,
             z_step,
+            overhang,
             plan,
             layers,
         })
+    }
+
+    /// What finding this job's overhangs needs: the allowed overhang, the narrowest
+    /// strip that counts (a quarter of the nozzle, over the contours' deviation), the
+    /// offsets' chord (the contour deviation).
+    pub fn overhang_options(&self) -> crate::slice::overhang::OverhangOptions {
+        crate::slice::overhang::OverhangOptions {
+            overhang: self.overhang,
+            min_width_mm: (self.plan.nozzle_mm / 4.0).max(2.0 * self.plan.contour_deviation_mm),
+            min_area_mm2: self.plan.nozzle_mm * self.plan.nozzle_mm,
+            chord_mm: self.plan.contour_deviation_mm,
+        }
     }
 
     /// The gradient design at height `z_mm`: M(Ci) and M(Ce) interpolated between the
@@ -496,7 +515,42 @@ impl MeshLayers {
         self.slicer
             .slice(&self.spans[start..end], &self.tolerances, progress)
     }
+
+    /// Each layer's area resting on nothing beyond the allowed overhang (layer index
+    /// and mm², over [`crate::slice::overhang::MIN_REPORTED_MM2`] only), cut
+    /// [`OVERHANG_CHUNK_LAYERS`] at a time so memory does not grow with the part.
+    pub fn overhangs(
+        &self,
+        opts: &crate::slice::overhang::OverhangOptions,
+    ) -> Result<Vec<(usize, f64)>, crate::slice::SliceError> {
+        use crate::slice::overhang::{area_mm2, of_layers, MIN_REPORTED_MM2};
+        let mut found = Vec::new();
+        let mut start = 0;
+        while start < self.spans.len() {
+            // One layer of overlap: the first of a chunk rests on the last of the one
+            // before.
+            let from = start.saturating_sub(1);
+            let end = (start + OVERHANG_CHUNK_LAYERS).min(self.spans.len());
+            let (layers, _) = self.cut(from..end, None)?;
+            let indexed: Vec<(usize, &crate::slice::Layer)> = layers
+                .iter()
+                .enumerate()
+                .map(|(k, l)| (from + k, l))
+                .collect();
+            for ((index, _), hanging) in indexed.iter().zip(of_layers(&indexed, opts)) {
+                let a = hanging.as_ref().map_or(0.0, area_mm2);
+                if *index >= start && a > MIN_REPORTED_MM2 {
+                    found.push((*index, a));
+                }
+            }
+            start = end;
+        }
+        Ok(found)
+    }
 }
+
+/// Layers cut at a time when a mesh job's overhangs are found at submission.
+pub const OVERHANG_CHUNK_LAYERS: usize = 64;
 
 impl Job {
     /// Load, repair, index and stack a mesh job's part from the mesh file's bytes
@@ -1415,6 +1469,41 @@ nozzle = 0.5
         let layers = job.extruded_layers().unwrap();
         assert_eq!(layers.len(), 2);
         assert!((layers[1].z_mm - 0.4).abs() < 1e-12);
+    }
+
+    /// Cut a chunk at a time, a mesh's overhangs are those of the whole stack cut at
+    /// once (each chunk's first layer judged on the last of the chunk before).
+    #[test]
+    fn overhangs_cut_in_chunks_equal_the_whole_stack() {
+        let stl = crate::mesh::primitives::sphere(5.0, 48, 24)
+            .to_binary_stl()
+            .unwrap();
+        let text = "name = \"ball\"\n[geometry]\nmesh = \"ball.stl\"\n[materials]\n\
+                    names = [\"A\", \"B\"]\n[gradient]\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n\
+                    [process]\nr_mach = 2.0\nnozzle = 0.4\nlayer = 0.04\n";
+        let job = Job::from_toml(text, "ball.toml").unwrap();
+        let part = job
+            .mesh_layers(&stl, &crate::mesh::MeshLimits::default())
+            .unwrap();
+        assert!(
+            part.len() > 3 * OVERHANG_CHUNK_LAYERS,
+            "{} layers",
+            part.len()
+        );
+        let chunked = part.overhangs(&job.overhang_options()).unwrap();
+        let (layers, _) = part.cut(0..part.len(), None).unwrap();
+        let indexed: Vec<(usize, &crate::slice::Layer)> = layers.iter().enumerate().collect();
+        let whole: Vec<(usize, f64)> =
+            crate::slice::overhang::of_layers(&indexed, &job.overhang_options())
+                .into_iter()
+                .enumerate()
+                .filter_map(|(k, u)| {
+                    let a = crate::slice::overhang::area_mm2(&u?);
+                    (a > crate::slice::overhang::MIN_REPORTED_MM2).then_some((k, a))
+                })
+                .collect();
+        assert!(!whole.is_empty());
+        assert_eq!(chunked, whole);
     }
 
     #[test]

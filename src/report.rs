@@ -29,6 +29,9 @@ pub struct PlanReport {
     /// Toolpath totals (when the toolpaths were made: `--report` of `edoctl plan`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub toolpath: Option<ToolpathTotals>,
+    /// What rests on nothing (`attach_overhangs`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub overhang: Option<OverhangReport>,
     /// Where the part goes on the machine and whether it fits (`edoctl plan`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub placement: Option<PlacementReport>,
@@ -61,6 +64,10 @@ pub struct LayerReport {
     pub inner: Vec<f64>,
     pub outer: Vec<f64>,
     pub regions: Vec<RegionReport>,
+    /// Area not resting on the layer below beyond the allowed overhang (`[process]
+    /// overhang`), mm²; absent for a layer whose layer below was not planned.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unsupported_area_mm2: Option<f64>,
     /// The layer's roads as the machine will build them (see [`LayerToolpath`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub toolpath: Option<LayerToolpath>,
@@ -390,6 +397,7 @@ pub fn build(
             inner: design.inner.fractions().to_vec(),
             outer: design.outer.fractions().to_vec(),
             regions,
+            unsupported_area_mm2: None,
             toolpath: None,
         });
     }
@@ -416,9 +424,68 @@ pub fn build(
         layers: reports,
         totals,
         toolpath: None,
+        overhang: None,
         placement: None,
         planning_time_ms,
     }
+}
+
+/// The overhangs of a plan: what is allowed, and the layers with area beyond it.
+#[derive(Debug, Clone, Serialize)]
+pub struct OverhangReport {
+    /// `[process] overhang`.
+    pub allowed: crate::slice::overhang::Overhang,
+    /// Area resting on nothing, all layers, mm².
+    pub unsupported_area_mm2: f64,
+    /// The layers with such area (over 0.01 mm²), bottom to top.
+    pub layers: Vec<usize>,
+    /// The layer with the most, and how much, mm².
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worst_layer: Option<usize>,
+    pub worst_area_mm2: f64,
+    /// `layers` with their areas, mm².
+    #[serde(skip)]
+    per_layer: Vec<(usize, f64)>,
+}
+
+impl OverhangReport {
+    /// The warning for people: none when nothing hangs.
+    pub fn warning(&self) -> Option<String> {
+        crate::slice::overhang::warning(&self.allowed, &self.per_layer)
+    }
+}
+
+/// Each layer's unsupported area (`overhangs[k]` of `report.layers[k]`) and the
+/// whole part's.
+pub fn attach_overhangs(
+    report: &mut PlanReport,
+    allowed: crate::slice::overhang::Overhang,
+    overhangs: &[Option<crate::geom::Shapes>],
+) {
+    use crate::slice::overhang::{area_mm2, MIN_REPORTED_MM2};
+    let mut whole = OverhangReport {
+        allowed,
+        unsupported_area_mm2: 0.0,
+        layers: Vec::new(),
+        worst_layer: None,
+        worst_area_mm2: 0.0,
+        per_layer: Vec::new(),
+    };
+    for (l, o) in report.layers.iter_mut().zip(overhangs) {
+        let Some(shapes) = o else { continue };
+        let a = area_mm2(shapes);
+        l.unsupported_area_mm2 = Some(a);
+        if a > MIN_REPORTED_MM2 {
+            whole.unsupported_area_mm2 += a;
+            whole.layers.push(l.index);
+            whole.per_layer.push((l.index, a));
+            if a > whole.worst_area_mm2 {
+                whole.worst_area_mm2 = a;
+                whole.worst_layer = Some(l.index);
+            }
+        }
+    }
+    report.overhang = Some(whole);
 }
 
 /// Attach per-layer toolpaths (in layer order, one per report layer) and their totals;

@@ -53,6 +53,9 @@ pub struct PreviewInput<'a> {
     pub materials: &'a [String],
     pub nozzle_mm: f64,
     pub islands: &'a [Region],
+    /// The layer's area resting on nothing (`slice::overhang`), drawn red over the
+    /// roads; empty: nothing drawn.
+    pub unsupported: &'a crate::geom::Shapes,
 }
 
 struct Frame {
@@ -140,8 +143,31 @@ pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
     page.open(&mut out, layer, input);
     boundary_group(&mut out, &f, input);
     road_groups(&mut out, &f, layer, input.nozzle_mm);
+    unsupported_group(&mut out, &f, input.unsupported);
     page.legend(&mut out, layer, input);
     out
+}
+
+/// The colour of area resting on nothing, in every preview.
+pub const UNSUPPORTED_COLOUR: &str = "#e0002a";
+
+/// `shapes` (area resting on nothing) filled red, half transparent, over the roads.
+fn unsupported_group(out: &mut String, f: &Frame, shapes: &crate::geom::Shapes) {
+    if shapes.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        r#"<g id="unsupported" fill="{UNSUPPORTED_COLOUR}" fill-opacity="0.5" fill-rule="evenodd" stroke="{UNSUPPORTED_COLOUR}" stroke-width="0.02"><title>area resting on nothing (beyond the allowed overhang)</title>"#
+    );
+    for shape in shapes {
+        let mut d = String::new();
+        for l in shape {
+            let _ = write!(d, "M{}Z ", f.points(l).trim_end().replace(' ', " L"));
+        }
+        let _ = writeln!(out, r#"<path d="{}"/>"#, d.trim_end());
+    }
+    let _ = writeln!(out, "</g>");
 }
 
 /// Most contours the legend lists (evenly picked from C1..Cm+1).

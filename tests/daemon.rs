@@ -2311,3 +2311,47 @@ fn twenty_half_sent_dashboard_bodies_stay_within_the_memory_budget() {
     drop(d);
     sim.stop().unwrap();
 }
+
+/// `job.submit` of a mesh job whose lower half leans out past the allowed overhang
+/// (a sphere on the bed) is accepted with a warning naming the layers (cut 64 at a time
+/// before the reply); a tube gets none.
+#[test]
+fn a_submitted_job_that_hangs_in_mid_air_is_warned_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, _record) = sim(dir.path(), 20);
+    let d = Daemon::start_with_limit(dir.path(), sim.path(), 4 << 20);
+    let mut c = d.client();
+    c.wait_connected();
+    let ball = stl_of(&edo::mesh::primitives::sphere(5.0, 64, 32));
+    let job =
+        "name = \"ball\"\n[geometry]\nmesh = \"ball.stl\"\n[materials]\nnames = [\"A\", \"B\"]\n\
+               [gradient]\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n[process]\nr_mach = 2.0\n\
+               nozzle = 0.4\nlayer = 0.2\nthin_regions = \"fill\"\n";
+    let r = c
+        .call(
+            "job.submit",
+            json!({"job": job, "mesh_base64": edo::daemon::api::base64_encode(&ball)}),
+        )
+        .unwrap();
+    let warnings = r["warnings"].as_array().expect("warnings");
+    assert_eq!(warnings.len(), 1, "{r}");
+    let w = warnings[0].as_str().unwrap();
+    assert!(
+        w.starts_with("ball.stl: ") && w.contains("resting on nothing") && w.contains("layers 1-"),
+        "{w}"
+    );
+    c.call("job.cancel", json!({"id": r["id"]})).unwrap();
+    // A tube stands on the bed: every layer rests on the one below.
+    let tube = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 3.0, 64));
+    let r = c
+        .call(
+            "job.submit",
+            json!({"job": job.replace("r_mach = 2.0", "r_mach = 0.8"),
+                   "mesh_base64": edo::daemon::api::base64_encode(&tube)}),
+        )
+        .unwrap();
+    assert!(r.get("warnings").is_none(), "{r}");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}

@@ -616,3 +616,93 @@ fn plan_machine_refuses_what_is_wrong_naming_it() {
         assert!(!gcode.exists(), "{says}: a file was written");
     }
 }
+
+/// A sphere resting on the bed: its lower half leans out past the allowed overhang
+/// (30 degrees from vertical by default), its upper half never does. `edoctl plan`
+/// warns naming the layers, the report gives each layer's area resting on nothing and
+/// the previews fill it red; a wider allowance (`[process] overhang`) finds none. The
+/// prism examples rest on the layer below everywhere.
+#[test]
+fn overhangs_are_found_reported_drawn_and_warned() {
+    let dir = tempfile::tempdir().unwrap();
+    let stl = edo::mesh::primitives::sphere(5.0, 64, 32)
+        .to_binary_stl()
+        .unwrap();
+    std::fs::write(dir.path().join("ball.stl"), stl).unwrap();
+    let job = |overhang: &str| {
+        format!(
+            "name = \"ball\"\n[geometry]\nmesh = \"ball.stl\"\n[materials]\nnames = [\"A\", \"B\"]\n\
+             [gradient]\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n[process]\nr_mach = 2.0\n\
+             nozzle = 0.4\nlayer = 0.2\nthin_regions = \"fill\"\n{overhang}"
+        )
+    };
+    let path = dir.path().join("ball.toml");
+    std::fs::write(&path, job("")).unwrap();
+    let svg = dir.path().join("svg");
+    let out = edoctl()
+        .arg("plan")
+        .arg(&path)
+        .args(["--report", "-", "--svg"])
+        .arg(&svg)
+        .output()
+        .unwrap();
+    let warned = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{warned}");
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let o = &r["overhang"];
+    assert_eq!(o["allowed"], serde_json::json!({"angle_deg": 30.0}));
+    let hanging: Vec<u64> = o["layers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l.as_u64().unwrap())
+        .collect();
+    assert!(hanging.len() >= 3, "{o}");
+    let layers = r["layers"].as_array().unwrap();
+    for l in layers {
+        let (index, z) = (l["index"].as_u64().unwrap(), l["z_mm"].as_f64().unwrap());
+        let a = l["unsupported_area_mm2"].as_f64().unwrap();
+        assert_eq!(hanging.contains(&index), a > 0.01, "layer {index}: {a}");
+        if z > 5.0 {
+            assert_eq!(a, 0.0, "layer {index} at z {z} of the upper half hangs");
+        }
+    }
+    let worst = o["worst_layer"].as_u64().unwrap();
+    assert!(
+        warned.contains("warning:")
+            && warned.contains(&format!(
+                "{} layers have area resting on nothing",
+                hanging.len()
+            ))
+            && warned.contains(&format!("at layer {worst}")),
+        "{warned}"
+    );
+    let drawn = |k: u64| std::fs::read_to_string(svg.join(format!("layer-{k:04}.svg"))).unwrap();
+    assert!(drawn(worst).contains(r#"<g id="unsupported""#));
+    assert!(!drawn(layers.len() as u64 - 5).contains("unsupported"));
+    // Allowed to lean 80 degrees: nothing hangs, nothing is said.
+    std::fs::write(&path, job("overhang = { angle_deg = 80.0 }\n")).unwrap();
+    let out = edoctl()
+        .arg("plan")
+        .arg(&path)
+        .args(["--report", "-"])
+        .output()
+        .unwrap();
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["overhang"]["layers"], serde_json::json!([]));
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("warning"));
+    // Out of range: refused naming the key.
+    std::fs::write(&path, job("overhang = { angle_deg = 95.0 }\n")).unwrap();
+    let out = edoctl().arg("plan").arg(&path).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("process.overhang"));
+    for name in [
+        "tooth-crown.toml",
+        "fibers.toml",
+        "non-star.toml",
+        "paper-annulus.toml",
+    ] {
+        let r = plan_json(&example(name), None);
+        assert_eq!(r["overhang"]["layers"], serde_json::json!([]), "{name}");
+    }
+}

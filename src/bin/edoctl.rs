@@ -212,6 +212,9 @@ fn submit(
         (None, None) => anyhow::bail!("give a job file or --dry-run-moves N"),
     };
     let r = c.request::<method::JobSubmit>(&params)?;
+    for w in &r.result.warnings {
+        eprintln!("warning: {w}");
+    }
     if watch {
         let j = client::watch(c, r.result.id, out.json)?;
         out.print(&j, client::job_line);

@@ -314,6 +314,8 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
     let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
+    let overhangs = overhangs_of(&job, &slices);
+    crate::report::attach_overhangs(&mut report, job.overhang, &overhangs);
     // Where edod would put the part on a machine of this build volume (checked when
     // the option was parsed).
     let volume = BuildVolume::new(build_volume).map_err(|e| match &machine {
@@ -350,6 +352,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
             slices: &slices,
             layers: &layers,
             process: &process,
+            overhangs: &overhangs,
         };
         attach_toolpaths(args, &planned, &mut report)?;
         toolpath_line = report.toolpath.as_ref().map(toolpath_summary);
@@ -374,6 +377,9 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         None => None,
     };
     write_plan_summary(&mut human, &job, &report, &layers, planning_time_ms)?;
+    if let Some(w) = report.overhang.as_ref().and_then(|o| o.warning()) {
+        eprintln!("warning: {}: {w}", args.job.display());
+    }
     if let Some(line) = toolpath_line {
         writeln!(human, "  {line}")?;
     }
@@ -400,6 +406,15 @@ struct Planned<'a> {
     slices: &'a [LayerSlice],
     layers: &'a [LayerPlan],
     process: &'a crate::pipeline::ProcessSettings,
+    /// Each layer's area resting on nothing (`slice::overhang::of_layers`).
+    overhangs: &'a [Option<crate::geom::Shapes>],
+}
+
+/// Each planned layer's area resting on nothing beyond the job's allowed overhang.
+fn overhangs_of(job: &Job, slices: &[LayerSlice]) -> Vec<Option<crate::geom::Shapes>> {
+    let layers: Vec<(usize, &crate::slice::Layer)> =
+        slices.iter().map(|s| (s.index, &s.layer)).collect();
+    crate::slice::overhang::of_layers(&layers, &job.overhang_options())
 }
 
 /// Make every layer's toolpaths, measure their coverage when asked (or when previews
@@ -414,6 +429,7 @@ fn attach_toolpaths(
         slices,
         layers,
         process,
+        ..
     } = *planned;
     let toolpaths = layer_toolpaths(job, layers, process)?;
     let coverage = (args.coverage || args.svg.is_some()).then(|| {
@@ -451,7 +467,9 @@ fn write_previews(
         slices,
         layers,
         process,
+        overhangs,
     } = *planned;
+    let none = crate::geom::Shapes::new();
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     for (k, (layer, slice)) in layers.iter().zip(slices).enumerate() {
         let svg = crate::svg::layer_svg(
@@ -461,6 +479,7 @@ fn write_previews(
                 materials: &job.materials,
                 nozzle_mm: job.plan.nozzle_mm,
                 islands: &slice.layer.islands,
+                unsupported: overhangs.get(k).and_then(Option::as_ref).unwrap_or(&none),
             },
         );
         let file = dir.join(format!("layer-{:04}.svg", layer.index));

@@ -9,7 +9,7 @@
 use std::sync::Arc;
 
 use tokio::sync::oneshot;
-use tracing::info;
+use tracing::{info, warn};
 
 use super::store::{JobRecord, JobSpec};
 use super::{api_error, api_write_error, ApiError, Control, Shared};
@@ -46,7 +46,7 @@ async fn check_part(
     mesh: Option<Vec<u8>>,
     machine: &super::config::MachineConfig,
     budget: &super::connections::Budget,
-) -> Result<Option<Vec<u8>>, ApiError> {
+) -> Result<(Option<Vec<u8>>, Vec<String>), ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
     // Checked when the configuration was loaded.
     let volume = machine
@@ -54,10 +54,11 @@ async fn check_part(
         .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("machine.build_volume_mm: {e}")))?;
     match (&job.geometry, mesh) {
         (crate::job::Geometry::Extruded { .. }, None) => {
+            // A prism: every layer rests on the one below.
             if let Some(bounds) = job.extruded_bounds() {
                 super::planner::place_part(job, bounds, &volume).map_err(bad)?;
             }
-            Ok(None)
+            Ok((None, Vec::new()))
         }
         (crate::job::Geometry::Extruded { .. }, Some(_)) => Err(bad(
             "mesh_base64: the job builds a polygon ([geometry] polygon/regions), not a mesh"
@@ -81,7 +82,13 @@ async fn check_part(
                     Ok(part) => {
                         super::planner::place_part(&job, part.bounds(), &volume)
                             .map_err(|e| bad(format!("{path}: {e}")))?;
-                        Ok(Some(bytes))
+                        let hanging = part
+                            .overhangs(&job.overhang_options())
+                            .map_err(|e| bad(format!("{path}: {e}")))?;
+                        let warnings =
+                            crate::slice::overhang::warning(&job.overhang, &hanging)
+                                .map(|w| format!("{path}: {w}"));
+                        Ok((Some(bytes), warnings.into_iter().collect()))
                     }
                     Err(e) => Err(bad(format!("{path}: {e}"))),
                 }
@@ -178,14 +185,15 @@ async fn job_submit(p: SubmitParams, shared: &Shared) -> Result<Submitted, ApiEr
             .map_err(|m| ApiError::new(ApiError::INVALID_PARAMS, format!("name: {m}")))?;
     }
     let Submission { source, name } = p.submission()?;
-    let (spec, name) = match source {
+    let (spec, name, warnings) = match source {
         JobSource::File { job, mesh_base64 } => {
-            let (spec, job_name) = file_job(job, mesh_base64.as_deref(), shared).await?;
-            (spec, name.unwrap_or(job_name))
+            let (spec, job_name, warnings) = file_job(job, mesh_base64.as_deref(), shared).await?;
+            (spec, name.unwrap_or(job_name), warnings)
         }
         JobSource::DryRun { moves } => (
             JobSpec::DryRun { moves },
             name.unwrap_or_else(|| format!("dry run of {moves} moves")),
+            Vec::new(),
         ),
     };
     let id = store_submission(shared, &name, spec).await?;
@@ -196,19 +204,23 @@ async fn job_submit(p: SubmitParams, shared: &Shared) -> Result<Submitted, ApiEr
         reason: None,
     }));
     let _ = shared.control.send(Control::Submitted).await;
+    for w in &warnings {
+        warn!(job = id, "{w}");
+    }
     Ok(Submitted {
         id,
         state: JobState::Queued,
+        warnings,
     })
 }
 
-/// A job file's spec and name: the file parsed (-32003), its mesh decoded (-32602) and
-/// the part checked against the machine ([`check_part`]).
+/// A job file's spec, name and warnings: the file parsed (-32003), its mesh decoded
+/// (-32602) and the part checked against the machine ([`check_part`]).
 async fn file_job(
     toml: String,
     mesh_base64: Option<&str>,
     shared: &Shared,
-) -> Result<(JobSpec, String), ApiError> {
+) -> Result<(JobSpec, String, Vec<String>), ApiError> {
     let job = crate::job::Job::from_toml(&toml, "submitted job")
         .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
     // What would fail when it starts is refused now: its materials against the
@@ -225,8 +237,8 @@ async fn file_job(
             })
         })
         .transpose()?;
-    let mesh = check_part(&job, mesh, &shared.config.machine, &shared.budget).await?;
-    Ok((JobSpec::Toml { toml, mesh }, job.name))
+    let (mesh, warnings) = check_part(&job, mesh, &shared.config.machine, &shared.budget).await?;
+    Ok((JobSpec::Toml { toml, mesh }, job.name, warnings))
 }
 
 /// Store a new job, and delete the oldest finished jobs beyond

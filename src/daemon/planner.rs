@@ -280,6 +280,9 @@ pub struct JobSource {
     draw_previews: bool,
     /// The last layer's preview, not taken yet.
     preview_svg: Option<String>,
+    /// The last layer planned (index, islands) while previews are drawn: what the next
+    /// rests on, for its area resting on nothing (red in the preview).
+    below: Option<(usize, Vec<crate::geom::Region>)>,
 }
 
 /// The machine's syringe of each of `job`'s materials: the one named in
@@ -432,20 +435,37 @@ impl JobSource {
             placement,
             draw_previews: false,
             preview_svg: None,
+            below: None,
         })
     }
 
-    /// The SVG preview of a planned layer (part coordinates, as `edoctl plan --svg`).
-    fn preview_of(&self, plan: &crate::plan::LayerPlan, islands: &[crate::geom::Region]) -> String {
-        crate::svg::layer_svg(
+    /// The SVG preview of a planned layer (part coordinates, as `edoctl plan --svg`),
+    /// its area resting on nothing in red; the layer is kept as the next one's below.
+    fn preview_of(&mut self, plan: &crate::plan::LayerPlan, layer: &crate::slice::Layer) -> String {
+        let below = match &self.below {
+            Some((i, islands)) if i + 1 == plan.index => Some(islands.as_slice()),
+            _ if plan.index == 0 => None,
+            // Not planned here (a preview asked from a later layer): not judged.
+            _ => Some(layer.islands.as_slice()),
+        };
+        let unsupported = crate::slice::overhang::unsupported(
+            &layer.islands,
+            below,
+            layer.thickness_mm,
+            &self.job.overhang_options(),
+        );
+        let svg = crate::svg::layer_svg(
             plan,
             &crate::svg::PreviewInput {
                 job_name: &self.job.name,
                 materials: &self.job.materials,
                 nozzle_mm: self.job.plan.nozzle_mm,
-                islands,
+                islands: &layer.islands,
+                unsupported: &unsupported,
             },
-        )
+        );
+        self.below = Some((plan.index, layer.islands.clone()));
+        svg
     }
 
     /// Where the part goes on the bed (`None` for a mesh job until its mesh is loaded).
@@ -527,9 +547,11 @@ impl LayerSource for JobSource {
             crate::pipeline::home_move(0)
         });
         Some(plan.and_then(|plan| {
-            self.preview_svg = self
-                .draw_previews
-                .then(|| self.preview_of(&plan, &l.islands));
+            self.preview_svg = if self.draw_previews {
+                Some(self.preview_of(&plan, l))
+            } else {
+                None
+            };
             let lm = crate::pipeline::layer_moves(
                 &plan,
                 &self.settings,

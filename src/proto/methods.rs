@@ -198,6 +198,10 @@ pub struct Submitted {
     pub id: u32,
     /// `queued`.
     pub state: JobState,
+    /// What the job will build that the operator should know first (layers with area
+    /// resting on nothing beyond the allowed overhang); absent when none.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
 }
 
 /// The result of `job.pause`, `job.resume` and `job.cancel`: the job's state after it.

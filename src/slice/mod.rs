@@ -19,6 +19,7 @@
 //! floating-point positions. See `docs/mesh-and-slicing.md`.
 
 mod heights;
+pub mod overhang;
 mod section;
 
 pub use heights::{AdaptiveCriterion, LayerSpan};

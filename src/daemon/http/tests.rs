@@ -830,3 +830,45 @@ async fn bodies_are_counted_against_the_memory_budget_as_they_arrive() {
     assert!(answer.contains("api.max_request_bytes"), "{answer}");
     drop(first);
 }
+
+/// The dashboard's preview of a mesh job that hangs in mid-air (a sphere on the bed):
+/// the low layers' images fill the area resting on nothing red, the top ones do not.
+#[tokio::test]
+async fn a_previewed_overhang_is_drawn_red() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = super::app(shared(dir.path(), 4 << 20).await, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let stl = crate::mesh::primitives::sphere(5.0, 64, 32)
+        .to_binary_stl()
+        .unwrap();
+    let job =
+        "name = \"ball\"\n[geometry]\nmesh = \"ball.stl\"\n[materials]\nnames = [\"A\", \"B\"]\n\
+               [gradient]\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n[process]\nr_mach = 2.0\n\
+               nozzle = 0.4\nlayer = 0.2\nthin_regions = \"fill\"\n";
+    let body = serde_json::json!({
+        "job": job,
+        "mesh_base64": crate::daemon::api::base64_encode(&stl),
+    })
+    .to_string();
+    let (s, out) = send(
+        routes.clone(),
+        post("/api/preview").body(Body::from(body)).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{out:.300}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let id = v["id"].as_str().unwrap();
+    let layers = v["layers"].as_array().unwrap().len();
+    let image = |layer: usize| {
+        let routes = routes.clone();
+        let path = format!("/api/previews/{id}/layers/{layer}");
+        async move { send(routes, get(&path)).await.1 }
+    };
+    let red = 5;
+    let mut drawn = 0;
+    for layer in 1..=red {
+        drawn += usize::from(image(layer).await.contains(r#"<g id="unsupported""#));
+    }
+    assert!(drawn >= 3, "{drawn} of layers 1-{red} drawn red");
+    assert!(!image(layers - 3).await.contains("unsupported"));
+}
