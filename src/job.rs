@@ -40,6 +40,18 @@ struct RawJob {
     process: RawProcess,
     /// Process settings of the toolpath stage (`docs/toolpath.md`), all optional.
     toolpath: Option<crate::pipeline::ProcessSettings>,
+    #[serde(default)]
+    support: Support,
+}
+
+/// `[support]`: what the job asks of what holds its layers up.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Support {
+    /// Refuse to print a part with area resting on nothing beyond the allowed
+    /// overhang (`edoctl plan` fails, `job.submit` refuses), rather than warn.
+    #[serde(default)]
+    pub required: bool,
 }
 
 #[derive(Debug, Deserialize)]
@@ -239,6 +251,8 @@ pub struct Job {
     /// How far a layer may reach past the one below without support (`[process]
     /// overhang`).
     pub overhang: crate::slice::overhang::Overhang,
+    /// `[support]`.
+    pub support: Support,
     pub plan: PlanOptions,
     pub layers: LayerHeights,
     /// The `[toolpath]` table: feeds, cessation, flow limits, mixing chamber, purge,
@@ -299,6 +313,7 @@ impl Job {
             z_stations,
             z_step,
             overhang,
+            support: raw.support,
             plan,
             layers,
         })

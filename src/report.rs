@@ -453,6 +453,11 @@ impl OverhangReport {
     pub fn warning(&self) -> Option<String> {
         crate::slice::overhang::warning(&self.allowed, &self.per_layer)
     }
+
+    /// The refusal of a job with `[support] required`: none when nothing hangs.
+    pub fn refusal(&self) -> Option<String> {
+        crate::slice::overhang::refusal(&self.allowed, &self.per_layer)
+    }
 }
 
 /// Each layer's unsupported area (`overhangs[k]` of `report.layers[k]`) and the

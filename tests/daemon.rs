@@ -2341,6 +2341,19 @@ fn a_submitted_job_that_hangs_in_mid_air_is_warned_about() {
         "{w}"
     );
     c.call("job.cancel", json!({"id": r["id"]})).unwrap();
+    // Required to rest on something: refused, naming the key.
+    let e = c
+        .call(
+            "job.submit",
+            json!({"job": format!("{job}[support]\nrequired = true\n"),
+                   "mesh_base64": edo::daemon::api::base64_encode(&ball)}),
+        )
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32003));
+    assert!(
+        e["message"].as_str().unwrap().contains("support.required"),
+        "{e}"
+    );
     // A tube stands on the bed: every layer rests on the one below.
     let tube = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 3.0, 64));
     let r = c

@@ -691,6 +691,15 @@ fn overhangs_are_found_reported_drawn_and_warned() {
     let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(r["overhang"]["layers"], serde_json::json!([]));
     assert!(!String::from_utf8_lossy(&out.stderr).contains("warning"));
+    // A job that requires support is refused, naming the key and the layers.
+    std::fs::write(&path, job("[support]\nrequired = true\n")).unwrap();
+    let out = edoctl().arg("plan").arg(&path).output().unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        said.contains("support.required") && said.contains(&format!("at layer {worst}")),
+        "{said}"
+    );
     // Out of range: refused naming the key.
     std::fs::write(&path, job("overhang = { angle_deg = 95.0 }\n")).unwrap();
     let out = edoctl().arg("plan").arg(&path).output().unwrap();

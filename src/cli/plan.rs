@@ -316,6 +316,11 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
     let overhangs = overhangs_of(&job, &slices);
     crate::report::attach_overhangs(&mut report, job.overhang, &overhangs);
+    if job.support.required {
+        if let Some(why) = report.overhang.as_ref().and_then(|o| o.refusal()) {
+            anyhow::bail!("{}: {why}", args.job.display());
+        }
+    }
     // Where edod would put the part on a machine of this build volume (checked when
     // the option was parsed).
     let volume = BuildVolume::new(build_volume).map_err(|e| match &machine {

@@ -85,6 +85,11 @@ async fn check_part(
                         let hanging = part
                             .overhangs(&job.overhang_options())
                             .map_err(|e| bad(format!("{path}: {e}")))?;
+                        if job.support.required {
+                            if let Some(why) = crate::slice::overhang::refusal(&job.overhang, &hanging) {
+                                return Err(bad(format!("{path}: {why}")));
+                            }
+                        }
                         let warnings =
                             crate::slice::overhang::warning(&job.overhang, &hanging)
                                 .map(|w| format!("{path}: {w}"));

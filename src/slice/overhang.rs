@@ -191,6 +191,16 @@ pub fn warning(allowed: &Overhang, layers: &[(usize, f64)]) -> Option<String> {
     ))
 }
 
+/// The refusal of a job with `[support] required` whose `layers` (index, mm²) rest on
+/// nothing; none when there are none.
+pub fn refusal(allowed: &Overhang, layers: &[(usize, f64)]) -> Option<String> {
+    let w = warning(allowed, layers)?;
+    Some(format!(
+        "support.required: {w}; edo builds no supports yet, so the part cannot be printed \
+         as it stands"
+    ))
+}
+
 /// Unsupported area below this is numerical dust, not an overhang, mm².
 pub const MIN_REPORTED_MM2: f64 = 0.01;
 
