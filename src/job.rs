@@ -62,6 +62,15 @@ struct RawGeometry {
     height: Option<f64>,
     mesh: Option<String>,
     placement: Option<PlacementSpec>,
+    orientation: Option<OrientationSpec>,
+}
+
+/// `geometry.orientation`: "keep" | "auto" | { rotate = [x, y, z] }.
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum OrientationSpec {
+    Named(String),
+    Rotate { rotate: [f64; 3] },
 }
 
 /// `geometry.placement`: "centre" | "keep" | { at = [x, y] }.
@@ -253,6 +262,8 @@ pub struct Job {
     pub overhang: crate::slice::overhang::Overhang,
     /// `[support]`.
     pub support: Support,
+    /// Which way up a mesh part is built (`geometry.orientation`).
+    pub orientation: crate::mesh::orient::Orientation,
     pub plan: PlanOptions,
     pub layers: LayerHeights,
     /// The `[toolpath]` table: feeds, cessation, flow limits, mixing chamber, purge,
@@ -294,6 +305,7 @@ impl Job {
         let design = gradient_design(&g, materials.len(), &tolerances, &bad)?;
         gradient_plan_options(&g, &design.pattern, &mut plan, &bad)?;
         let placement = placement(&raw.geometry.placement, &bad)?;
+        let orientation = orientation(&raw.geometry, &bad)?;
         let geometry = geometry(raw.geometry, &tolerances, &bad)?;
         let z_stations = z_stations(g.z, materials.len(), &tolerances, &bad)?;
         let z_step = z_step(g.z_step, !z_stations.is_empty(), &bad)?;
@@ -314,9 +326,25 @@ impl Job {
             z_step,
             overhang,
             support: raw.support,
+            orientation,
             plan,
             layers,
         })
+    }
+
+    /// What choosing this job's orientation needs: its allowed overhang as an angle
+    /// (a distance: over the thickest layer), half its thinnest layer for the bed.
+    pub fn orient_options(&self) -> crate::mesh::orient::OrientOptions {
+        use crate::slice::overhang::Overhang;
+        let angle = match self.overhang {
+            Overhang::AngleDeg(a) => a,
+            Overhang::DistanceMm(d) => (d / self.layers.max_mm).atan().to_degrees(),
+        };
+        crate::mesh::orient::OrientOptions {
+            overhang_angle_deg: angle,
+            on_bed_mm: self.layers.min_mm / 2.0,
+            ..Default::default()
+        }
     }
 
     /// What finding this job's overhangs needs: the allowed overhang, the narrowest
@@ -492,6 +520,8 @@ pub struct MeshLayers {
     tolerances: crate::slice::SliceTolerances,
     /// What was found in the mesh and what was repaired.
     pub mesh_report: crate::mesh::MeshReport,
+    /// Which way up it is built (`geometry.orientation`), and why.
+    pub orientation: crate::mesh::orient::OrientationReport,
 }
 
 impl MeshLayers {
@@ -578,8 +608,15 @@ impl Job {
         if !matches!(self.geometry, Geometry::Mesh { .. }) {
             return Err(MeshJobError::NotAMesh);
         }
-        let (mesh, mesh_report) =
+        let (mut mesh, mesh_report) =
             crate::mesh::load_and_repair(bytes, limits, &crate::mesh::RepairOptions::default())?;
+        let (turn, orientation) = crate::mesh::orient::choose(
+            &mesh,
+            self.orientation,
+            !self.z_stations.is_empty(),
+            &self.orient_options(),
+        );
+        crate::mesh::orient::turn(&mut mesh, turn);
         if let Some((lo, hi)) = mesh.bounds() {
             // No layer is thinner than the minimum (uniform layers are the maximum).
             let layers = ((hi.z - lo.z) / self.layers.min_mm).ceil();
@@ -624,6 +661,7 @@ impl Job {
             spans,
             tolerances,
             mesh_report,
+            orientation,
         })
     }
 }
@@ -679,6 +717,40 @@ pub const DEFAULT_Z_STEP: f64 = 0.02;
 
 /// How far f(0) and f(1) of a job's gradient function may be from 0 and 1 (eq 3).
 pub const GRADIENT_FUNCTION_TOLERANCE: f64 = 1e-9;
+
+/// `geometry.orientation`: keep (default), auto, or a turn of finite degrees; a
+/// polygon job is built as drawn.
+fn orientation(
+    g: &RawGeometry,
+    bad: &impl Fn(&str, String) -> JobError,
+) -> Result<crate::mesh::orient::Orientation, JobError> {
+    use crate::mesh::orient::Orientation;
+    let key = "geometry.orientation";
+    let o = match &g.orientation {
+        None => Orientation::Keep,
+        Some(OrientationSpec::Named(n)) if n == "keep" => Orientation::Keep,
+        Some(OrientationSpec::Named(n)) if n == "auto" => Orientation::Auto,
+        Some(OrientationSpec::Named(n)) => {
+            return Err(bad(
+                key,
+                format!("\"{n}\": \"keep\", \"auto\" or {{ rotate = [x, y, z] }} (degrees)"),
+            ))
+        }
+        Some(OrientationSpec::Rotate { rotate }) => {
+            if let Some(a) = rotate.iter().find(|a| !a.is_finite() || a.abs() > 360.0) {
+                return Err(bad(key, format!("rotate: {a}: from -360 to 360 degrees")));
+            }
+            Orientation::Rotate(*rotate)
+        }
+    };
+    if o != Orientation::Keep && g.mesh.is_none() {
+        return Err(bad(
+            key,
+            "a polygon job is built as drawn; orientation turns a mesh part".into(),
+        ));
+    }
+    Ok(o)
+}
 
 /// `materials.names` (or the `key` of another list of names): one material per
 /// syringe, 1 to 8 of them, none blank, listed twice, or holding control characters.

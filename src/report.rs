@@ -24,6 +24,9 @@ pub struct PlanReport {
     /// What slicing had to do beyond cutting (mesh jobs only).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub slicing: Option<crate::slice::SliceReport>,
+    /// Which way up the part is built, and why (mesh jobs only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub orientation: Option<crate::mesh::orient::OrientationReport>,
     pub layers: Vec<LayerReport>,
     pub totals: Totals,
     /// Toolpath totals (when the toolpaths were made: `--report` of `edoctl plan`).
@@ -308,7 +311,9 @@ pub fn voxel_grid_bytes(
 pub struct MeshNotes {
     pub mesh: Option<crate::mesh::MeshReport>,
     pub slicing: Option<crate::slice::SliceReport>,
-    /// The mesh's bounding box (min, max), mm, in its own coordinates.
+    /// Which way up the part is built (mesh jobs only).
+    pub orientation: Option<crate::mesh::orient::OrientationReport>,
+    /// The mesh's bounding box (min, max), mm, in its own coordinates (turned).
     pub bounds: Option<(glam::DVec3, glam::DVec3)>,
 }
 
@@ -421,6 +426,7 @@ pub fn build(
         },
         mesh: notes.mesh,
         slicing: notes.slicing,
+        orientation: notes.orientation,
         layers: reports,
         totals,
         toolpath: None,

@@ -715,3 +715,91 @@ fn overhangs_are_found_reported_drawn_and_warned() {
         assert_eq!(r["overhang"]["layers"], serde_json::json!([]), "{name}");
     }
 }
+
+/// `[geometry] orientation = "auto"` on an L-bracket lying on its side puts its largest
+/// face (the long leg's outer side, 40 x 20 mm) on the bed and says why, with the
+/// runner-up; `{ rotate = [..] }` turns it as asked; a polygon job is built as drawn.
+#[test]
+fn auto_orientation_puts_an_l_brackets_largest_face_down() {
+    let dir = tempfile::tempdir().unwrap();
+    let stl = edo::mesh::primitives::l_bracket(40.0, 30.0, 5.0, 20.0)
+        .to_binary_stl()
+        .unwrap();
+    std::fs::write(dir.path().join("bracket.stl"), stl).unwrap();
+    let job = |orientation: &str| {
+        format!(
+            "name = \"bracket\"\n[geometry]\nmesh = \"bracket.stl\"\n{orientation}\n[materials]\n\
+             names = [\"A\", \"B\"]\n[gradient]\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n\
+             [process]\nr_mach = 1.0\nnozzle = 0.6\nlayer = 0.5\nthin_regions = \"fill\"\n"
+        )
+    };
+    let path = dir.path().join("bracket.toml");
+    std::fs::write(&path, job("orientation = \"auto\"")).unwrap();
+    let out = edoctl()
+        .arg("plan")
+        .arg(&path)
+        .args(["--report", "-"])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{said}");
+    let r: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let o = &r["orientation"];
+    assert_eq!(o["mode"], "auto");
+    let down: Vec<f64> = serde_json::from_value(o["chosen"]["down"].clone()).unwrap();
+    assert!(down[1] < -0.999, "{o}");
+    assert!(
+        (o["chosen"]["bed_contact_mm2"].as_f64().unwrap() - 800.0).abs() < 1e-6,
+        "{o}"
+    );
+    assert!(
+        o["runner_up"]["bed_contact_mm2"].as_f64().unwrap() < 800.0,
+        "{o}"
+    );
+    assert!(
+        said.contains("orientation auto: rotate = [") && said.contains("runner-up"),
+        "{said}"
+    );
+    // 30 mm tall so turned: 60 layers of 0.5 mm; its first layer the 40 x 20 mm face.
+    let layers = r["layers"].as_array().unwrap();
+    assert_eq!(layers.len(), 60);
+    assert!(
+        (layers[0]["area_mm2"].as_f64().unwrap() - 800.0).abs() < 1.0,
+        "{}",
+        layers[0]
+    );
+    // Turned as asked: the same way up by its angles.
+    let [x, y, z]: [f64; 3] = serde_json::from_value(o["chosen"]["rotate_deg"].clone()).unwrap();
+    std::fs::write(
+        &path,
+        job(&format!("orientation = {{ rotate = [{x}, {y}, {z}] }}")),
+    )
+    .unwrap();
+    let turned = plan_json(&path, None);
+    assert_eq!(turned["orientation"]["mode"], "rotate");
+    assert_eq!(turned["layers"].as_array().unwrap().len(), 60);
+    // Kept: 20 mm tall, the L on the bed.
+    std::fs::write(&path, job("")).unwrap();
+    let kept = plan_json(&path, None);
+    assert_eq!(kept["orientation"]["mode"], "keep");
+    assert_eq!(kept["layers"].as_array().unwrap().len(), 40);
+    // Bad values and a polygon job refused, naming the key.
+    std::fs::write(&path, job("orientation = \"upside\"")).unwrap();
+    let e = plan_error_of(&path);
+    assert!(e.contains("geometry.orientation"), "{e}");
+    let polygon = std::fs::read_to_string(example("paper-annulus.toml"))
+        .unwrap()
+        .replace("[geometry]\n", "[geometry]\norientation = \"auto\"\n");
+    std::fs::write(&path, polygon).unwrap();
+    let e = plan_error_of(&path);
+    assert!(
+        e.contains("geometry.orientation") && e.contains("polygon"),
+        "{e}"
+    );
+}
+
+fn plan_error_of(path: &Path) -> String {
+    let out = edoctl().arg("plan").arg(path).output().unwrap();
+    assert!(!out.status.success());
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}

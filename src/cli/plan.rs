@@ -276,6 +276,7 @@ pub fn job_layers(
                 MeshNotes {
                     mesh: Some(mesh_report),
                     slicing: Some(slice_report),
+                    orientation: Some(part.orientation),
                     bounds: Some(bounds),
                 },
             ))
@@ -388,6 +389,9 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     if let Some(line) = toolpath_line {
         writeln!(human, "  {line}")?;
     }
+    if let Some(o) = report.orientation.as_ref().filter(|o| o.mode != "keep") {
+        writeln!(human, "  {}", orientation_summary(o))?;
+    }
     if let Some(p) = &report.placement {
         writeln!(human, "  {}", placement_summary(p))?;
     }
@@ -403,6 +407,25 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         writeln!(human, "  {}", gcode_summary(flavor, &g, path))?;
     }
     Ok(())
+}
+
+/// One line: the way up chosen (`rotate = [x, y, z]`), why, and the runner-up.
+fn orientation_summary(o: &crate::mesh::orient::OrientationReport) -> String {
+    let c = &o.chosen;
+    let [x, y, z] = c.rotate_deg;
+    let mut line = format!(
+        "orientation {}: rotate = [{x}, {y}, {z}] (support {:.0} mm³, {:.0} mm² on the bed, \
+         {:.1} mm tall): {}",
+        o.mode, c.support_volume_mm3, c.bed_contact_mm2, c.height_mm, o.why
+    );
+    if let Some(r) = &o.runner_up {
+        let [x, y, z] = r.rotate_deg;
+        line.push_str(&format!(
+            "; runner-up rotate = [{x}, {y}, {z}] (support {:.0} mm³, {:.0} mm² on the bed)",
+            r.support_volume_mm3, r.bed_contact_mm2
+        ));
+    }
+    line
 }
 
 /// A planned job: what the toolpaths, coverage and previews are made from.

@@ -16,6 +16,7 @@
 //! File access is kept out of the core: [`path::load_path`] is the one thin helper the
 //! binaries call.
 
+pub mod orient;
 pub mod path;
 pub mod primitives;
 mod repair;

@@ -98,6 +98,37 @@ pub fn sphere(r: f64, n: usize, rings: usize) -> Mesh {
     m
 }
 
+/// An L-bracket lying on its side: the L drawn in the XY plane (a leg `long` mm along
+/// X and one `short` mm along Y, both `width` mm wide, meeting at the origin),
+/// `thick` mm along Z. Its largest face is the long leg's outer side (normal -Y).
+pub fn l_bracket(long: f64, short: f64, width: f64, thick: f64) -> Mesh {
+    let outline = [
+        [0.0, 0.0],
+        [long, 0.0],
+        [long, width],
+        [width, width],
+        [width, short],
+        [0.0, short],
+    ];
+    let mut m = Mesh::default();
+    for z in [0.0, thick] {
+        for [x, y] in outline {
+            m.vertices.push(DVec3::new(x, y, z));
+        }
+    }
+    // Bottom (facing -Z) and top: the L as a fan of 4 triangles from the corner.
+    for [a, b, c] in [[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]] {
+        m.triangles.push([a, c, b]);
+        m.triangles.push([a + 6, b + 6, c + 6]);
+    }
+    for i in 0..6u32 {
+        let j = (i + 1) % 6;
+        m.triangles.push([i, j, j + 6]);
+        m.triangles.push([i, j + 6, i + 6]);
+    }
+    m
+}
+
 /// Cone: base radius `r` at z = 0, apex at z = `h`, `n` sides.
 pub fn cone(r: f64, h: f64, n: usize) -> Mesh {
     let mut m = Mesh::default();
