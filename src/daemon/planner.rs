@@ -37,6 +37,17 @@ pub trait LayerSource: Send {
     fn take_preview_svg(&mut self) -> Option<String> {
         None
     }
+
+    /// The job's allowed overhang (none for a dry run), for previews' warnings.
+    fn overhang(&self) -> Option<crate::slice::overhang::Overhang> {
+        None
+    }
+
+    /// The area resting on nothing of the layer last previewed, mm² (with
+    /// [`LayerSource::take_preview_svg`]).
+    fn take_preview_unsupported_mm2(&mut self) -> Option<f64> {
+        None
+    }
 }
 
 /// Start a planner worker for job `job_id` that skips moves before `start_index`: on a
@@ -283,6 +294,8 @@ pub struct JobSource {
     /// The last layer planned (index, islands) while previews are drawn: what the next
     /// rests on, for its area resting on nothing (red in the preview).
     below: Option<(usize, Vec<crate::geom::Region>)>,
+    /// The last previewed layer's area resting on nothing, mm², not taken yet.
+    preview_unsupported_mm2: Option<f64>,
 }
 
 /// The machine's syringe of each of `job`'s materials: the one named in
@@ -436,6 +449,7 @@ impl JobSource {
             draw_previews: false,
             preview_svg: None,
             below: None,
+            preview_unsupported_mm2: None,
         })
     }
 
@@ -465,6 +479,7 @@ impl JobSource {
             },
         );
         self.below = Some((plan.index, layer.islands.clone()));
+        self.preview_unsupported_mm2 = Some(crate::slice::overhang::area_mm2(&unsupported));
         svg
     }
 
@@ -585,6 +600,14 @@ impl LayerSource for JobSource {
 
     fn take_preview_svg(&mut self) -> Option<String> {
         self.preview_svg.take()
+    }
+
+    fn overhang(&self) -> Option<crate::slice::overhang::Overhang> {
+        Some(self.job.overhang)
+    }
+
+    fn take_preview_unsupported_mm2(&mut self) -> Option<f64> {
+        self.preview_unsupported_mm2.take()
     }
 }
 

@@ -137,6 +137,8 @@ struct Layer {
     svg: Option<String>,
     /// Whether the view and the image were kept.
     kept: bool,
+    /// Its area resting on nothing beyond the allowed overhang, mm² (0 undrawn).
+    unsupported_mm2: f64,
 }
 
 /// Which planned layers keep their view and image.
@@ -164,6 +166,8 @@ pub struct Plan {
     keep: Keep,
     /// Why the last request's planning stopped short of what it asked ([`Stop`]).
     stopped: Option<String>,
+    /// The job's allowed overhang (none for a dry run).
+    overhang: Option<crate::slice::overhang::Overhang>,
 }
 
 /// When a request's planning stops short: its client left, edod is stopping, or it
@@ -238,6 +242,7 @@ impl Plan {
         Plan {
             name,
             problems,
+            overhang: source.as_ref().and_then(|s| s.overhang()),
             source,
             layers: Vec::new(),
             start: None,
@@ -282,9 +287,13 @@ impl Plan {
     /// Keep a layer just planned: its view and SVG preview while within the bound.
     fn push(&mut self, moves: &[Move]) {
         let k = self.layers.len() as u32;
-        let (svg, count) = match self.source.as_mut() {
-            Some(s) => (s.take_preview_svg(), s.layer_count()),
-            None => (None, None),
+        let (svg, count, unsupported_mm2) = match self.source.as_mut() {
+            Some(s) => (
+                s.take_preview_svg(),
+                s.layer_count(),
+                s.take_preview_unsupported_mm2().unwrap_or(0.0),
+            ),
+            None => (None, None, 0.0),
         };
         let mut view = layers::layer_value(k, moves, self.start);
         view["layers"] = json!(count);
@@ -303,10 +312,12 @@ impl Plan {
             view: kept.then_some(view),
             svg: svg.filter(|_| kept),
             kept,
+            unsupported_mm2,
         });
     }
 
-    /// The preview's answer: `{id, ok, name, problems, layers: [{z_mm, moves}],
+    /// The preview's answer: `{id, ok, name, problems, warnings, layers: [{z_mm, moves,
+    /// unsupported_area_mm2}],
     /// total_moves, view}`, `view` being layer `layer`'s (null if not planned or not
     /// kept).
     pub fn summary(&self, key: &Key, layer: u32) -> Value {
@@ -331,10 +342,27 @@ impl Plan {
             "ok": problems.is_empty(),
             "name": self.name,
             "problems": problems,
-            "layers": self.layers.iter().map(|l| json!({"z_mm": l.z_mm, "moves": l.moves})).collect::<Vec<_>>(),
+            "warnings": self.warnings(),
+            "layers": self.layers.iter().map(|l| json!({"z_mm": l.z_mm, "moves": l.moves, "unsupported_area_mm2": l.unsupported_mm2})).collect::<Vec<_>>(),
             "total_moves": self.total_moves,
             "view": view,
         })
+    }
+
+    /// What the operator should know before submitting: the layers previewed so far
+    /// with area resting on nothing beyond the allowed overhang.
+    fn warnings(&self) -> Vec<String> {
+        let hanging: Vec<(usize, f64)> = self
+            .layers
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| l.unsupported_mm2 > crate::slice::overhang::MIN_REPORTED_MM2)
+            .map(|(k, l)| (k, l.unsupported_mm2))
+            .collect();
+        self.overhang
+            .and_then(|o| crate::slice::overhang::warning(&o, &hanging))
+            .into_iter()
+            .collect()
     }
 
     /// Layer `layer`'s planned layer, or why not.

@@ -832,7 +832,8 @@ async fn bodies_are_counted_against_the_memory_budget_as_they_arrive() {
 }
 
 /// The dashboard's preview of a mesh job that hangs in mid-air (a sphere on the bed):
-/// the low layers' images fill the area resting on nothing red, the top ones do not.
+/// a warning names the layers (it may still be submitted), and the low layers' images
+/// fill the area resting on nothing red, the top ones do not.
 #[tokio::test]
 async fn a_previewed_overhang_is_drawn_red() {
     let dir = tempfile::tempdir().unwrap();
@@ -857,6 +858,14 @@ async fn a_previewed_overhang_is_drawn_red() {
     .await;
     assert_eq!(s, StatusCode::OK, "{out:.300}");
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    // Submittable, with a warning naming the layers; each layer's area.
+    assert_eq!(v["ok"], true, "{v:.300}");
+    let w = v["warnings"][0].as_str().unwrap_or_default();
+    assert!(
+        w.contains("resting on nothing") && w.contains("layers 1-"),
+        "{v:.400}"
+    );
+    assert!(v["layers"][1]["unsupported_area_mm2"].as_f64().unwrap() > 0.01);
     let id = v["id"].as_str().unwrap();
     let layers = v["layers"].as_array().unwrap().len();
     let image = |layer: usize| {

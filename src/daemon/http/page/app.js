@@ -488,7 +488,12 @@ function showPreview(v) {
   for (const p of v.problems) {
     ul.append(Object.assign(document.createElement("li"), { textContent: p, className: "problem" }));
   }
-  $("preview-warnings").hidden = v.problems.length === 0;
+  // What may be submitted but should be known first (layers resting on nothing).
+  const warnings = v.warnings || [];
+  for (const w of warnings) {
+    ul.append(Object.assign(document.createElement("li"), { textContent: w, className: "warning" }));
+  }
+  $("preview-warnings").hidden = v.problems.length === 0 && warnings.length === 0;
   const slider = $("preview-layer");
   slider.max = String(Math.max(0, n - 1));
   slider.value = "0";
