@@ -266,6 +266,10 @@ async fn drive(c: &Client, port: u16) {
         text(c, "#link").await.starts_with("connected")
     })
     .await;
+    // On loopback without a token file no token is asked for (the form's own display
+    // rule once showed it although hidden).
+    let form = c.find(Locator::Css("#token-form")).await.unwrap();
+    assert!(!form.is_displayed().await.unwrap(), "a token form on loopback");
 
     // A job too large for the machine: its preview says so, and it cannot be confirmed.
     let too_big = std::fs::read_to_string(
