@@ -269,7 +269,10 @@ async fn drive(c: &Client, port: u16) {
     // On loopback without a token file no token is asked for (the form's own display
     // rule once showed it although hidden).
     let form = c.find(Locator::Css("#token-form")).await.unwrap();
-    assert!(!form.is_displayed().await.unwrap(), "a token form on loopback");
+    assert!(
+        !form.is_displayed().await.unwrap(),
+        "a token form on loopback"
+    );
 
     // A job too large for the machine: its preview says so, and it cannot be confirmed.
     let too_big = std::fs::read_to_string(
@@ -354,8 +357,22 @@ async fn drive(c: &Client, port: u16) {
     c.goto(&format!("{base}#live")).await.unwrap();
     screenshot(c, "live-layer.png").await;
 
-    // Pause and resume from the page.
-    click(c, "#job-1 button[data-action=pause]").await;
+    // Pause and resume from the page, as an operator clicks: the button found once and
+    // clicked after progress has streamed in (the page once rebuilt every row on each
+    // update, so such a click fell on a button no longer there).
+    let pause = c
+        .find(Locator::Css("#job-1 button[data-action=pause]"))
+        .await
+        .unwrap();
+    let row = text(c, "#job-1").await;
+    wait_for("progress to stream in", 20, || async {
+        text(c, "#job-1").await != row
+    })
+    .await;
+    pause
+        .click()
+        .await
+        .expect("the pause button was rebuilt under the pointer");
     wait_for("job 1 paused", 20, || async {
         attr(c, "#job-1", "data-state").await.as_deref() == Some("paused")
     })

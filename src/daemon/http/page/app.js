@@ -156,8 +156,9 @@ function progressText(j) {
   return layer + ", " + moves;
 }
 
-// Rows are rebuilt only when what they show changed, so a focused button stays put
-// while progress streams in.
+// A row is made anew only for a new job or a new state (its buttons change); else only
+// its text cells that changed are written, so a button stays under the pointer and
+// keeps the keyboard focus while progress streams in.
 function renderJobs() {
   const body = $("jobs");
   const jobs = [...state.jobs.values()].sort((a, b) => a.id - b.id);
@@ -165,13 +166,16 @@ function renderJobs() {
   const keep = new Set();
   for (const j of jobs) {
     const cells = [String(j.id), j.name, j.state, progressText(j), fmtEta(j.progress?.eta_s)];
-    const sig = cells.join("\u0000");
     let tr = $("job-" + j.id);
-    if (!tr || tr.dataset.sig !== sig) {
+    if (!tr || tr.dataset.state !== j.state) {
       const row = jobRow(j, cells);
-      row.dataset.sig = sig;
       if (tr) tr.replaceWith(row); else body.append(row);
       tr = row;
+    } else {
+      cells.forEach((text, i) => {
+        const td = tr.children[i];
+        if (td && td.textContent !== text) td.textContent = text;
+      });
     }
     keep.add(tr);
   }
