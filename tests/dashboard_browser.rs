@@ -409,6 +409,55 @@ async fn drive(c: &Client, port: u16) {
     let ack = text(c, "#estop-ack").await;
     assert!(ack.contains("acknowledged by the machine"), "{ack}");
     screenshot(c, "estop.png").await;
+
+    // Cancel and delete ask first, naming the job; declined, nothing happens.
+    wait_for("job 2 interrupted", 20, || async {
+        attr(c, "#job-2", "data-state").await.as_deref() == Some("interrupted")
+    })
+    .await;
+    let asked = answer_confirmation(c, "#job-2 button[data-action=cancel]", false).await;
+    assert!(asked.contains("Cancel job 2"), "{asked}");
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert_eq!(
+        attr(c, "#job-2", "data-state").await.as_deref(),
+        Some("interrupted")
+    );
+    answer_confirmation(c, "#job-2 button[data-action=cancel]", true).await;
+    wait_for("job 2 cancelled", 20, || async {
+        attr(c, "#job-2", "data-state").await.as_deref() == Some("cancelled")
+    })
+    .await;
+    let asked = answer_confirmation(c, "#job-1 button[data-action=delete]", true).await;
+    assert!(asked.contains("Delete job 1"), "{asked}");
+    wait_for("job 1 deleted", 20, || async {
+        c.find(Locator::Css("#job-1")).await.is_err()
+    })
+    .await;
+}
+
+/// Click `css`, which asks for confirmation; the question, accepted or declined.
+async fn answer_confirmation(c: &Client, css: &str, accept: bool) -> String {
+    c.find(Locator::Css(css))
+        .await
+        .unwrap()
+        .click()
+        .await
+        .unwrap();
+    let mut asked = None;
+    for _ in 0..50 {
+        if let Ok(t) = c.get_alert_text().await {
+            asked = Some(t);
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let asked = asked.unwrap_or_else(|| panic!("{css} asked nothing"));
+    if accept {
+        c.accept_alert().await.unwrap();
+    } else {
+        c.dismiss_alert().await.unwrap();
+    }
+    asked
 }
 
 /// On a non-loopback bind: a token-less call or read, and a cross-origin WebSocket,

@@ -199,14 +199,22 @@ function jobRow(j, cells) {
     b.textContent = action;
     b.setAttribute("aria-label", action + " job " + j.id + " (" + j.name + ")");
     b.dataset.action = action;
-    b.addEventListener("click", () => jobAction(action, j.id, b));
+    b.addEventListener("click", () => jobAction(action, j, b));
     td.append(b);
   }
   tr.append(td);
   return tr;
 }
 
-async function jobAction(action, id, button) {
+// What cannot be undone is asked first, naming the job.
+const CONFIRM = {
+  cancel: (j) => "Cancel job " + j.id + " (" + j.name + ")? It stops for good: a cancelled job cannot be resumed.",
+  delete: (j) => "Delete job " + j.id + " (" + j.name + ") and its record?",
+};
+
+async function jobAction(action, j, button) {
+  const id = j.id;
+  if (CONFIRM[action] && !window.confirm(CONFIRM[action](j))) return;
   button.disabled = true;
   try {
     const r = await call("job." + action, { id });
