@@ -700,11 +700,16 @@ fn overhangs_are_found_reported_drawn_and_warned() {
         said.contains("support.required") && said.contains(&format!("at layer {worst}")),
         "{said}"
     );
-    // Out of range: refused naming the key.
-    std::fs::write(&path, job("overhang = { angle_deg = 95.0 }\n")).unwrap();
-    let out = edoctl().arg("plan").arg(&path).output().unwrap();
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("process.overhang"));
+    // Out of range, or neither form: refused naming the key.
+    for bad in [
+        "overhang = { angle_deg = 95.0 }",
+        "overhang = { distance_mm = 20.0 }",
+        "overhang = { degrees = 30.0 }",
+    ] {
+        std::fs::write(&path, job(&format!("{bad}\n"))).unwrap();
+        let e = plan_error_of(&path);
+        assert!(e.contains("overhang"), "{bad}: {e}");
+    }
     for name in [
         "tooth-crown.toml",
         "fibers.toml",
@@ -787,6 +792,16 @@ fn auto_orientation_puts_an_l_brackets_largest_face_down() {
     std::fs::write(&path, job("orientation = \"upside\"")).unwrap();
     let e = plan_error_of(&path);
     assert!(e.contains("geometry.orientation"), "{e}");
+    std::fs::write(&path, job("orientation = { rotate = [1e9, 0.0, 0.0] }")).unwrap();
+    let e = plan_error_of(&path);
+    assert!(
+        e.contains("geometry.orientation") && e.contains("-360 to 360"),
+        "{e}"
+    );
+    // Neither form: the TOML error shows the line (serde's untagged enums name no key).
+    std::fs::write(&path, job("orientation = { rotate = [90.0] }")).unwrap();
+    let e = plan_error_of(&path);
+    assert!(e.contains("line 4") && e.contains("orientation = {"), "{e}");
     let polygon = std::fs::read_to_string(example("paper-annulus.toml"))
         .unwrap()
         .replace("[geometry]\n", "[geometry]\norientation = \"auto\"\n");

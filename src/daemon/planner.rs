@@ -456,18 +456,18 @@ impl JobSource {
     /// The SVG preview of a planned layer (part coordinates, as `edoctl plan --svg`),
     /// its area resting on nothing in red; the layer is kept as the next one's below.
     fn preview_of(&mut self, plan: &crate::plan::LayerPlan, layer: &crate::slice::Layer) -> String {
-        let below = match &self.below {
-            Some((i, islands)) if i + 1 == plan.index => Some(islands.as_slice()),
-            _ if plan.index == 0 => None,
-            // Not planned here (a preview asked from a later layer): not judged.
-            _ => Some(layer.islands.as_slice()),
+        let opts = self.job.overhang_options();
+        // Layer 0 rests on the bed; a layer whose layer below was not planned here (a
+        // preview from a later layer) is not judged.
+        let unsupported = match &self.below {
+            Some((i, below)) if i + 1 == plan.index => crate::slice::overhang::unsupported(
+                &layer.islands,
+                Some(below),
+                layer.thickness_mm,
+                &opts,
+            ),
+            _ => crate::geom::Shapes::new(),
         };
-        let unsupported = crate::slice::overhang::unsupported(
-            &layer.islands,
-            below,
-            layer.thickness_mm,
-            &self.job.overhang_options(),
-        );
         let svg = crate::svg::layer_svg(
             plan,
             &crate::svg::PreviewInput {

@@ -108,7 +108,7 @@ pub fn candidates(mesh: &Mesh, max: usize) -> Vec<DVec3> {
     use std::collections::HashMap;
     let mut by_normal: HashMap<[i64; 3], (DVec3, f64)> = HashMap::new();
     for t in &mesh.triangles {
-        let Some([a, b, c]) = corners(mesh, t) else {
+        let Some([a, b, c]) = corners(&mesh.vertices, t) else {
             continue;
         };
         let n = (b - a).cross(c - a);
@@ -138,8 +138,9 @@ pub fn candidates(mesh: &Mesh, max: usize) -> Vec<DVec3> {
     out
 }
 
-fn corners(mesh: &Mesh, t: &[u32; 3]) -> Option<[DVec3; 3]> {
-    let v = |i: u32| mesh.vertices.get(i as usize).copied();
+/// A triangle's corners among `vertices` (none for an index out of range).
+fn corners(vertices: &[DVec3], t: &[u32; 3]) -> Option<[DVec3; 3]> {
+    let v = |i: u32| vertices.get(i as usize).copied();
     Some([v(t[0])?, v(t[1])?, v(t[2])?])
 }
 
@@ -155,12 +156,7 @@ pub fn score(mesh: &Mesh, down: DVec3, opts: &OrientOptions) -> Candidate {
     let leaning = opts.overhang_angle_deg.to_radians().sin();
     let (mut support, mut contact) = (0.0, 0.0);
     for t in &mesh.triangles {
-        let Some([a, b, c]) = [t[0], t[1], t[2]]
-            .map(|i| turned.get(i as usize).copied())
-            .into_iter()
-            .collect::<Option<Vec<_>>>()
-            .and_then(|v| <[DVec3; 3]>::try_from(v).ok())
-        else {
+        let Some([a, b, c]) = corners(&turned, t) else {
             continue;
         };
         let n = (b - a).cross(c - a);

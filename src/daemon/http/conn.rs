@@ -34,7 +34,7 @@ use tokio::sync::{watch, OwnedSemaphorePermit, Semaphore};
 use tower::ServiceExt;
 use tracing::{debug, warn};
 
-use crate::daemon::connections::{grow, idle_error, Held, Reserve, Ticket, CONTROL_LINE};
+use crate::daemon::connections::{grow, idle_error, Held, Reserve, Ticket};
 use crate::daemon::{ApiError, Shared};
 
 /// A connection's place in the budget.
@@ -121,14 +121,14 @@ impl Conn {
 }
 
 /// The places of the dashboard's connections.
-pub struct Budget {
+pub struct Places {
     slots: Arc<Semaphore>,
     reserve: Arc<Reserve>,
 }
 
-impl Budget {
-    pub fn new(api: &crate::daemon::config::ApiConfig) -> Budget {
-        Budget {
+impl Places {
+    pub fn new(api: &crate::daemon::config::ApiConfig) -> Places {
+        Places {
             slots: Arc::new(Semaphore::new(api.max_clients)),
             reserve: Arc::new(Reserve::new(api.control_clients)),
         }
@@ -151,7 +151,7 @@ edod is serving its most clients (api.max_clients, api.control_clients); retry\n
 /// Accept dashboard connections on `listener` until the task is aborted, each served
 /// by `router` under the connection budget.
 pub async fn serve(listener: TcpListener, router: Router, shared: Arc<Shared>) {
-    let budget = Budget::new(&shared.config.api);
+    let places = Places::new(&shared.config.api);
     let idle = shared.config.api.idle_timeout();
     let mut warned: Option<Instant> = None;
     let mut refused = 0u64;
@@ -169,7 +169,7 @@ pub async fn serve(listener: TcpListener, router: Router, shared: Arc<Shared>) {
                 continue;
             }
         };
-        let Some(conn) = budget.admit() else {
+        let Some(conn) = places.admit() else {
             let _ = stream.try_write(REFUSED);
             refused += 1;
             if warned.is_none_or(|w| w.elapsed() > Duration::from_secs(10)) {
@@ -221,16 +221,7 @@ fn control_path(method: &axum::http::Method, path: &str) -> bool {
 /// The answer to what a control connection may not ask: 503, and the connection closed.
 pub fn control_refusal(shared: &Shared) -> Response {
     let e = crate::daemon::connections::control_only(shared);
-    let body = serde_json::json!({"error": {"code": e.code, "message": e.message}});
-    (
-        StatusCode::SERVICE_UNAVAILABLE,
-        [
-            (header::CONTENT_TYPE, "application/json"),
-            (header::CONNECTION, "close"),
-        ],
-        body.to_string(),
-    )
-        .into_response()
+    rest_error(StatusCode::SERVICE_UNAVAILABLE, &e, true)
 }
 
 /// Count a request in flight on its connection (idle timing stops while it runs);
@@ -297,23 +288,23 @@ async fn collect(shared: &Shared, body: Body, max: usize) -> Result<(Vec<u8>, He
     Ok((bytes, held))
 }
 
-/// The longest body a control connection may send.
-pub const CONTROL_BODY: usize = CONTROL_LINE;
-
+/// 413, naming the limit: `api.max_request_bytes`, or a control connection's.
 fn too_large(shared: &Shared, max: usize) -> Response {
+    let limit = if max == shared.config.api.max_request_bytes {
+        "api.max_request_bytes".to_string()
+    } else {
+        "the most a connection beyond api.max_clients may send".to_string()
+    };
     let e = ApiError::new(
         ApiError::LIMIT,
-        format!(
-            "the request's body is longer than {max} bytes (api.max_request_bytes = {})",
-            shared.config.api.max_request_bytes
-        ),
+        format!("the request's body is longer than {max} bytes ({limit})"),
     );
     rest_error(StatusCode::PAYLOAD_TOO_LARGE, &e, true)
 }
 
-/// An API error as the REST answers carry it; `close` asks to close the connection
-/// (the rest of a refused body is not read).
-fn rest_error(status: StatusCode, e: &ApiError, close: bool) -> Response {
+/// An API error as the REST answers carry it (`{"error": {code, message}}`); `close`
+/// asks to close the connection (the rest of a refused body is not read).
+pub fn rest_error(status: StatusCode, e: &ApiError, close: bool) -> Response {
     let body = serde_json::json!({"error": {"code": e.code, "message": e.message}});
     let mut r = (
         status,

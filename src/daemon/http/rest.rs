@@ -38,8 +38,7 @@ fn status_of(e: &ApiError) -> StatusCode {
 }
 
 fn error_response(e: ApiError) -> Response {
-    let body = json!({"error": {"code": e.code, "message": e.message}});
-    json_response(status_of(&e), body.to_string())
+    conn::rest_error(status_of(&e), &e, false)
 }
 
 /// Call `method` through the dispatcher; its result as the body, or its error with the
@@ -126,7 +125,7 @@ pub async fn rpc(
     let shared = Arc::clone(&app.shared);
     let control = place.is_some_and(|Extension(c)| c.control_only());
     let max = if control {
-        conn::CONTROL_BODY
+        crate::daemon::connections::CONTROL_LINE
     } else {
         shared.config.api.max_request_bytes
     };
