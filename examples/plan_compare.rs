@@ -46,6 +46,7 @@ fn bench(n: usize, out: Option<&str>) -> anyhow::Result<()> {
             area_mm2: plan.area_mm2,
             regions: vec![plan],
             islands: vec![region],
+            support: Default::default(),
         };
         std::fs::write(path, serde_json::to_string(&vec![layer])?)?;
     }

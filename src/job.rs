@@ -5,6 +5,7 @@
 //! Pure: [`Job::from_toml`] takes the text (and a name for messages); reading the file
 //! is the caller's business.
 
+mod support;
 use crate::geom::{self as shapes, Region, Tolerances};
 use crate::machine::placement::PlacementMode;
 use crate::material::{Composition, GradientFunction, OffsetDirection};
@@ -41,17 +42,93 @@ struct RawJob {
     /// Process settings of the toolpath stage (`docs/toolpath.md`), all optional.
     toolpath: Option<crate::pipeline::ProcessSettings>,
     #[serde(default)]
-    support: Support,
+    support: RawSupport,
 }
 
-/// `[support]`: what the job asks of what holds its layers up.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Deserialize)]
+/// `[support]` as written (`docs/job-format.md`).
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
+struct RawSupport {
+    #[serde(default)]
+    required: bool,
+    mode: Option<String>,
+    syringe: Option<String>,
+    composition: Option<Vec<f64>>,
+    top_gap_mm: Option<f64>,
+    bottom_gap_mm: Option<f64>,
+    xy_gap_mm: Option<f64>,
+    interface_layers: Option<u32>,
+    pattern: Option<String>,
+    density: Option<f64>,
+    angle_deg: Option<f64>,
+}
+
+/// What builds supports in, `[support] syringe` or `composition`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SupportMaterial {
+    /// A syringe of its own (a fugitive ink such as Pluronic or wax), pushed pure:
+    /// on the machine one with `role = "support"` of this name.
+    Syringe(String),
+    /// The part's materials at this composition (fractions in `materials.names`
+    /// order).
+    Composition(Vec<f64>),
+}
+
+/// `[support]`: what the job asks of what holds its layers up, defaults resolved.
+#[derive(Clone, Debug, PartialEq)]
 pub struct Support {
     /// Refuse to print a part with area resting on nothing beyond the allowed
-    /// overhang (`edoctl plan` fails, `job.submit` refuses), rather than warn.
-    #[serde(default)]
+    /// overhang after supports (`edoctl plan` fails, `job.submit` refuses), rather
+    /// than warn.
     pub required: bool,
+    pub mode: crate::slice::support::SupportMode,
+    /// What supports are built of (none when `mode` is off).
+    pub material: Option<SupportMaterial>,
+    pub top_gap_mm: f64,
+    pub bottom_gap_mm: f64,
+    pub xy_gap_mm: f64,
+    pub interface_layers: u32,
+    pub pattern: crate::toolpath::support::SupportPattern,
+    pub density: f64,
+    pub angle_deg: f64,
+}
+
+impl Default for Support {
+    fn default() -> Self {
+        Support {
+            required: false,
+            mode: crate::slice::support::SupportMode::Off,
+            material: None,
+            top_gap_mm: 0.0,
+            bottom_gap_mm: 0.0,
+            xy_gap_mm: 0.2,
+            interface_layers: DEFAULT_INTERFACE_LAYERS,
+            pattern: crate::toolpath::support::SupportPattern::Lines,
+            density: DEFAULT_SUPPORT_DENSITY,
+            angle_deg: 0.0,
+        }
+    }
+}
+
+/// Dense layers at the top of a support column by default.
+pub const DEFAULT_INTERFACE_LAYERS: u32 = 2;
+/// The base's share of its area laid with road by default (lines 1.6 mm apart at a
+/// 0.4 mm road).
+pub const DEFAULT_SUPPORT_DENSITY: f64 = 0.25;
+
+impl Support {
+    /// Whether supports are built.
+    pub fn builds(&self) -> bool {
+        self.mode != crate::slice::support::SupportMode::Off
+    }
+
+    /// The support syringe's name, when supports are built of their own syringe.
+    pub fn syringe(&self) -> Option<&str> {
+        match (&self.material, self.builds()) {
+            (Some(SupportMaterial::Syringe(name)), true) => Some(name),
+            _ => None,
+        }
+    }
 }
 
 #[derive(Debug, Deserialize)]
@@ -314,6 +391,14 @@ impl Job {
         overhang.check().map_err(|m| bad("process.overhang", m))?;
         let mut toolpath = toolpath_settings(raw.toolpath, nozzle_mm, &bad)?;
         move_merging(&raw.process, nozzle_mm, &mut toolpath, &bad)?;
+        let support = support::support(
+            raw.support,
+            &materials,
+            &layers,
+            toolpath.road_width(),
+            &bad,
+        )?;
+        toolpath.support = support::support_roads(&support, materials.len());
         Ok(Job {
             toolpath,
             placement,
@@ -325,7 +410,7 @@ impl Job {
             z_stations,
             z_step,
             overhang,
-            support: raw.support,
+            support,
             orientation,
             plan,
             layers,

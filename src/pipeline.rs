@@ -210,6 +210,10 @@ pub struct ProcessSettings {
     /// `process.move_width_tolerance`. Default [`DEFAULT_MOVE_WIDTH_TOLERANCE`].
     #[serde(skip)]
     pub move_width_tolerance: f64,
+    /// How each layer's support (`LayerPlan::support`) is built, in which
+    /// composition; unset: no support roads. Set from the job's `[support]`.
+    #[serde(skip)]
+    pub support: Option<crate::toolpath::support::SupportRoads>,
 }
 
 impl Default for ProcessSettings {
@@ -247,6 +251,7 @@ impl Default for ProcessSettings {
             syringes: None,
             move_deviation_mm: DEFAULT_MOVE_DEVIATION_MM,
             move_width_tolerance: DEFAULT_MOVE_WIDTH_TOLERANCE,
+            support: None,
         }
     }
 }
@@ -287,6 +292,14 @@ pub enum PipelineError {
 }
 
 impl ProcessSettings {
+    /// How many fractions every composition has: the machine's syringes where known,
+    /// else those of the support's composition (the part's materials and the support
+    /// syringe); unset: the plan's.
+    pub fn channels(&self) -> Option<usize> {
+        self.syringes
+            .or_else(|| self.support.as_ref().map(|s| s.composition.len()))
+    }
+
     /// The defaults for a nozzle of `nozzle_mm`.
     pub fn for_nozzle(nozzle_mm: f64) -> Self {
         ProcessSettings {
@@ -557,7 +570,39 @@ fn finish_paths(
         );
         paths = toolpath::gapfill::insert(paths, fill);
     }
+    add_support_roads(layer, settings, &mut paths);
+    if let Some(n) = settings.channels() {
+        pad_compositions(&mut paths, n);
+    }
     paths
+}
+
+/// The layer's support roads after the part's, from where they end.
+fn add_support_roads(layer: &LayerPlan, settings: &ProcessSettings, paths: &mut Vec<ToolPath>) {
+    let Some(roads) = &settings.support else {
+        return;
+    };
+    if layer.support.is_empty() {
+        return;
+    }
+    let start = paths.last().map(ToolPath::end);
+    paths.extend(toolpath::support::support_paths(
+        &layer.support,
+        layer.index,
+        settings.road_width(),
+        roads,
+        start,
+    ));
+}
+
+/// Every composition given `n` fractions: a part planned from fewer materials than
+/// the machine has syringes (its support syringe) gets 0 of the rest.
+fn pad_compositions(paths: &mut [ToolPath], n: usize) {
+    for p in paths {
+        if p.composition.len() < n {
+            p.composition.resize(n, 0.0);
+        }
+    }
 }
 
 /// A job's first move: it homes (`G28` in G-code), as every job edod streams and every
@@ -732,6 +777,7 @@ pub fn moves_for_paths(
     }
     for (i, p) in paths.iter().enumerate() {
         b.path_index = i as u32;
+        b.support_path = p.role.is_support();
         b.path(p)?;
     }
     Ok(b.finish(paths, &planned_before, &commanded_before))
@@ -823,6 +869,8 @@ struct Builder<'a> {
     error_volume_nl: f64,
     /// Index in the layer's paths of the path being built.
     path_index: u32,
+    /// Whether that path builds support (left out of the part's composition figures).
+    support_path: bool,
     /// What is predicted to leave the nozzle over each road.
     road_exits: mixing::RoadExits,
     extrusion_paths: Vec<(u32, u32)>,
@@ -855,6 +903,7 @@ impl<'a> Builder<'a> {
             segment: 0,
             error_volume_nl: 0.0,
             path_index: 0,
+            support_path: false,
             road_exits: mixing::RoadExits::default(),
             extrusion_paths: Vec::new(),
         }
@@ -1388,6 +1437,9 @@ impl Builder<'_> {
         let delivered = self
             .push_through_chamber(volume_nl, commanded)
             .unwrap_or_else(|| commanded.to_vec());
+        if self.support_path {
+            return;
+        }
         self.road_exits.add(self.path_index, volume_nl, &delivered);
         let err = crate::material::max_fraction_difference(&delivered, designed);
         self.stats.composition_error_mean += err * volume_nl;

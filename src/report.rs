@@ -35,6 +35,9 @@ pub struct PlanReport {
     /// What rests on nothing (`attach_overhangs`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub overhang: Option<OverhangReport>,
+    /// The supports built (`attach_supports`; a job with `[support]` on).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub support: Option<SupportReport>,
     /// Where the part goes on the machine and whether it fits (`edoctl plan`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub placement: Option<PlacementReport>,
@@ -71,6 +74,10 @@ pub struct LayerReport {
     /// overhang`), mm²; absent for a layer whose layer below was not planned.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub unsupported_area_mm2: Option<f64>,
+    /// Support built in this layer (`[support]`), mm²: base and interface together;
+    /// absent with supports off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub support_area_mm2: Option<f64>,
     /// The layer's roads as the machine will build them (see [`LayerToolpath`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub toolpath: Option<LayerToolpath>,
@@ -403,6 +410,7 @@ pub fn build(
             outer: design.outer.fractions().to_vec(),
             regions,
             unsupported_area_mm2: None,
+            support_area_mm2: None,
             toolpath: None,
         });
     }
@@ -431,6 +439,7 @@ pub fn build(
         totals,
         toolpath: None,
         overhang: None,
+        support: None,
         placement: None,
         planning_time_ms,
     }
@@ -449,6 +458,10 @@ pub struct OverhangReport {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub worst_layer: Option<usize>,
     pub worst_area_mm2: f64,
+    /// With supports built: the area resting on nothing without them, all layers,
+    /// mm² (the figures above are what still rests on nothing with them).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub without_supports_mm2: Option<f64>,
     /// `layers` with their areas, mm².
     #[serde(skip)]
     per_layer: Vec<(usize, f64)>,
@@ -480,6 +493,7 @@ pub fn attach_overhangs(
         layers: Vec::new(),
         worst_layer: None,
         worst_area_mm2: 0.0,
+        without_supports_mm2: None,
         per_layer: Vec::new(),
     };
     for (l, o) in report.layers.iter_mut().zip(overhangs) {
@@ -497,6 +511,84 @@ pub fn attach_overhangs(
         }
     }
     report.overhang = Some(whole);
+}
+
+/// The supports of a plan (`[support]`, `slice::support`).
+#[derive(Debug, Clone, Serialize)]
+pub struct SupportReport {
+    /// `buildplate` or `everywhere`.
+    pub mode: crate::slice::support::SupportMode,
+    /// What they are built of: `syringe "<name>"` or `composition [..]`.
+    pub material: String,
+    /// Layers with support.
+    pub layers: usize,
+    /// Volume of the support's area, all layers (area x thickness), mm³: the
+    /// columns' outline, not the road laid in them.
+    pub area_volume_mm3: f64,
+    /// Of which the dense interface, mm³.
+    pub interface_volume_mm3: f64,
+    /// The support roads' length, mm (when the toolpaths were made).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub roads_mm: Option<f64>,
+    /// The material the support roads push (length x road width x layer), mm³.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub road_volume_mm3: Option<f64>,
+}
+
+/// Each layer's support area (`areas[k]` of `report.layers[k]`) and the totals.
+pub fn attach_supports(
+    report: &mut PlanReport,
+    job: &crate::job::Job,
+    areas: &[crate::slice::support::SupportArea],
+) {
+    use crate::geom::area;
+    let mut whole = SupportReport {
+        mode: job.support.mode,
+        material: match &job.support.material {
+            Some(crate::job::SupportMaterial::Syringe(name)) => format!("syringe {name:?}"),
+            Some(crate::job::SupportMaterial::Composition(c)) => format!("composition {c:?}"),
+            None => String::new(),
+        },
+        layers: 0,
+        area_volume_mm3: 0.0,
+        interface_volume_mm3: 0.0,
+        roads_mm: None,
+        road_volume_mm3: None,
+    };
+    for (l, a) in report.layers.iter_mut().zip(areas) {
+        let all = area(&a.base).abs() + area(&a.interface).abs();
+        l.support_area_mm2 = Some(all);
+        if !a.is_empty() {
+            whole.layers += 1;
+        }
+        whole.area_volume_mm3 += all * l.thickness_mm;
+        whole.interface_volume_mm3 += area(&a.interface).abs() * l.thickness_mm;
+    }
+    report.support = Some(whole);
+}
+
+/// The support roads' length and volume into `report.support` from each layer's
+/// paths (`layers[k]` of `report.layers[k]`), `road_width_mm` wide.
+pub fn attach_support_roads(
+    report: &mut PlanReport,
+    paths: &[&[crate::toolpath::ToolPath]],
+    road_width_mm: f64,
+) {
+    let Some(whole) = report.support.as_mut() else {
+        return;
+    };
+    let (mut length, mut volume) = (0.0, 0.0);
+    for (l, p) in report.layers.iter().zip(paths) {
+        let here: f64 = p
+            .iter()
+            .filter(|p| p.role.is_support())
+            .map(crate::toolpath::ToolPath::length_mm)
+            .sum();
+        length += here;
+        volume += here * road_width_mm * l.thickness_mm;
+    }
+    whole.roads_mm = Some(length);
+    whole.road_volume_mm3 = Some(volume);
 }
 
 /// Attach per-layer toolpaths (in layer order, one per report layer) and their totals;

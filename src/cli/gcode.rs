@@ -83,7 +83,8 @@ pub fn write(
         lines: Vec::new(),
     };
     let written = (|| {
-        let mut w = MoveWriter::new(job.materials.len(), settings)?;
+        let drives = process.channels().unwrap_or(job.materials.len());
+        let mut w = MoveWriter::new(drives, settings)?;
         w.preamble(&header(job, layers.len(), settings), &mut out.lines);
         let summary = write_moves(job, layers, process, (placement, volume), &mut w, &mut out)?;
         out.finish()?;
@@ -127,7 +128,11 @@ fn write_moves(
             placement
                 .put_on_machine(&mut lm.moves, volume)
                 .map_err(|e| anyhow::anyhow!("layer {}: {e}", layer.index))?;
+            let mut features = Features::new(&lm, process.support.is_some());
             for m in &lm.moves {
+                if let Some(name) = features.before(m.index) {
+                    w.feature(name, &mut out.lines);
+                }
                 w.move_lines(m, &mut out.lines);
             }
             out.flush_lines()?;
@@ -150,13 +155,62 @@ fn write_moves(
     })
 }
 
+/// What the roads of a layer build, for `;TYPE:` lines where it changes (a job with
+/// supports only: the others' files stay as they were).
+struct Features<'a> {
+    roles: std::iter::Peekable<std::slice::Iter<'a, (u32, u32)>>,
+    paths: &'a [crate::toolpath::ToolPath],
+    last: Option<&'static str>,
+    on: bool,
+}
+
+impl<'a> Features<'a> {
+    fn new(lm: &'a crate::pipeline::LayerMoves, on: bool) -> Self {
+        Features {
+            roles: lm.extrusion_paths.iter().peekable(),
+            paths: &lm.paths,
+            last: None,
+            on,
+        }
+    }
+
+    /// The feature to mark before move `index`, where it starts one.
+    fn before(&mut self, index: u32) -> Option<&'static str> {
+        if !self.on {
+            return None;
+        }
+        while self.roles.next_if(|(i, _)| *i < index).is_some() {}
+        let &(_, path) = self.roles.next_if(|(i, _)| *i == index)?;
+        let name = feature_name(self.paths.get(path as usize)?.role);
+        if self.last == Some(name) {
+            return None;
+        }
+        self.last = Some(name);
+        Some(name)
+    }
+}
+
+/// PrusaSlicer's name of what a road builds: the EDO contours and offsets are the
+/// part's perimeters.
+fn feature_name(role: crate::toolpath::PathRole) -> &'static str {
+    use crate::toolpath::PathRole;
+    match role {
+        PathRole::Contour { .. } | PathRole::Offset { .. } => "Perimeter",
+        PathRole::GapFill { .. } => "Gap fill",
+        PathRole::Support => "Support material",
+        PathRole::SupportInterface => "Support material interface",
+    }
+}
+
 /// The file's header comments.
 fn header(job: &Job, layers: usize, settings: &GcodeSettings) -> Vec<String> {
+    let mut drives = job.materials.clone();
+    drives.extend(job.support.syringe().map(str::to_string));
     vec![
         format!("edo job {}: {layers} layer(s)", job.name),
         format!(
             "drives (syringes) in order: {}; barrel area {} mm2",
-            job.materials.join(", "),
+            drives.join(", "),
             settings.barrel_area_mm2
         ),
     ]

@@ -310,13 +310,30 @@ pub fn run(args: &PlanArgs) -> Result<()> {
         .map_or(args.build_volume, |m| m.config.machine.build_volume_mm);
     let started = Instant::now();
     let (slices, notes) = job_layers(&job, &args.job, args.layers.clone(), args.quiet)?;
-    let layers = plan_with_progress(&job, &slices, args.quiet)
+    let mut layers = plan_with_progress(&job, &slices, args.quiet)
         .with_context(|| format!("planning {}", args.job.display()))?;
+    let supports = support_areas_of(&job, &slices);
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
     let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
-    let overhangs = overhangs_of(&job, &slices);
+    let overhangs = overhangs_of(&job, &slices, supports.as_deref());
     crate::report::attach_overhangs(&mut report, job.overhang, &overhangs);
+    if let Some(areas) = supports {
+        let without = overhangs_of(&job, &slices, None);
+        if let Some(o) = report.overhang.as_mut() {
+            o.without_supports_mm2 = Some(
+                without
+                    .iter()
+                    .flatten()
+                    .map(crate::slice::overhang::area_mm2)
+                    .sum(),
+            );
+        }
+        crate::report::attach_supports(&mut report, &job, &areas);
+        for (layer, area) in layers.iter_mut().zip(areas) {
+            layer.support = area;
+        }
+    }
     if job.support.required {
         if let Some(why) = report.overhang.as_ref().and_then(|o| o.refusal()) {
             anyhow::bail!("{}: {why}", args.job.display());
@@ -439,10 +456,58 @@ struct Planned<'a> {
 }
 
 /// Each planned layer's area resting on nothing beyond the job's allowed overhang.
-fn overhangs_of(job: &Job, slices: &[LayerSlice]) -> Vec<Option<crate::geom::Shapes>> {
-    let layers: Vec<(usize, &crate::slice::Layer)> =
-        slices.iter().map(|s| (s.index, &s.layer)).collect();
-    crate::slice::overhang::of_layers(&layers, &job.overhang_options())
+/// With `supports` (the layers' support areas), what still rests on nothing with them.
+fn overhangs_of(
+    job: &Job,
+    slices: &[LayerSlice],
+    supports: Option<&[crate::slice::support::SupportArea]>,
+) -> Vec<Option<crate::geom::Shapes>> {
+    let Some(areas) = supports else {
+        let layers: Vec<(usize, &crate::slice::Layer)> =
+            slices.iter().map(|s| (s.index, &s.layer)).collect();
+        return crate::slice::overhang::of_layers(&layers, &job.overhang_options());
+    };
+    let stack = stack_of(slices);
+    let mut out: Vec<Option<crate::geom::Shapes>> =
+        crate::slice::support::unsupported_with_support(
+            &stack,
+            areas,
+            job.support.top_gap_mm,
+            &job.overhang_options(),
+        )
+        .into_iter()
+        .map(Some)
+        .collect();
+    // A range of layers planned on its own: its first layer's below is not here.
+    if let Some(first) = out.first_mut().filter(|_| slices[0].index != 0) {
+        *first = None;
+    }
+    out
+}
+
+/// The layers as supports see them.
+fn stack_of(slices: &[LayerSlice]) -> Vec<crate::slice::support::StackLayer<'_>> {
+    slices
+        .iter()
+        .map(|s| crate::slice::support::StackLayer {
+            z_mm: s.layer.z_mm,
+            thickness_mm: s.layer.thickness_mm,
+            islands: &s.layer.islands,
+        })
+        .collect()
+}
+
+/// Each layer's support, with `[support]` on (of the layers planned: a range of
+/// layers planned on its own holds up only the overhangs within it).
+fn support_areas_of(
+    job: &Job,
+    slices: &[LayerSlice],
+) -> Option<Vec<crate::slice::support::SupportArea>> {
+    let opts = job.support_area_options()?;
+    Some(crate::slice::support::support_areas(
+        &stack_of(slices),
+        &opts,
+    ))
 }
 
 /// Make every layer's toolpaths, measure their coverage when asked (or when previews
@@ -475,6 +540,9 @@ fn attach_toolpaths(
         .as_ref()
         .map(|c| c.iter().map(|l| (l.with_raise, l.without_raise)).collect());
     crate::report::attach_toolpaths(report, &stats, pairs.as_deref());
+    let paths: Vec<&[crate::toolpath::ToolPath]> =
+        toolpaths.iter().map(|t| t.paths.as_slice()).collect();
+    crate::report::attach_support_roads(report, &paths, process.road_width());
     if let Some(dir) = &args.svg {
         write_previews(dir, planned, &toolpaths, coverage.as_deref())?;
     }
@@ -681,14 +749,19 @@ fn measure_coverage(
             let islands = &s.layer.islands;
             let (with_raise, voids) = measure_with_voids(
                 islands,
-                &t.paths,
+                part_roads(&t.paths),
                 road_width_mm,
                 COVERAGE_CELL_MM,
                 if with_voids { 20_000 } else { 0 },
             );
             let nominal =
                 crate::pipeline::layer_paths(layer, &plain, &crate::pipeline::StreamState::new());
-            let without_raise = measure(islands, &nominal, road_width_mm, COVERAGE_CELL_MM);
+            let without_raise = measure(
+                islands,
+                part_roads(&nominal),
+                road_width_mm,
+                COVERAGE_CELL_MM,
+            );
             if let Some(b) = &b {
                 b.inc(1);
             }
@@ -703,6 +776,16 @@ fn measure_coverage(
         b.finish_and_clear();
     }
     out
+}
+
+/// The part's roads of a layer's paths (support roads come after them and count in
+/// no coverage of the part).
+fn part_roads(paths: &[crate::toolpath::ToolPath]) -> &[crate::toolpath::ToolPath] {
+    let n = paths
+        .iter()
+        .position(|p| p.role.is_support())
+        .unwrap_or(paths.len());
+    &paths[..n]
 }
 
 /// Raster of the coverage measure (issue 4: 10 µm).

@@ -48,6 +48,16 @@ async fn check_part(
     budget: &super::connections::Budget,
 ) -> Result<(Option<Vec<u8>>, Vec<String>), ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
+    if job.support.builds() {
+        // Cut scope: the streamer plans a layer at a time, and supports need the
+        // whole stack above each layer first.
+        return Err(bad(format!(
+            "support.mode = \"{}\": edod does not build supports yet; write the job's \
+             G-code with `edoctl plan --gcode` (supports built) and print the file, or set \
+             mode = \"off\"",
+            job.support.mode.name()
+        )));
+    }
     // Checked when the configuration was loaded.
     let volume = machine
         .build_volume()

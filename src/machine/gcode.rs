@@ -505,6 +505,13 @@ impl MoveWriter {
         self.line(format!("; {text}"), out);
     }
 
+    /// A feature line `;TYPE:name` into `out`, as PrusaSlicer marks what the next
+    /// roads build (`Perimeter`, `Gap fill`, `Support material`, `Support material
+    /// interface`), for G-code viewers and checks.
+    pub fn feature(&mut self, name: &str, out: &mut Vec<String>) {
+        self.line(format!(";TYPE:{name}"), out);
+    }
+
     /// The lines of one move into `out`: a Marlin mix it needs first, then its command.
     pub fn move_lines(&mut self, m: &Move, out: &mut Vec<String>) {
         let mut s = String::new();

@@ -36,6 +36,7 @@ use crate::material::{
     contour_composition, contour_distance, offset_composition, offset_count, segment_count,
     step_width, Composition, GradientFunction, OffsetDirection, StepWidth,
 };
+use crate::slice::support::SupportArea;
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
@@ -291,6 +292,10 @@ pub struct LayerPlan {
     /// boundary the roads' beads stay inside (`toolpath::flow`).
     #[serde(default)]
     pub islands: Vec<Region>,
+    /// The support to build in this layer beside the part (`slice::support`), set
+    /// after planning where the job builds supports.
+    #[serde(default, skip_serializing_if = "SupportArea::is_empty")]
+    pub support: SupportArea,
 }
 
 /// Why a region could not be planned; every variant names the island.
@@ -1128,6 +1133,7 @@ pub fn plan_layer(
         area_mm2: regions.iter().map(|r| r.area_mm2).sum(),
         regions,
         islands: islands.to_vec(),
+        support: SupportArea::default(),
     })
 }
 

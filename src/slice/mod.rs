@@ -21,6 +21,7 @@
 mod heights;
 pub mod overhang;
 mod section;
+pub mod support;
 
 pub use heights::{AdaptiveCriterion, LayerSpan};
 

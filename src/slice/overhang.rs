@@ -112,12 +112,22 @@ pub fn unsupported(
     let Some(below) = below else {
         return Vec::new();
     };
+    hanging(islands, &shapes_of(below), thickness_mm, opts)
+}
+
+/// [`unsupported`] on what lies below as shapes (the layer below and any support in it).
+pub fn hanging(
+    islands: &[Region],
+    below: &Shapes,
+    thickness_mm: f64,
+    opts: &OverhangOptions,
+) -> Shapes {
     let here = shapes_of(islands);
     if here.is_empty() {
         return Vec::new();
     }
     let reach = opts.overhang.reach_mm(thickness_mm);
-    let resting = offset(&shapes_of(below), reach, opts.chord_mm);
+    let resting = offset(below, reach, opts.chord_mm);
     let hanging = difference(&here, &resting);
     if hanging.is_empty() {
         return hanging;
@@ -184,7 +194,8 @@ pub fn warning(allowed: &Overhang, layers: &[(usize, f64)]) -> Option<String> {
     Some(format!(
         "{} layers have area resting on nothing beyond the allowed overhang ({}): layers \
          {} ({total:.2} mm² in all, the most {worst_mm2:.2} mm² at layer {worst}); a paste \
-         laid there sags or drags: orient the part, or allow more with [process] overhang",
+         laid there sags or drags: build supports ([support] mode), orient the part, or \
+         allow more with [process] overhang",
         layers.len(),
         allowed.describe(),
         layer_list(&indices),
@@ -196,8 +207,8 @@ pub fn warning(allowed: &Overhang, layers: &[(usize, f64)]) -> Option<String> {
 pub fn refusal(allowed: &Overhang, layers: &[(usize, f64)]) -> Option<String> {
     let w = warning(allowed, layers)?;
     Some(format!(
-        "support.required: {w}; edo builds no supports yet, so the part cannot be printed \
-         as it stands"
+        "support.required: {w}; build supports under them ([support] mode = \
+         \"everywhere\"), or orient the part ([geometry] orientation = \"auto\")"
     ))
 }
 

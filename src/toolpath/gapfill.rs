@@ -89,6 +89,7 @@ pub fn gap_fill(
             let (island, n) = match near.role {
                 PathRole::Contour { island, j } => (island, j),
                 PathRole::Offset { island, n, .. } | PathRole::GapFill { island, n } => (island, n),
+                PathRole::Support | PathRole::SupportInterface => continue,
             };
             out.push((
                 after,

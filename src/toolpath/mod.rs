@@ -28,6 +28,7 @@ pub mod ends;
 pub mod flow;
 pub mod gapfill;
 pub mod merge;
+pub mod support;
 
 use crate::geom::{next_in_loop, prev_in_loop, Path};
 use crate::material::OffsetDirection;
@@ -75,6 +76,18 @@ pub enum PathRole {
     Offset { island: u32, n: u32, i: u32 },
     /// Gap fill: a thin road in a gap wider flow cannot close (Arachne-style).
     GapFill { island: u32, n: u32 },
+    /// The sparse body of a support column (`support`): not part of the part.
+    Support,
+    /// The dense top layers of a support column, right under the part.
+    SupportInterface,
+}
+
+impl PathRole {
+    /// Whether the road builds support, not the part: it counts in no coverage and in
+    /// no designed-versus-built composition of the part.
+    pub fn is_support(&self) -> bool {
+        matches!(self, PathRole::Support | PathRole::SupportInterface)
+    }
 }
 
 /// A road in building order: centreline from `points[0]` (its start) to the last point,
