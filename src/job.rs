@@ -93,23 +93,6 @@ pub struct Support {
     pub angle_deg: f64,
 }
 
-impl Default for Support {
-    fn default() -> Self {
-        Support {
-            required: false,
-            mode: crate::slice::support::SupportMode::Off,
-            material: None,
-            top_gap_mm: 0.0,
-            bottom_gap_mm: 0.0,
-            xy_gap_mm: 0.2,
-            interface_layers: DEFAULT_INTERFACE_LAYERS,
-            pattern: crate::toolpath::support::SupportPattern::Lines,
-            density: DEFAULT_SUPPORT_DENSITY,
-            angle_deg: 0.0,
-        }
-    }
-}
-
 /// Dense layers at the top of a support column by default.
 pub const DEFAULT_INTERFACE_LAYERS: u32 = 2;
 /// The base's share of its area laid with road by default (lines 1.6 mm apart at a

@@ -155,15 +155,23 @@ impl Raster {
         }
     }
 
+    /// The same grid with `cells` marked.
+    fn with_cells(&self, cells: Vec<bool>) -> Raster {
+        assert_eq!(cells.len(), self.cells.len());
+        Raster { cells, ..*self }
+    }
+
+    /// The cells not marked.
+    fn inverted(&self) -> Raster {
+        self.with_cells(self.cells.iter().map(|c| !c).collect())
+    }
+
     /// The cells within `r` of a marked one (exact Euclidean distance on cell
     /// centres, by Felzenszwalb and Huttenlocher's distance transform).
     fn grown(&self, r: f64) -> Raster {
         let d2 = squared_distances(&self.cells, self.nx, self.ny);
         let k = r / self.cell_mm;
-        Raster {
-            cells: d2.iter().map(|d| *d <= k * k + 1e-9).collect(),
-            ..*self
-        }
+        self.with_cells(d2.iter().map(|d| *d <= k * k + 1e-9).collect())
     }
 }
 
@@ -317,22 +325,9 @@ fn unsupported_layers(
                 .map(|(h, r)| *h && !*r)
                 .collect();
             // Strips narrower than `min_width_mm` are not overhangs: an opening.
-            let h = Raster {
-                cells: hanging,
-                ..Raster::new(lo, hi, cell)
-            };
+            let h = here.with_cells(hanging);
             let half = min_width_mm / 2.0;
-            let eroded = {
-                let outside = Raster {
-                    cells: h.cells.iter().map(|c| !c).collect(),
-                    ..Raster::new(lo, hi, cell)
-                }
-                .grown(half);
-                Raster {
-                    cells: outside.cells.iter().map(|c| !c).collect(),
-                    ..Raster::new(lo, hi, cell)
-                }
-            };
+            let eroded = h.inverted().grown(half).inverted();
             let opened = eroded.grown(half);
             let kept: Vec<bool> = opened
                 .cells

@@ -312,22 +312,19 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let (slices, notes) = job_layers(&job, &args.job, args.layers.clone(), args.quiet)?;
     let mut layers = plan_with_progress(&job, &slices, args.quiet)
         .with_context(|| format!("planning {}", args.job.display()))?;
-    let supports = support_areas_of(&job, &slices);
+    let hanging = overhangs_of(&job, &slices);
+    let supports = support_areas_of(&job, &slices, &hanging);
     let planning_time_ms = started.elapsed().as_secs_f64() * 1e3;
     let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
-    let overhangs = overhangs_of(&job, &slices, supports.as_deref());
+    let overhangs = match &supports {
+        Some((areas, _)) => still_hanging(&job, &slices, areas),
+        None => hanging,
+    };
     crate::report::attach_overhangs(&mut report, job.overhang, &overhangs);
-    if let Some(areas) = supports {
-        let without = overhangs_of(&job, &slices, None);
+    if let Some((areas, without)) = supports {
         if let Some(o) = report.overhang.as_mut() {
-            o.without_supports_mm2 = Some(
-                without
-                    .iter()
-                    .flatten()
-                    .map(crate::slice::overhang::area_mm2)
-                    .sum(),
-            );
+            o.without_supports_mm2 = Some(without);
         }
         crate::report::attach_supports(&mut report, &job, &areas);
         for (layer, area) in layers.iter_mut().zip(areas) {
@@ -456,21 +453,21 @@ struct Planned<'a> {
 }
 
 /// Each planned layer's area resting on nothing beyond the job's allowed overhang.
-/// With `supports` (the layers' support areas), what still rests on nothing with them.
-fn overhangs_of(
+fn overhangs_of(job: &Job, slices: &[LayerSlice]) -> Vec<Option<crate::geom::Shapes>> {
+    let layers: Vec<(usize, &crate::slice::Layer)> =
+        slices.iter().map(|s| (s.index, &s.layer)).collect();
+    crate::slice::overhang::of_layers(&layers, &job.overhang_options())
+}
+
+/// What still rests on nothing with `areas` (the layers' supports) built.
+fn still_hanging(
     job: &Job,
     slices: &[LayerSlice],
-    supports: Option<&[crate::slice::support::SupportArea]>,
+    areas: &[crate::slice::support::SupportArea],
 ) -> Vec<Option<crate::geom::Shapes>> {
-    let Some(areas) = supports else {
-        let layers: Vec<(usize, &crate::slice::Layer)> =
-            slices.iter().map(|s| (s.index, &s.layer)).collect();
-        return crate::slice::overhang::of_layers(&layers, &job.overhang_options());
-    };
-    let stack = stack_of(slices);
     let mut out: Vec<Option<crate::geom::Shapes>> =
         crate::slice::support::unsupported_with_support(
-            &stack,
+            &stack_of(slices),
             areas,
             job.support.top_gap_mm,
             &job.overhang_options(),
@@ -497,17 +494,22 @@ fn stack_of(slices: &[LayerSlice]) -> Vec<crate::slice::support::StackLayer<'_>>
         .collect()
 }
 
-/// Each layer's support, with `[support]` on (of the layers planned: a range of
-/// layers planned on its own holds up only the overhangs within it).
+/// Each layer's support under the layers' `hanging` area, with `[support]` on (of the
+/// layers planned: a range of layers planned on its own holds up only the overhangs
+/// within it), and the area hanging without it, mm².
 fn support_areas_of(
     job: &Job,
     slices: &[LayerSlice],
-) -> Option<Vec<crate::slice::support::SupportArea>> {
+    hanging: &[Option<crate::geom::Shapes>],
+) -> Option<(Vec<crate::slice::support::SupportArea>, f64)> {
     let opts = job.support_area_options()?;
-    Some(crate::slice::support::support_areas(
-        &stack_of(slices),
-        &opts,
-    ))
+    let overhangs: Vec<crate::geom::Shapes> = hanging
+        .iter()
+        .map(|h| h.clone().unwrap_or_default())
+        .collect();
+    let without = overhangs.iter().map(crate::slice::overhang::area_mm2).sum();
+    let areas = crate::slice::support::support_areas(&stack_of(slices), &overhangs, &opts);
+    Some((areas, without))
 }
 
 /// Make every layer's toolpaths, measure their coverage when asked (or when previews
@@ -741,6 +743,8 @@ fn measure_coverage(
     let mut plain = process.clone();
     plain.flow_raise = false;
     plain.gap_fill = false;
+    // The part's roads only: support roads count in no coverage.
+    plain.support = None;
     let out = toolpaths
         .par_iter()
         .zip(layers)
@@ -756,12 +760,7 @@ fn measure_coverage(
             );
             let nominal =
                 crate::pipeline::layer_paths(layer, &plain, &crate::pipeline::StreamState::new());
-            let without_raise = measure(
-                islands,
-                part_roads(&nominal),
-                road_width_mm,
-                COVERAGE_CELL_MM,
-            );
+            let without_raise = measure(islands, &nominal, road_width_mm, COVERAGE_CELL_MM);
             if let Some(b) = &b {
                 b.inc(1);
             }

@@ -136,11 +136,17 @@ pub fn hanging(
     let opened = offset(&offset(&hanging, -half, opts.chord_mm), half, opts.chord_mm);
     // The opening may round a corner past the hanging area; keep it within.
     let mut pieces = crate::geom::intersection(&opened, &hanging);
-    pieces.retain(|piece| {
-        let a: f64 = piece.iter().map(|l| crate::geom::signed_area(l)).sum();
-        a.abs() >= opts.min_area_mm2
-    });
+    retain_area_at_least(&mut pieces, opts.min_area_mm2);
     pieces
+}
+
+/// `shapes` less the pieces (a shape: its outer loop less its holes) under
+/// `min_area_mm2`.
+pub fn retain_area_at_least(shapes: &mut Shapes, min_area_mm2: f64) {
+    shapes.retain(|piece| {
+        let a: f64 = piece.iter().map(|l| crate::geom::signed_area(l)).sum();
+        a.abs() >= min_area_mm2
+    });
 }
 
 /// The unsupported area of each of `layers` (index, layer; bottom to top), in

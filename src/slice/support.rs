@@ -7,7 +7,8 @@
 //! [`SupportMode::Buildplate`] a column that would meet the part is left out whole, as
 //! PrusaSlicer's "support on build plate only" does. Steps:
 //!
-//! 1. [`overhangs_of_stack`]: each layer's area resting on nothing.
+//! 1. Each layer's area resting on nothing ([`super::overhang::of_layers`], the
+//!    caller's: the same the warnings name).
 //! 2. [`part_shadows`] (build plate only): the union of every layer below each layer,
 //!    where a column would land on the part.
 //! 3. [`support_areas`]: top down, the columns carried from above plus the overhangs
@@ -19,7 +20,7 @@
 //!
 //! The roads that build these areas are `toolpath::support`'s.
 
-use super::overhang::{hanging, shapes_of, unsupported, OverhangOptions};
+use super::overhang::{hanging, retain_area_at_least, shapes_of, OverhangOptions};
 use crate::geom::{difference, intersection, offset, union, Region, Shapes};
 use serde::{Deserialize, Serialize};
 
@@ -114,19 +115,6 @@ impl SupportArea {
 /// Heights are compared to this, mm.
 const Z_EPS_MM: f64 = 1e-6;
 
-/// Step 1: each layer's area resting on nothing beyond the allowed overhang, in
-/// parallel (layer 0 rests on the bed).
-pub fn overhangs_of_stack(stack: &[StackLayer], opts: &OverhangOptions) -> Vec<Shapes> {
-    use rayon::prelude::*;
-    (0..stack.len())
-        .into_par_iter()
-        .map(|k| {
-            let below = k.checked_sub(1).map(|j| stack[j].islands);
-            unsupported(stack[k].islands, below, stack[k].thickness_mm, opts)
-        })
-        .collect()
-}
-
 /// Step 2: for each layer, the union of the part in every layer below it.
 pub fn part_shadows(stack: &[StackLayer]) -> Vec<Shapes> {
     let mut out = Vec::with_capacity(stack.len());
@@ -199,13 +187,17 @@ struct Pending {
     area: Shapes,
 }
 
-/// Step 3: the support of every layer of `stack` (bottom to top), top down.
-pub fn support_areas(stack: &[StackLayer], opts: &SupportAreaOptions) -> Vec<SupportArea> {
+/// Step 3: the support of every layer of `stack` (bottom to top), top down, under
+/// each layer's `overhangs` (step 1, one per layer).
+pub fn support_areas(
+    stack: &[StackLayer],
+    overhangs: &[Shapes],
+    opts: &SupportAreaOptions,
+) -> Vec<SupportArea> {
     let mut out = vec![SupportArea::default(); stack.len()];
-    if opts.mode == SupportMode::Off || stack.is_empty() {
+    if opts.mode == SupportMode::Off || stack.is_empty() || overhangs.len() != stack.len() {
         return out;
     }
-    let overhangs = overhangs_of_stack(stack, &opts.overhang);
     if overhangs.iter().all(Vec::is_empty) {
         return out;
     }
@@ -260,11 +252,10 @@ pub fn support_areas(stack: &[StackLayer], opts: &SupportAreaOptions) -> Vec<Sup
 /// quarter of the narrowest support's square (they would break the offsets of what is
 /// built from them, and hold nothing up).
 fn without_slivers(mut shapes: Shapes, opts: &SupportAreaOptions) -> Shapes {
-    let least = (opts.min_width_mm * opts.min_width_mm / 4.0).max(1e-6);
-    shapes.retain(|shape| {
-        let a: f64 = shape.iter().map(|l| crate::geom::signed_area(l)).sum();
-        a.abs() >= least
-    });
+    retain_area_at_least(
+        &mut shapes,
+        (opts.min_width_mm * opts.min_width_mm / 4.0).max(1e-6),
+    );
     shapes
 }
 
@@ -381,6 +372,25 @@ mod tests {
         layers
     }
 
+    fn overhangs_of_stack(stack: &[StackLayer], opts: &OverhangOptions) -> Vec<Shapes> {
+        (0..stack.len())
+            .map(|k| {
+                let below = k.checked_sub(1).map(|j| stack[j].islands);
+                crate::slice::overhang::unsupported(
+                    stack[k].islands,
+                    below,
+                    stack[k].thickness_mm,
+                    opts,
+                )
+            })
+            .collect()
+    }
+
+    /// [`support_areas`] under the stack's own overhangs.
+    fn built(stack: &[StackLayer], opts: &SupportAreaOptions) -> Vec<SupportArea> {
+        support_areas(stack, &overhangs_of_stack(stack, &opts.overhang), opts)
+    }
+
     fn stack(islands: &[Vec<Region>]) -> Vec<StackLayer<'_>> {
         islands
             .iter()
@@ -397,7 +407,7 @@ mod tests {
     fn a_tee_is_held_under_both_arms_down_to_the_bed() {
         let islands = tee();
         let s = stack(&islands);
-        let areas = support_areas(&s, &opts(SupportMode::Buildplate));
+        let areas = built(&s, &opts(SupportMode::Buildplate));
         // Under each arm: 4 mm less the XY gap by 2 mm, every layer of the post.
         for (k, a) in areas.iter().enumerate().take(10) {
             let got = area(&a.all()).abs();
@@ -409,7 +419,7 @@ mod tests {
         assert!(areas[7].interface.is_empty());
         assert!(areas[10..].iter().all(SupportArea::is_empty));
         // Off: nothing.
-        let none = support_areas(&s, &opts(SupportMode::Off));
+        let none = built(&s, &opts(SupportMode::Off));
         assert!(none.iter().all(SupportArea::is_empty));
     }
 
@@ -426,8 +436,8 @@ mod tests {
     fn everywhere_stands_on_the_part_and_buildplate_does_not() {
         let islands = shelf();
         let s = stack(&islands);
-        let everywhere = support_areas(&s, &opts(SupportMode::Everywhere));
-        let plate = support_areas(&s, &opts(SupportMode::Buildplate));
+        let everywhere = built(&s, &opts(SupportMode::Everywhere));
+        let plate = built(&s, &opts(SupportMode::Buildplate));
         // Above the shelf (layers 3-7): both arms held everywhere, the right only on
         // the build plate.
         for k in 3..8 {
@@ -442,7 +452,7 @@ mod tests {
             assert!((e - 3.8 * 2.0).abs() < 0.1, "layer {k}: {e}");
         }
         // A bottom gap of one layer keeps the column off the shelf's top.
-        let gapped = support_areas(
+        let gapped = built(
             &s,
             &SupportAreaOptions {
                 bottom_gap_mm: 0.2,
@@ -462,11 +472,11 @@ mod tests {
         let o = opts(SupportMode::Everywhere);
         let before = overhangs_of_stack(&s, &o.overhang);
         assert!(area(&before[8]).abs() > 10.0);
-        let areas = support_areas(&s, &o);
+        let areas = built(&s, &o);
         let after = unsupported_with_support(&s, &areas, 0.0, &o.overhang);
         assert!(after.iter().all(Vec::is_empty), "{after:?}");
         // On the build plate only the left arm still hangs.
-        let plate = support_areas(&s, &opts(SupportMode::Buildplate));
+        let plate = built(&s, &opts(SupportMode::Buildplate));
         let after = unsupported_with_support(&s, &plate, 0.0, &o.overhang);
         let a = area(&after[8]).abs();
         assert!((a - 4.0 * 2.0).abs() < 0.5, "{a}");
@@ -476,7 +486,7 @@ mod tests {
     fn a_top_gap_leaves_layers_between_column_and_part() {
         let islands = tee();
         let s = stack(&islands);
-        let gapped = support_areas(
+        let gapped = built(
             &s,
             &SupportAreaOptions {
                 top_gap_mm: 0.2,
