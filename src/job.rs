@@ -12,6 +12,7 @@ use crate::material::{Composition, GradientFunction, OffsetDirection};
 use crate::plan::{GradientDesign, LayerSlice, Pattern, PlanOptions, Subdivision};
 use glam::{DVec2, DVec3};
 use serde::Deserialize;
+pub use support::PartSupports;
 
 /// A job file that cannot be used, with where and why.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

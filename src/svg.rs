@@ -137,28 +137,51 @@ fn path_element(out: &mut String, f: &Frame, p: &Path, colour: &str, width: f64,
 /// One layer as an SVG document: the part's boundary, the equal distance offsets under
 /// the contours, and the legend to the right of the part.
 pub fn layer_svg(layer: &LayerPlan, input: &PreviewInput) -> String {
-    let f = Frame::around_part(input.islands);
+    let f = Frame::around_part(input.islands, &layer.support);
     let page = LegendPage::new(&f, layer, input);
     let mut out = String::new();
     page.open(&mut out, layer, input);
     boundary_group(&mut out, &f, input);
     road_groups(&mut out, &f, layer, input.nozzle_mm);
-    unsupported_group(&mut out, &f, input.unsupported);
+    area_group(&mut out, &f, &layer.support.base, SUPPORT_AREA_STYLE);
+    area_group(&mut out, &f, &layer.support.interface, INTERFACE_AREA_STYLE);
+    area_group(&mut out, &f, input.unsupported, UNSUPPORTED_STYLE);
     page.legend(&mut out, layer, input);
     out
 }
 
 /// The colour of area resting on nothing, in every preview.
 pub const UNSUPPORTED_COLOUR: &str = "#e0002a";
+/// The colour of support (its sparse base), in every preview: no material's.
+pub const SUPPORT_COLOUR: &str = "#8c8c8c";
+/// The colour of support interface (the dense top of a column), in every preview.
+pub const SUPPORT_INTERFACE_COLOUR: &str = "#4d4d4d";
 
-/// `shapes` (area resting on nothing) filled red, half transparent, over the roads.
-fn unsupported_group(out: &mut String, f: &Frame, shapes: &crate::geom::Shapes) {
+/// How an area is drawn: group id, colour, opacity, title.
+type AreaStyle = (&'static str, &'static str, f64, &'static str);
+const UNSUPPORTED_STYLE: AreaStyle = (
+    "unsupported",
+    UNSUPPORTED_COLOUR,
+    0.5,
+    "area resting on nothing (beyond the allowed overhang)",
+);
+const SUPPORT_AREA_STYLE: AreaStyle = ("support", SUPPORT_COLOUR, 0.45, "support");
+const INTERFACE_AREA_STYLE: AreaStyle = (
+    "support-interface",
+    SUPPORT_INTERFACE_COLOUR,
+    0.45,
+    "support interface",
+);
+
+/// `shapes` filled in `style`, half transparent, over the roads.
+fn area_group(out: &mut String, f: &Frame, shapes: &crate::geom::Shapes, style: AreaStyle) {
     if shapes.is_empty() {
         return;
     }
+    let (id, colour, opacity, title) = style;
     let _ = writeln!(
         out,
-        r#"<g id="unsupported" fill="{UNSUPPORTED_COLOUR}" fill-opacity="0.5" fill-rule="evenodd" stroke="{UNSUPPORTED_COLOUR}" stroke-width="0.02"><title>area resting on nothing (beyond the allowed overhang)</title>"#
+        r#"<g id="{id}" fill="{colour}" fill-opacity="{opacity}" fill-rule="evenodd" stroke="{colour}" stroke-width="0.02"><title>{title}</title>"#
     );
     for shape in shapes {
         let mut d = String::new();
@@ -170,17 +193,33 @@ fn unsupported_group(out: &mut String, f: &Frame, shapes: &crate::geom::Shapes) 
     let _ = writeln!(out, "</g>");
 }
 
+/// A road's colour: its composition's, support's own.
+fn road_colour(p: &crate::toolpath::ToolPath) -> String {
+    match p.role {
+        crate::toolpath::PathRole::Support => SUPPORT_COLOUR.to_string(),
+        crate::toolpath::PathRole::SupportInterface => SUPPORT_INTERFACE_COLOUR.to_string(),
+        _ => mix_colour(&p.composition),
+    }
+}
+
 /// Most contours the legend lists (evenly picked from C1..Cm+1).
 const LEGEND_CONTOURS: usize = 14;
 
 impl Frame {
-    /// The frame around the part with a margin of 5 % of its larger side (at least
-    /// 0.05 mm).
-    fn around_part(islands: &[Region]) -> Frame {
+    /// The frame around the part and its support with a margin of 5 % of its larger
+    /// side (at least 0.05 mm).
+    fn around_part(islands: &[Region], support: &crate::slice::support::SupportArea) -> Frame {
         let mut lo = DVec2::splat(f64::INFINITY);
         let mut hi = DVec2::splat(f64::NEG_INFINITY);
         for r in islands {
             let (a, b) = r.bounds();
+            lo = lo.min(a);
+            hi = hi.max(b);
+        }
+        let support_loops =
+            crate::geom::loops(&support.base).chain(crate::geom::loops(&support.interface));
+        for l in support_loops {
+            let (a, b) = crate::geom::loop_bounds(l);
             lo = lo.min(a);
             hi = hi.max(b);
         }
@@ -415,7 +454,7 @@ pub fn roads_svg(paths: &[crate::toolpath::ToolPath], input: &RoadsInput) -> Str
     // pieces' round caps over each other) do not: per-piece opacity drew a dark dot at
     // every vertex of a road whose width steps, which read as blobs on the part.
     for p in paths {
-        let colour = mix_colour(&p.composition);
+        let colour = road_colour(p);
         out.push_str(r#"<g opacity="0.85">"#);
         out.push('\n');
         let n = p.points.len();

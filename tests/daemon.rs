@@ -2312,6 +2312,46 @@ fn twenty_half_sent_dashboard_bodies_stay_within_the_memory_budget() {
     sim.stop().unwrap();
 }
 
+/// A ball with supports of the part's materials (`[support]` everywhere, at B): edod
+/// accepts it with no warning (nothing rests on nothing with them), prints it whole,
+/// every move once and in order, and its support roads push B alone.
+#[test]
+fn a_job_with_supports_is_printed_whole_with_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let (sim, record) = sim_at(dir.path(), 21, 200.0);
+    let d = Daemon::start_with_limit(dir.path(), sim.path(), 4 << 20);
+    let mut c = d.client();
+    c.wait_connected();
+    let ball = stl_of(&edo::mesh::primitives::sphere(2.0, 32, 16));
+    let job =
+        "name = \"ball\"\n[geometry]\nmesh = \"ball.stl\"\n[materials]\nnames = [\"A\", \"B\"]\n\
+               [gradient]\ninner = [1.0, 0.0]\nouter = [1.0, 0.0]\n[process]\nr_mach = 2.0\n\
+               nozzle = 0.4\nlayer = 0.2\nthin_regions = \"fill\"\n\
+               [support]\nmode = \"everywhere\"\ncomposition = [0.0, 1.0]\n";
+    let r = c
+        .call(
+            "job.submit",
+            json!({"job": job, "mesh_base64": edo::daemon::api::base64_encode(&ball)}),
+        )
+        .unwrap();
+    assert!(r.get("warnings").is_none(), "{r}");
+    let id = r["id"].as_u64().unwrap();
+    let j = c.wait_state(id, "done");
+    let total = j["total_moves"].as_u64().unwrap();
+    let indices = recorded_indices(&record, id);
+    assert_eq!(indices, (0..total).collect::<Vec<_>>());
+    // The part is all A; B is pushed only by the support roads (and the mixer's lead
+    // into them): some extrusions push B.
+    let b_pushed = recorded(&record, id)
+        .iter()
+        .filter(|m| m["kind"] == json!("extrude") && m["volumes_nl"][1].as_u64() > Some(0))
+        .count();
+    assert!(b_pushed > 0, "no support road was built");
+    drop(c);
+    drop(d);
+    sim.stop().unwrap();
+}
+
 /// `job.submit` of a mesh job whose lower half leans out past the allowed overhang
 /// (a sphere on the bed) is accepted with a warning naming the layers (cut 64 at a time
 /// before the reply); a tube gets none.

@@ -48,16 +48,6 @@ async fn check_part(
     budget: &super::connections::Budget,
 ) -> Result<(Option<Vec<u8>>, Vec<String>), ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
-    if job.support.builds() {
-        // Cut scope: the streamer plans a layer at a time, and supports need the
-        // whole stack above each layer first.
-        return Err(bad(format!(
-            "support.mode = \"{}\": edod does not build supports yet; write the job's \
-             G-code with `edoctl plan --gcode` (supports built) and print the file, or set \
-             mode = \"off\"",
-            job.support.mode.name()
-        )));
-    }
     // Checked when the configuration was loaded.
     let volume = machine
         .build_volume()
@@ -92,9 +82,13 @@ async fn check_part(
                     Ok(part) => {
                         super::planner::place_part(&job, part.bounds(), &volume)
                             .map_err(|e| bad(format!("{path}: {e}")))?;
-                        let hanging = part
-                            .overhangs(&job.overhang_options())
-                            .map_err(|e| bad(format!("{path}: {e}")))?;
+                        // With supports: what still rests on nothing with them.
+                        let hanging = match part.supports(&job) {
+                            Ok(Some(s)) => Ok(s.still_hanging),
+                            Ok(None) => part.overhangs(&job.overhang_options()),
+                            Err(e) => Err(e),
+                        }
+                        .map_err(|e| bad(format!("{path}: {e}")))?;
                         if job.support.required {
                             if let Some(why) = crate::slice::overhang::refusal(&job.overhang, &hanging) {
                                 return Err(bad(format!("{path}: {why}")));

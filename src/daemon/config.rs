@@ -131,6 +131,26 @@ pub struct SyringeConfig {
     /// Highest plunger acceleration, mm/s² (default 20); Klipper's `LIMIT_ACCEL`.
     #[serde(default = "default_max_plunger_accel")]
     pub max_plunger_accel_mm_s2: f64,
+    /// What the syringe holds: a part material (`"part"`, default), or the support
+    /// ink (`"support"`: a fugitive ink such as Pluronic or wax, pushed pure for a
+    /// job's `[support] syringe` of its name; at most one per machine).
+    #[serde(default, skip_serializing_if = "SyringeRole::is_part")]
+    pub role: SyringeRole,
+}
+
+/// `[[machine.syringes]] role`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SyringeRole {
+    #[default]
+    Part,
+    Support,
+}
+
+impl SyringeRole {
+    fn is_part(&self) -> bool {
+        *self == SyringeRole::Part
+    }
 }
 
 impl SyringeConfig {
@@ -219,6 +239,7 @@ fn default_syringes() -> Vec<SyringeConfig> {
     ["A", "B"]
         .iter()
         .map(|n| SyringeConfig {
+            role: SyringeRole::Part,
             name: (*n).to_string(),
             barrel_diameter_mm: 10.0,
             capacity_ml: 10.0,
@@ -596,6 +617,27 @@ impl Config {
             if let Err((key, why)) = s.plunger_limits().check() {
                 return Err(bad(&format!("machine.syringes[{i}].{key}"), why));
             }
+            let supports_before = self.machine.syringes[..i]
+                .iter()
+                .filter(|o| o.role == SyringeRole::Support)
+                .count();
+            if s.role == SyringeRole::Support && supports_before > 0 {
+                return Err(bad(
+                    &format!("machine.syringes[{i}].role"),
+                    "a machine has at most one support syringe".into(),
+                ));
+            }
+        }
+        if self
+            .machine
+            .syringes
+            .iter()
+            .all(|s| s.role == SyringeRole::Support)
+        {
+            return Err(bad(
+                "machine.syringes",
+                "no syringe holds a part material (role = \"part\")".into(),
+            ));
         }
         for (key, v) in [
             ("machine.nozzle_mm", self.machine.nozzle_mm),
@@ -743,6 +785,36 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn at_most_one_support_syringe_and_one_part_syringe_at_least() {
+        let syringe = |name: &str, role: &str| {
+            format!(
+                "[[machine.syringes]]\nname = \"{name}\"\nbarrel_diameter_mm = 10.0\n\
+                 capacity_ml = 10.0\nrole = \"{role}\"\n"
+            )
+        };
+        let ok = syringe("A", "part") + &syringe("S", "support");
+        let c = Config::from_toml(&ok, "s.toml").unwrap();
+        assert_eq!(c.machine.syringes[1].role, SyringeRole::Support);
+        for (text, key) in [
+            (
+                ok.clone() + &syringe("W", "support"),
+                "machine.syringes[2].role",
+            ),
+            (syringe("S", "support"), "machine.syringes"),
+        ] {
+            match Config::from_toml(&text, "s.toml").unwrap_err() {
+                ConfigError::Invalid { key: k, .. } => assert_eq!(k, key, "{text}"),
+                e => panic!("{text}: {e}"),
+            }
+        }
+        let e = Config::from_toml(&syringe("A", "ink"), "s.toml").unwrap_err();
+        assert!(
+            e.to_string().contains("expected `part` or `support`"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn empty_config_is_all_defaults() {

@@ -294,29 +294,66 @@ pub struct JobSource {
     /// The last layer planned (index, islands) while previews are drawn: what the next
     /// rests on, for its area resting on nothing (red in the preview).
     below: Option<(usize, Vec<crate::geom::Region>)>,
+    /// The supports of the layers previewed lately (index, top z, area), newest last:
+    /// what holds up the next layer besides the one below (with a top gap, one a few
+    /// layers down).
+    recent_supports: std::collections::VecDeque<(usize, f64, crate::geom::Shapes)>,
+    /// Each layer's support still to build, with `[support]` on (empty: none), found
+    /// when the mesh is loaded.
+    supports: Vec<crate::slice::support::SupportArea>,
     /// The last previewed layer's area resting on nothing, mm², not taken yet.
     preview_unsupported_mm2: Option<f64>,
 }
 
 /// The machine's syringe of each of `job`'s materials: the one named in
 /// `materials.syringes`, else the one of the material's own name; one material per
-/// syringe. Else the error names the materials, the machine's syringes and the fix.
+/// part syringe (`role = "part"`). A machine with a support syringe (`role =
+/// "support"`) has it last in the plan's order, after the materials, whether the job
+/// builds supports of it or not. Else the error names the materials, the machine's
+/// syringes and the fix.
 pub fn syringe_of_material(
     job: &crate::job::Job,
     machine: &super::config::MachineConfig,
     source_name: &str,
 ) -> Result<Vec<usize>, String> {
+    use super::config::SyringeRole;
     let syringes: Vec<&str> = machine.syringes.iter().map(|s| s.name.as_str()).collect();
-    if job.materials.len() != syringes.len() {
+    let part: Vec<&str> = machine
+        .syringes
+        .iter()
+        .filter(|s| s.role == SyringeRole::Part)
+        .map(|s| s.name.as_str())
+        .collect();
+    let support = machine
+        .syringes
+        .iter()
+        .position(|s| s.role == SyringeRole::Support);
+    if job.materials.len() != part.len() {
+        let besides = support
+            .map(|k| format!(" besides its support syringe {}", syringes[k]))
+            .unwrap_or_default();
         return Err(format!(
-            "{source_name}: {} materials ({}) but the machine has {} syringes ({}): \
+            "{source_name}: {} materials ({}) but the machine has {} syringes ({}){besides}: \
              materials.names must list one material per syringe",
             job.materials.len(),
             job.materials.join(", "),
-            syringes.len(),
-            syringes.join(", ")
+            part.len(),
+            part.join(", ")
         ));
     }
+    let mut found = material_syringes(job, &syringes, &part, source_name)?;
+    check_support_syringe(job, machine, support, source_name)?;
+    found.extend(support);
+    Ok(found)
+}
+
+/// The part syringe of each material (see [`syringe_of_material`]).
+fn material_syringes(
+    job: &crate::job::Job,
+    syringes: &[&str],
+    part: &[&str],
+    source_name: &str,
+) -> Result<Vec<usize>, String> {
     let wanted = job.syringes.as_ref().unwrap_or(&job.materials);
     let key = if job.syringes.is_some() {
         "materials.syringes"
@@ -325,29 +362,63 @@ pub fn syringe_of_material(
     };
     let mut found = Vec::with_capacity(wanted.len());
     for (material, name) in job.materials.iter().zip(wanted) {
-        let Some(s) = syringes.iter().position(|s| s == name) else {
+        let Some(s) = syringes
+            .iter()
+            .position(|s| s == name)
+            .filter(|_| part.contains(&name.as_str()))
+        else {
             let fix = if job.syringes.is_some() {
                 "name one of them".to_string()
             } else {
                 format!(
                     "name the syringe each material is loaded in, in the order of \
                      materials.names: [materials] syringes = [{}]",
-                    syringes
-                        .iter()
+                    part.iter()
                         .map(|s| format!("{s:?}"))
                         .collect::<Vec<_>>()
                         .join(", ")
                 )
             };
+            let what = if syringes.contains(&name.as_str()) {
+                "holds the support ink, not"
+            } else {
+                "is not"
+            };
             return Err(format!(
                 "{source_name}: {key}: the machine has no syringe \"{name}\" for material \
-                 \"{material}\" (its syringes: {}); {fix}",
-                syringes.join(", ")
+                 \"{material}\" (its syringes: {}; \"{name}\" {what} one of them); {fix}",
+                part.join(", ")
             ));
         };
         found.push(s);
     }
     Ok(found)
+}
+
+/// A job building supports of a syringe needs the machine's support syringe of that
+/// name.
+fn check_support_syringe(
+    job: &crate::job::Job,
+    machine: &super::config::MachineConfig,
+    support: Option<usize>,
+    source_name: &str,
+) -> Result<(), String> {
+    let Some(wanted) = job.support.syringe() else {
+        return Ok(());
+    };
+    match support.map(|k| machine.syringes[k].name.as_str()) {
+        Some(name) if name == wanted => Ok(()),
+        Some(name) => Err(format!(
+            "{source_name}: support.syringe = \"{wanted}\": the machine's support syringe \
+             is \"{name}\"; name it, or build supports of the part's materials \
+             (support.composition)"
+        )),
+        None => Err(format!(
+            "{source_name}: support.syringe = \"{wanted}\": the machine has no support \
+             syringe ([[machine.syringes]] role = \"support\"); load the support ink in \
+             one, or build supports of the part's materials (support.composition)"
+        )),
+    }
 }
 
 /// The process settings a job streams with on a machine: the job's nozzle, the
@@ -389,6 +460,10 @@ pub fn process_settings(
         .map_err(|e| format!("{source_name}: {e}"))?;
     Ok(settings)
 }
+
+/// Layers of support kept for the previews' judgement of what rests on nothing (a top
+/// gap of up to this many layers).
+const RECENT_SUPPORT_LAYERS: usize = 64;
 
 /// Mesh layers cut (in parallel) per batch.
 pub const MESH_LAYERS_PER_CUT: usize = 8;
@@ -449,6 +524,8 @@ impl JobSource {
             draw_previews: false,
             preview_svg: None,
             below: None,
+            recent_supports: Default::default(),
+            supports: Vec::new(),
             preview_unsupported_mm2: None,
         })
     }
@@ -459,13 +536,21 @@ impl JobSource {
         let opts = self.job.overhang_options();
         // Layer 0 rests on the bed; a layer whose layer below was not planned here (a
         // preview from a later layer) is not judged.
+        let bed_mm = match &self.layers {
+            Layers::Mesh { part, .. } => part.spans().first().map_or(0.0, |s| s.z_bottom_mm),
+            _ => 0.0,
+        };
+        let bottom = layer.z_mm - layer.thickness_mm - bed_mm;
+        let on_bed = crate::slice::support::held_by_bed(bottom, self.job.support.top_gap_mm)
+            && self.job.support.builds();
         let unsupported = match &self.below {
-            Some((i, below)) if i + 1 == plan.index => crate::slice::overhang::unsupported(
-                &layer.islands,
-                Some(below),
-                layer.thickness_mm,
-                &opts,
-            ),
+            Some((i, below)) if i + 1 == plan.index && !on_bed => {
+                let mut resting = crate::slice::overhang::shapes_of(below);
+                if let Some(held) = self.holding_support(plan, layer) {
+                    resting = crate::geom::union(&resting, held);
+                }
+                crate::slice::overhang::hanging(&layer.islands, &resting, layer.thickness_mm, &opts)
+            }
             _ => crate::geom::Shapes::new(),
         };
         let svg = crate::svg::layer_svg(
@@ -479,8 +564,43 @@ impl JobSource {
             },
         );
         self.below = Some((plan.index, layer.islands.clone()));
+        if self.job.support.builds() {
+            if self.recent_supports.len() == RECENT_SUPPORT_LAYERS {
+                self.recent_supports.pop_front();
+            }
+            self.recent_supports
+                .push_back((plan.index, layer.z_mm, plan.support.all()));
+        }
         self.preview_unsupported_mm2 = Some(crate::slice::overhang::area_mm2(&unsupported));
         svg
+    }
+
+    /// The support that holds up `layer` (planned as `plan`), of the layers planned
+    /// lately: the highest whose top is the job's top gap or more under it.
+    fn holding_support(
+        &self,
+        plan: &crate::plan::LayerPlan,
+        layer: &crate::slice::Layer,
+    ) -> Option<&crate::geom::Shapes> {
+        let below = plan.index.checked_sub(1)?;
+        let bottom = layer.z_mm - layer.thickness_mm;
+        let top_of = |k: usize| {
+            self.recent_supports
+                .iter()
+                .find(|(i, _, _)| *i == k)
+                .map_or(f64::NEG_INFINITY, |(_, z, _)| *z)
+        };
+        let k = crate::slice::support::holding_layer(
+            below,
+            bottom,
+            self.job.support.top_gap_mm,
+            top_of,
+        )?;
+        self.recent_supports
+            .iter()
+            .find(|(i, _, _)| *i == k)
+            .map(|(_, _, s)| s)
+            .filter(|s| !s.is_empty())
     }
 
     /// Where the part goes on the bed (`None` for a mesh job until its mesh is loaded).
@@ -509,6 +629,10 @@ impl JobSource {
             };
             self.settings = placed_settings(&self.settings, &placement);
             self.placement = Some(placement);
+            match part.supports(&self.job) {
+                Ok(found) => self.supports = found.map(|s| s.areas).unwrap_or_default(),
+                Err(e) => return Some(Err(e.to_string())),
+            }
             self.layers = Layers::Mesh {
                 part: Box::new(part),
                 ready: Default::default(),
@@ -561,7 +685,10 @@ impl LayerSource for JobSource {
             self.next_index = crate::pipeline::FIRST_LAYER_MOVE_INDEX;
             crate::pipeline::home_move(0)
         });
-        Some(plan.and_then(|plan| {
+        Some(plan.and_then(|mut plan| {
+            if let Some(area) = self.supports.get_mut(s.index) {
+                plan.support = std::mem::take(area);
+            }
             self.preview_svg = if self.draw_previews {
                 Some(self.preview_of(&plan, l))
             } else {
@@ -706,6 +833,97 @@ mod tests {
         assert!(second
             .iter()
             .any(|m| matches!(m.kind, MoveKind::Extrude { .. })));
+    }
+
+    /// The default machine with a third syringe "S" of support ink.
+    fn machine_with_support_syringe() -> super::super::config::MachineConfig {
+        let mut machine = super::super::config::MachineConfig::default();
+        let mut s = machine.syringes[0].clone();
+        s.name = "S".into();
+        s.role = super::super::config::SyringeRole::Support;
+        machine.syringes.push(s);
+        machine
+    }
+
+    /// A ball job (overhangs all round its lower half) with `support`.
+    fn ball_job(support: &str) -> (String, Vec<u8>) {
+        let stl = crate::mesh::primitives::sphere(3.0, 48, 24)
+            .to_binary_stl()
+            .unwrap();
+        let text = format!(
+            "name = \"ball\"\n[geometry]\nmesh = \"ball.stl\"\n[materials]\n\
+             names = [\"A\", \"B\"]\n[gradient]\ninner = [1.0, 0.0]\nouter = [0.0, 1.0]\n\
+             [process]\nr_mach = 1.0\nnozzle = 0.4\nlayer = 0.2\nthin_regions = \"fill\"\n{support}"
+        );
+        (text, stl)
+    }
+
+    /// Every extrusion of a job on `machine`: its volumes, and whether S pushed.
+    fn extrusions(src: &mut JobSource) -> Vec<Vec<u32>> {
+        let mut out = Vec::new();
+        while let Some(layer) = src.next_layer() {
+            for m in layer.unwrap() {
+                if let MoveKind::Extrude { volumes_nl, .. } = m.kind {
+                    out.push(volumes_nl);
+                }
+            }
+        }
+        out
+    }
+
+    /// On a machine with a support syringe, edod streams a job's supports of it (only
+    /// S in a support road, never in the part's), runs a job without supports with S
+    /// idle, and refuses a job naming a support syringe the machine does not have.
+    #[test]
+    fn supports_stream_from_the_machine_s_support_syringe() {
+        let machine = machine_with_support_syringe();
+        let (text, stl) = ball_job("[support]\nmode = \"everywhere\"\nsyringe = \"S\"\n");
+        let mut src = JobSource::new(&text, Some(&stl), "ball", &machine).unwrap();
+        src.draw_previews();
+        let moves = extrusions(&mut src);
+        let support: Vec<_> = moves.iter().filter(|v| v[2] > 0).collect();
+        assert!(!support.is_empty(), "no support roads streamed");
+        assert!(support.iter().all(|v| v[0] == 0 && v[1] == 0));
+        assert!(moves.iter().any(|v| v[2] == 0 && v[0] + v[1] > 0));
+        // Without supports: S idle.
+        let (plain, _) = ball_job("");
+        let mut src = JobSource::new(&plain, Some(&stl), "ball", &machine).unwrap();
+        assert!(extrusions(&mut src)
+            .iter()
+            .all(|v| v.len() == 3 && v[2] == 0));
+        // Supports of a syringe the machine has not: refused naming both.
+        let (other, _) = ball_job("[support]\nmode = \"everywhere\"\nsyringe = \"W\"\n");
+        let e = JobSource::new(&other, Some(&stl), "ball", &machine)
+            .err()
+            .unwrap();
+        assert!(
+            e.contains("support.syringe = \"W\"") && e.contains("\"S\""),
+            "{e}"
+        );
+        let plain_machine = super::super::config::MachineConfig::default();
+        let e = JobSource::new(&text, Some(&stl), "ball", &plain_machine)
+            .err()
+            .unwrap();
+        assert!(e.contains("no support syringe"), "{e}");
+        // A material may not be loaded in the support syringe.
+        let in_s = plain.replace("names = [\"A\", \"B\"]", "names = [\"A\", \"S\"]");
+        let e = JobSource::new(&in_s, Some(&stl), "ball", &machine)
+            .err()
+            .unwrap();
+        assert!(e.contains("holds the support ink"), "{e}");
+    }
+
+    /// Supports of the part's materials stream at the job's composition, on any machine.
+    #[test]
+    fn supports_of_a_composition_stream_at_it() {
+        let machine = super::super::config::MachineConfig::default();
+        let (text, stl) = ball_job("[support]\nmode = \"everywhere\"\ncomposition = [0.0, 1.0]\n");
+        let mut src = JobSource::new(&text, Some(&stl), "ball", &machine).unwrap();
+        let moves = extrusions(&mut src);
+        let with_supports = moves.len();
+        let (plain, _) = ball_job("");
+        let mut src = JobSource::new(&plain, Some(&stl), "ball", &machine).unwrap();
+        assert!(with_supports > extrusions(&mut src).len());
     }
 
     /// A mesh job knows its layer count once its mesh is sliced (at the first layer).

@@ -2,7 +2,7 @@
 //! slicers' users know, defaults resolved (`docs/job-format.md`).
 
 use super::{LayerHeights, RawSupport, Support, SupportMaterial};
-use crate::slice::support::{SupportAreaOptions, SupportMode};
+use crate::slice::support::{SupportArea, SupportAreaOptions, SupportMode};
 use crate::toolpath::support::{SupportPattern, SupportRoads};
 
 /// The most interface layers a column may have.
@@ -228,6 +228,58 @@ impl super::Job {
             min_width_mm: self.toolpath.road_width(),
             expansion_mm: self.toolpath.road_width() + self.support.xy_gap_mm,
         })
+    }
+}
+
+/// A mesh part's supports: each layer's area, and what still rests on nothing with
+/// them (layer index and mm², over [`crate::slice::overhang::MIN_REPORTED_MM2`]).
+pub struct PartSupports {
+    pub areas: Vec<SupportArea>,
+    pub still_hanging: Vec<(usize, f64)>,
+    /// What rests on nothing without them, all layers, mm².
+    pub without_mm2: f64,
+}
+
+impl super::MeshLayers {
+    /// With `job`'s `[support]` on, the part's supports (none when off). The whole
+    /// stack is cut at once: a layer's support depends on every layer above it, so
+    /// memory holds the part's sections (not its roads) while they are found.
+    pub fn supports(
+        &self,
+        job: &super::Job,
+    ) -> Result<Option<PartSupports>, crate::slice::SliceError> {
+        use crate::slice::overhang::{area_mm2, of_layers, MIN_REPORTED_MM2};
+        use crate::slice::support::{support_areas, unsupported_with_support, StackLayer};
+        let Some(opts) = job.support_area_options() else {
+            return Ok(None);
+        };
+        let (layers, _) = self.cut(0..self.len(), None)?;
+        let indexed: Vec<(usize, &crate::slice::Layer)> = layers.iter().enumerate().collect();
+        let overhangs: Vec<crate::geom::Shapes> = of_layers(&indexed, &opts.overhang)
+            .into_iter()
+            .map(Option::unwrap_or_default)
+            .collect();
+        let stack: Vec<StackLayer> = layers
+            .iter()
+            .map(|l| StackLayer {
+                z_mm: l.z_mm,
+                thickness_mm: l.thickness_mm,
+                islands: &l.islands,
+            })
+            .collect();
+        let areas = support_areas(&stack, &overhangs, &opts);
+        let still_hanging =
+            unsupported_with_support(&stack, &areas, opts.top_gap_mm, &opts.overhang)
+                .iter()
+                .map(area_mm2)
+                .enumerate()
+                .filter(|(_, a)| *a > MIN_REPORTED_MM2)
+                .collect();
+        Ok(Some(PartSupports {
+            areas,
+            still_hanging,
+            without_mm2: overhangs.iter().map(area_mm2).sum(),
+        }))
     }
 }
 

@@ -145,8 +145,15 @@ pub fn holding_layer(
         .find(|&k| top_of(k) <= bottom_mm - top_gap_mm + Z_EPS_MM)
 }
 
+/// Whether a layer `height_mm` above the bed is held by the bed itself, as by a
+/// column's top, with a top gap of `top_gap_mm` (no column fits under it).
+pub fn held_by_bed(height_mm: f64, top_gap_mm: f64) -> bool {
+    top_gap_mm > 0.0 && height_mm <= top_gap_mm + Z_EPS_MM
+}
+
 /// What layer `j` of `stack` rests on: the layer below and the support holding it
-/// (`areas`, the stack's supports; `top_gap_mm` under the part).
+/// (`areas`, the stack's supports; `top_gap_mm` under the part); none on the bed (the
+/// first layer, or one within the top gap of the bed).
 pub fn below_with_support(
     stack: &[StackLayer],
     areas: &[SupportArea],
@@ -154,6 +161,9 @@ pub fn below_with_support(
     top_gap_mm: f64,
 ) -> Option<Shapes> {
     let below = j.checked_sub(1)?;
+    if held_by_bed(stack[j].bottom_mm() - stack[0].bottom_mm(), top_gap_mm) {
+        return None;
+    }
     let mut resting = shapes_of(stack[below].islands);
     let hold = holding_layer(below, stack[j].bottom_mm(), top_gap_mm, |k| stack[k].z_mm);
     if let Some(area) = hold.and_then(|k| areas.get(k)).filter(|a| !a.is_empty()) {
@@ -174,6 +184,7 @@ pub fn unsupported_with_support(
     (0..stack.len())
         .into_par_iter()
         .map(|j| match below_with_support(stack, areas, j, top_gap_mm) {
+            // On the bed (the first layer, or within the top gap of it).
             None => Vec::new(),
             Some(below) => hanging(stack[j].islands, &below, stack[j].thickness_mm, opts),
         })
