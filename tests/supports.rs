@@ -248,8 +248,8 @@ fn raster_of(beads: &[&Bead], lo: [f64; 2], hi: [f64; 2], cell: f64) -> Raster {
     r
 }
 
-/// The pieces of `cells` (4-connected) and their areas, mm².
-fn pieces(r: &Raster, cells: &[bool]) -> Vec<f64> {
+/// The pieces of `cells` (4-connected): their areas, mm², and a point of each.
+fn pieces(r: &Raster, cells: &[bool]) -> Vec<(f64, [f64; 2])> {
     let mut seen = vec![false; cells.len()];
     let mut out = Vec::new();
     for start in 0..cells.len() {
@@ -282,7 +282,10 @@ fn pieces(r: &Raster, cells: &[bool]) -> Vec<f64> {
                 push(i, j + 1);
             }
         }
-        out.push(n as f64 * r.cell_mm * r.cell_mm);
+        out.push((
+            n as f64 * r.cell_mm * r.cell_mm,
+            r.centre(start % r.nx, start / r.nx),
+        ));
     }
     out
 }
@@ -335,12 +338,14 @@ fn unsupported_layers(
                 .zip(&h.cells)
                 .map(|(o, h)| *o && *h)
                 .collect();
-            let big: Vec<f64> = pieces(&h, &kept)
+            let big: Vec<(f64, [f64; 2])> = pieces(&h, &kept)
                 .into_iter()
-                .filter(|a| *a > min_area_mm2)
+                .filter(|(a, _)| *a > min_area_mm2)
                 .collect();
             if !big.is_empty() {
-                out.push((n, big.iter().sum()));
+                // Where, for a person finding out why (machine coordinates).
+                eprintln!("layer {n}: resting on nothing: {big:?}");
+                out.push((n, big.iter().map(|b| b.0).sum()));
             }
         }
         // What the next layer rests on: this layer's part and support beads.
@@ -457,13 +462,15 @@ fn with_supports_no_layer_of_the_g_code_rests_on_nothing() {
         let hanging = unsupported_layers(&g, reach, 0.1, 0.16);
         let without = r["overhang"]["without_supports_mm2"].as_f64().unwrap();
         if name == "benchy" {
-            // Not yet none (issue 45): scallops where the scan lines end against a
-            // curved edge, and narrow pockets. Held to what was reached: at most 5 %
-            // of what hangs without supports (measured: about 13 of 410 mm²).
+            // Not yet none (issue 45): part beads laid past the beads below where the
+            // layer below's beads stop short of its outline (thin features), which
+            // the planner's overhangs (from the outlines) allow. Held to what was
+            // reached: at most 2 % of what hangs without supports (measured: 4.6 of
+            // 410 mm², 16 layers, the most 1.1 mm² at layer 90).
             let left: f64 = hanging.iter().map(|h| h.1).sum();
             eprintln!("benchy: G-code beads resting on nothing with supports: {left:.1} mm² in {} layers: {hanging:?}", hanging.len());
             assert!(
-                left <= 0.05 * without,
+                left <= 0.02 * without,
                 "{name}: {left} of {without}: {hanging:?}"
             );
         } else {

@@ -141,27 +141,45 @@ pub fn support_paths(
     start: Option<DVec2>,
 ) -> Vec<ToolPath> {
     let chord = road_width_mm / 20.0;
-    let mut pieces: Vec<(Vec<DVec2>, bool)> = Vec::new();
-    let mut build = |shapes: &Shapes, angle: f64, spacing: f64, interface: bool| {
+    let mut pieces: Vec<Piece> = Vec::new();
+    let mut build = |shapes: &Shapes, angle: f64, spacing: f64, role: PathRole| {
         let inside = offset(shapes, -road_width_mm / 2.0, chord);
         if inside.is_empty() {
             return;
         }
-        let lines = scan_lines(&inside, angle, spacing);
+        // The interface is outlined first (a loop half a road in, so its edge is
+        // laid whole, not in the scallops of line ends), its lines then inside the
+        // loop.
+        let lines_in = if role == PathRole::SupportInterface {
+            pieces.extend(loops(&inside).map(|l| Piece {
+                points: l.clone(),
+                closed: true,
+                role,
+            }));
+            offset(&inside, -road_width_mm / 2.0, chord)
+        } else {
+            inside
+        };
+        let lines = scan_lines(&lines_in, angle, spacing);
         // Joins run on the inset boundary: inside the area itself.
-        for p in zigzag(lines, shapes, 2.0 * spacing) {
-            pieces.push((p, interface));
+        for points in zigzag(lines, shapes, 2.0 * spacing) {
+            pieces.push(Piece {
+                points,
+                closed: false,
+                role,
+            });
         }
     };
     let base_angle = roads.angle_deg;
     if !area.base.is_empty() {
         let density = roads.density.clamp(0.01, 1.0);
+        let base = PathRole::Support;
         match roads.pattern {
-            SupportPattern::Lines => build(&area.base, base_angle, road_width_mm / density, false),
+            SupportPattern::Lines => build(&area.base, base_angle, road_width_mm / density, base),
             SupportPattern::Grid => {
                 let spacing = 2.0 * road_width_mm / density;
-                build(&area.base, base_angle, spacing, false);
-                build(&area.base, base_angle + 90.0, spacing, false);
+                build(&area.base, base_angle, spacing, base);
+                build(&area.base, base_angle + 90.0, spacing, base);
             }
         }
     }
@@ -171,53 +189,72 @@ pub fn support_paths(
         } else {
             0.0
         };
-        build(&area.interface, base_angle + turn, road_width_mm, true);
+        let interface = PathRole::SupportInterface;
+        build(&area.interface, base_angle + turn, road_width_mm, interface);
     }
-    pieces.retain(|(p, _)| crate::geom::polyline_length(p) >= road_width_mm);
+    pieces.retain(|p| {
+        crate::geom::edges(&p.points, p.closed)
+            .map(|(a, b)| a.distance(b))
+            .sum::<f64>()
+            >= road_width_mm
+    });
     nearest_first(pieces, start)
         .into_iter()
-        .map(|(points, interface)| ToolPath {
-            role: if interface {
-                PathRole::SupportInterface
-            } else {
-                PathRole::Support
-            },
-            width_factors: vec![1.0; points.len()],
-            points,
-            closed: false,
+        .map(|p| ToolPath {
+            role: p.role,
+            width_factors: vec![1.0; p.points.len()],
+            points: p.points,
+            closed: p.closed,
             composition: roads.composition.clone(),
             seam_at_corner: false,
         })
         .collect()
 }
 
-/// `pieces` in nearest-neighbour order from `start`, each entered at its nearer end.
-fn nearest_first(
-    mut pieces: Vec<(Vec<DVec2>, bool)>,
-    start: Option<DVec2>,
-) -> Vec<(Vec<DVec2>, bool)> {
+/// A support road before ordering.
+struct Piece {
+    points: Vec<DVec2>,
+    closed: bool,
+    role: PathRole,
+}
+
+/// `pieces` in nearest-neighbour order from `start`: an open one entered at its
+/// nearer end, a loop at its nearest vertex.
+fn nearest_first(mut pieces: Vec<Piece>, start: Option<DVec2>) -> Vec<Piece> {
     let mut out = Vec::with_capacity(pieces.len());
     let mut at = start.unwrap_or(DVec2::ZERO);
     while !pieces.is_empty() {
-        let mut best = (f64::MAX, 0, false);
-        for (k, (p, _)) in pieces.iter().enumerate() {
-            let (Some(&first), Some(&last)) = (p.first(), p.last()) else {
-                continue;
+        // (squared distance, piece, vertex to start at)
+        let mut best = (f64::MAX, 0, 0);
+        for (k, p) in pieces.iter().enumerate() {
+            let ends: Vec<usize> = if p.closed {
+                (0..p.points.len()).collect()
+            } else {
+                vec![0, p.points.len().saturating_sub(1)]
             };
-            let (df, dl) = (at.distance_squared(first), at.distance_squared(last));
-            if df < best.0 {
-                best = (df, k, false);
-            }
-            if dl < best.0 {
-                best = (dl, k, true);
+            for v in ends {
+                let d = p
+                    .points
+                    .get(v)
+                    .map_or(f64::MAX, |q| at.distance_squared(*q));
+                if d < best.0 {
+                    best = (d, k, v);
+                }
             }
         }
-        let (mut p, interface) = pieces.swap_remove(best.1);
-        if best.2 {
-            p.reverse();
+        let mut p = pieces.swap_remove(best.1);
+        if p.closed {
+            p.points.rotate_left(best.2);
+        } else if best.2 > 0 {
+            p.points.reverse();
         }
-        at = p.last().copied().unwrap_or(at);
-        out.push((p, interface));
+        at = match p.closed {
+            true => p.points.first(),
+            false => p.points.last(),
+        }
+        .copied()
+        .unwrap_or(at);
+        out.push(p);
     }
     out
 }
@@ -272,18 +309,26 @@ mod tests {
     }
 
     #[test]
-    fn the_interface_is_dense_and_turns_each_layer() {
+    fn the_interface_is_outlined_dense_and_turns_each_layer() {
         let area = SupportArea {
             base: Vec::new(),
-            interface: square(0.0, 4.0),
+            interface: square(0.05, 4.05),
         };
         let even = support_paths(&area, 0, 0.4, &roads(SupportPattern::Lines, 0.25), None);
         let odd = support_paths(&area, 1, 0.4, &roads(SupportPattern::Lines, 0.25), None);
         assert!(even.iter().all(|p| p.role == PathRole::SupportInterface));
-        // 0.4 mm apart on the bed's grid within 0.2-3.8 mm: 9 lines of 3.6 mm, joined.
-        let l = length(&even);
-        assert!((l - (9.0 * 3.6 + 8.0 * 0.4)).abs() < 0.1, "{l}");
-        let first = |p: &[ToolPath]| p[0].points[1] - p[0].points[0];
+        // A loop half a road in (0.25-3.85 mm: 4 x 3.6 mm), first from the origin.
+        assert!(even[0].closed && (even[0].length_mm() - 14.4).abs() < 0.01);
+        assert_eq!(even[0].points[0], DVec2::new(0.25, 0.25));
+        // Then lines 0.4 mm apart on the bed's grid within the loop (0.45-3.65 mm):
+        // 8 lines of 3.2 mm, joined.
+        let lines: Vec<ToolPath> = even.iter().filter(|p| !p.closed).cloned().collect();
+        let l = length(&lines);
+        assert!((l - (8.0 * 3.2 + 7.0 * 0.4)).abs() < 0.1, "{l}");
+        let first = |p: &[ToolPath]| {
+            let open = p.iter().find(|p| !p.closed).unwrap();
+            open.points[1] - open.points[0]
+        };
         assert!(first(&even).x.abs() < 1e-9, "even layers run along y");
         assert!(first(&odd).y.abs() < 1e-9, "odd layers run along x");
     }
