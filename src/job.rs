@@ -417,12 +417,14 @@ impl Job {
     }
 
     /// What finding this job's overhangs needs: the allowed overhang, the narrowest
-    /// strip that counts (a quarter of the nozzle, over the contours' deviation), the
+    /// strip that counts (twice the contour deviation: the most two layers' chords
+    /// can part where the surface leans at the allowed angle; anything wider is the
+    /// surface leaning past it, so the reach stays the angle the job names), the
     /// offsets' chord (the contour deviation).
     pub fn overhang_options(&self) -> crate::slice::overhang::OverhangOptions {
         crate::slice::overhang::OverhangOptions {
             overhang: self.overhang,
-            min_width_mm: (self.plan.nozzle_mm / 4.0).max(2.0 * self.plan.contour_deviation_mm),
+            min_width_mm: 2.0 * self.plan.contour_deviation_mm,
             min_area_mm2: self.plan.nozzle_mm * self.plan.nozzle_mm,
             chord_mm: self.plan.contour_deviation_mm,
         }

@@ -290,46 +290,74 @@ fn pieces(r: &Raster, cells: &[bool]) -> Vec<(f64, [f64; 2])> {
     out
 }
 
-/// Layers of the file whose part beads reach past the beads below (the part's and
-/// the support's), by more than `reach_of(thickness)`, over a piece larger than
-/// `min_area_mm2` that is wider than `min_width_mm`: (layer, mm²) of each.
-fn unsupported_layers(
-    g: &Layers,
-    reach_of: impl Fn(f64) -> f64,
-    min_width_mm: f64,
-    min_area_mm2: f64,
-) -> Vec<(usize, f64)> {
-    let cell = 0.025;
-    let all: Vec<&Bead> = g.layers.values().flat_map(|(_, b)| b.iter()).collect();
-    let lo = all.iter().fold([f64::MAX; 2], |a, b| {
+/// What the check lets a layer leave resting on nothing: the planner's reach
+/// (`t · tan(30°)` past the layer below) and its smallest piece (the nozzle
+/// squared), and strips narrower than a quarter of the nozzle (the planner counts
+/// down to twice the contour deviation, from outlines; beads run wider than their
+/// outline by a few hundredths where the flow is raised).
+struct Allowance {
+    nozzle_mm: f64,
+}
+
+impl Allowance {
+    fn reach_mm(&self, thickness_mm: f64) -> f64 {
+        thickness_mm * 30f64.to_radians().tan()
+    }
+    fn min_width_mm(&self) -> f64 {
+        self.nozzle_mm / 4.0
+    }
+    fn min_area_mm2(&self) -> f64 {
+        self.nozzle_mm * self.nozzle_mm
+    }
+    /// Raster cells a sixteenth of the nozzle.
+    fn cell_mm(&self) -> f64 {
+        self.nozzle_mm / 16.0
+    }
+}
+
+/// The bounds of `beads`, grown by `margin`.
+fn bounds_of(beads: &[&Bead], margin: f64) -> ([f64; 2], [f64; 2]) {
+    let lo = beads.iter().fold([f64::MAX; 2], |a, b| {
         [
             a[0].min(b.from[0].min(b.to[0])),
             a[1].min(b.from[1].min(b.to[1])),
         ]
     });
-    let hi = all.iter().fold([f64::MIN; 2], |a, b| {
+    let hi = beads.iter().fold([f64::MIN; 2], |a, b| {
         [
             a[0].max(b.from[0].max(b.to[0])),
             a[1].max(b.from[1].max(b.to[1])),
         ]
     });
-    let (lo, hi) = ([lo[0] - 1.0, lo[1] - 1.0], [hi[0] + 1.0, hi[1] + 1.0]);
+    (
+        [lo[0] - margin, lo[1] - margin],
+        [hi[0] + margin, hi[1] + margin],
+    )
+}
+
+/// Layers of the file whose part beads reach past the beads below (the part's and
+/// the support's) by more than `allowed` lets them: (layer, mm²) of each. Each layer
+/// is rastered over its own bounds and those of the layer below.
+fn unsupported_layers(g: &Layers, allowed: &Allowance) -> Vec<(usize, f64)> {
+    let cell = allowed.cell_mm();
     let mut out = Vec::new();
-    let mut below: Option<Raster> = None;
+    let mut below: Option<Vec<&Bead>> = None;
     for (&n, (thickness, beads)) in &g.layers {
         let part: Vec<&Bead> = beads.iter().filter(|b| !b.support).collect();
-        let here = raster_of(&part, lo, hi, cell);
-        if let Some(under) = &below {
-            let resting = under.grown(reach_of(*thickness));
+        if let Some(under) = below.as_ref().filter(|_| !part.is_empty()) {
+            let both: Vec<&Bead> = part.iter().chain(under.iter()).copied().collect();
+            let (lo, hi) = bounds_of(&both, 2.0);
+            let here = raster_of(&part, lo, hi, cell);
+            let resting = raster_of(under, lo, hi, cell).grown(allowed.reach_mm(*thickness));
             let hanging: Vec<bool> = here
                 .cells
                 .iter()
                 .zip(&resting.cells)
                 .map(|(h, r)| *h && !*r)
                 .collect();
-            // Strips narrower than `min_width_mm` are not overhangs: an opening.
+            // Strips narrower than the allowed width are not overhangs: an opening.
             let h = here.with_cells(hanging);
-            let half = min_width_mm / 2.0;
+            let half = allowed.min_width_mm() / 2.0;
             let eroded = h.inverted().grown(half).inverted();
             let opened = eroded.grown(half);
             let kept: Vec<bool> = opened
@@ -340,7 +368,7 @@ fn unsupported_layers(
                 .collect();
             let big: Vec<(f64, [f64; 2])> = pieces(&h, &kept)
                 .into_iter()
-                .filter(|(a, _)| *a > min_area_mm2)
+                .filter(|(a, _)| *a > allowed.min_area_mm2())
                 .collect();
             if !big.is_empty() {
                 // Where, for a person finding out why (machine coordinates).
@@ -349,17 +377,17 @@ fn unsupported_layers(
             }
         }
         // What the next layer rests on: this layer's part and support beads.
-        let all: Vec<&Bead> = beads.iter().collect();
-        below = Some(raster_of(&all, lo, hi, cell));
+        below = Some(beads.iter().collect());
     }
     out
 }
 
 /// `edoctl plan` of `job` to an RRF G-code file and its report.
-fn plan(job: &Path, gcode: &Path) -> (serde_json::Value, String) {
+fn plan(job: &Path, gcode: &Path, extra: &[&str]) -> (serde_json::Value, String) {
     let out = edoctl()
         .arg("plan")
         .arg(job)
+        .args(extra)
         .args([
             "--quiet",
             "--build-volume",
@@ -374,6 +402,15 @@ fn plan(job: &Path, gcode: &Path) -> (serde_json::Value, String) {
     let said = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(out.status.success(), "{}: {said}", job.display());
     (serde_json::from_slice(&out.stdout).unwrap(), said)
+}
+
+/// The nozzle (`[process] nozzle`, mm) of job `text`.
+fn nozzle_of(text: &str) -> f64 {
+    text.lines()
+        .find_map(|l| l.trim().strip_prefix("nozzle ="))
+        .and_then(|v| v.split('#').next())
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no nozzle in {text}"))
 }
 
 /// `text` of a job with `[support]` appended and its mesh path made absolute.
@@ -400,19 +437,26 @@ const BENCHY_JOB: &str = "name = \"benchy\"\n[geometry]\nmesh = \"3DBenchy.stl\"
     inner = [1.0, 0.0]\nouter = [0.0, 1.0]\n[process]\nr_mach = 2.0\nnozzle = 0.4\n\
     layer = 0.2\nthin_regions = \"fill\"\n";
 
-/// The parts: every example that has a mesh, a ball, and Benchy where it is.
-fn parts(dir: &Path) -> Vec<(String, String)> {
-    let mut out = Vec::new();
+/// The parts: every example, a ball, and Benchy where it is; each with the layers
+/// planned (`--layers`; femur-graded's first 40, its condyles, where most of it
+/// hangs: all 1,133 layers take minutes to plan and check).
+fn parts(dir: &Path) -> Vec<(String, String, &'static [&'static str])> {
+    let mut out: Vec<(String, String, &'static [&'static str])> = Vec::new();
     for entry in std::fs::read_dir(repo("config/examples")).unwrap() {
         let path = entry.unwrap().path();
-        // femur-graded (1,133 layers, 2.9 million moves) is checked by its own test
-        // over the layers where it hangs.
-        if path.extension().is_some_and(|e| e == "toml")
-            && path.file_stem().is_some_and(|s| s != "femur-graded")
-        {
+        if path.extension().is_some_and(|e| e == "toml") {
             let text = std::fs::read_to_string(&path).unwrap();
             let name = path.file_stem().unwrap().to_string_lossy().into_owned();
-            out.push((name, with_support(&text, &repo("config/examples"), "")));
+            let layers: &'static [&'static str] = if name == "femur-graded" {
+                &["--layers", "0..40"]
+            } else {
+                &[]
+            };
+            out.push((
+                name,
+                with_support(&text, &repo("config/examples"), ""),
+                layers,
+            ));
         }
     }
     let ball = edo::mesh::primitives::sphere(6.0, 64, 32)
@@ -424,12 +468,14 @@ fn parts(dir: &Path) -> Vec<(String, String)> {
         BENCHY_JOB
             .replace("3DBenchy.stl", "ball.stl")
             .replace("\"benchy\"", "\"ball\""),
+        &[],
     ));
     let benchy = repo("../shared/meshes/3DBenchy.stl");
     if benchy.exists() {
         out.push((
             "benchy".into(),
             with_support(BENCHY_JOB, &repo("../shared/meshes"), ""),
+            &[],
         ));
     } else {
         assert!(
@@ -449,28 +495,31 @@ fn parts(dir: &Path) -> Vec<(String, String)> {
 #[test]
 fn with_supports_no_layer_of_the_g_code_rests_on_nothing() {
     let dir = tempfile::tempdir().unwrap();
-    let reach = |t: f64| t * 30f64.to_radians().tan();
-    for (name, text) in parts(dir.path()) {
+    for (name, text, layers) in parts(dir.path()) {
+        let allowed = Allowance {
+            nozzle_mm: nozzle_of(&text),
+        };
         let job = dir.path().join(format!("{name}.toml"));
         let gcode = dir.path().join(format!("{name}.gcode"));
         let support = "[support]\nmode = \"everywhere\"\nsyringe = \"S\"\n";
         std::fs::write(&job, format!("{text}{support}")).unwrap();
-        let (r, said) = plan(&job, &gcode);
+        let (r, said) = plan(&job, &gcode, layers);
         assert!(!said.contains("warning"), "{name}: {said}");
         assert_eq!(r["overhang"]["layers"], serde_json::json!([]), "{name}");
         let g = parse_gcode(&std::fs::read_to_string(&gcode).unwrap());
-        let hanging = unsupported_layers(&g, reach, 0.1, 0.16);
+        let hanging = unsupported_layers(&g, &allowed);
         let without = r["overhang"]["without_supports_mm2"].as_f64().unwrap();
         if name == "benchy" {
-            // Not yet none (issue 45): part beads laid past the beads below where the
-            // layer below's beads stop short of its outline (thin features), which
-            // the planner's overhangs (from the outlines) allow. Held to what was
-            // reached: at most 2 % of what hangs without supports (measured: 4.6 of
-            // 410 mm², 16 layers, the most 1.1 mm² at layer 90).
+            // Not none: where the layer below's own beads stop short of its outline
+            // (a sliver of the hull its roads do not fill at layer 89, the gaps
+            // between the letters engraved in its bottom at layer 0), the beads
+            // above rest on that void, inside the part, where no support may go;
+            // a void of the part's coverage, not an overhang. Measured: 2.6 of
+            // 455 mm² in 6 layers, the most 1.1 mm² at layer 90.
             let left: f64 = hanging.iter().map(|h| h.1).sum();
             eprintln!("benchy: G-code beads resting on nothing with supports: {left:.1} mm² in {} layers: {hanging:?}", hanging.len());
             assert!(
-                left <= 0.02 * without,
+                left <= 0.01 * without,
                 "{name}: {left} of {without}: {hanging:?}"
             );
         } else {
@@ -517,10 +566,10 @@ fn the_g_code_check_finds_the_ball_s_overhangs_without_supports() {
     let job = dir.path().join("ball.toml");
     std::fs::write(&job, BENCHY_JOB.replace("3DBenchy.stl", "ball.stl")).unwrap();
     let gcode = dir.path().join("ball.gcode");
-    let (r, said) = plan(&job, &gcode);
+    let (r, said) = plan(&job, &gcode, &[]);
     assert!(said.contains("warning"), "{said}");
     let g = parse_gcode(&std::fs::read_to_string(&gcode).unwrap());
-    let hanging = unsupported_layers(&g, |t| t * 30f64.to_radians().tan(), 0.1, 0.16);
+    let hanging = unsupported_layers(&g, &Allowance { nozzle_mm: 0.4 });
     let warned: Vec<usize> = r["overhang"]["layers"]
         .as_array()
         .unwrap()

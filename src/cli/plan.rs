@@ -318,7 +318,7 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
     let overhangs = match &supports {
-        Some((areas, _)) => still_hanging(&job, &slices, areas),
+        Some((areas, _)) => still_hanging(&job, &slices, areas, &hanging),
         None => hanging,
     };
     crate::report::attach_overhangs(&mut report, job.overhang, &overhangs);
@@ -464,11 +464,17 @@ fn still_hanging(
     job: &Job,
     slices: &[LayerSlice],
     areas: &[crate::slice::support::SupportArea],
+    hanging: &[Option<crate::geom::Shapes>],
 ) -> Vec<Option<crate::geom::Shapes>> {
+    let without: Vec<crate::geom::Shapes> = hanging
+        .iter()
+        .map(|h| h.clone().unwrap_or_default())
+        .collect();
     let mut out: Vec<Option<crate::geom::Shapes>> =
         crate::slice::support::unsupported_with_support(
             &stack_of(slices),
             areas,
+            &without,
             job.support.top_gap_mm,
             &job.overhang_options(),
         )

@@ -269,7 +269,7 @@ impl super::MeshLayers {
             .collect();
         let areas = support_areas(&stack, &overhangs, &opts);
         let still_hanging =
-            unsupported_with_support(&stack, &areas, opts.top_gap_mm, &opts.overhang)
+            unsupported_with_support(&stack, &areas, &overhangs, opts.top_gap_mm, &opts.overhang)
                 .iter()
                 .map(area_mm2)
                 .enumerate()

@@ -173,20 +173,35 @@ pub fn below_with_support(
 }
 
 /// Each layer's area resting on nothing once `areas` are built under it (layer 0
-/// rests on the bed), in parallel.
+/// rests on the bed), in parallel, within what rests on nothing without them
+/// (`overhangs`, one per layer): support only adds to what a layer rests on, so what
+/// hangs with it lies within what hangs without it. Taken within by construction,
+/// because the two are found from different outlines (the layer below, or its union
+/// with the support), whose offsets differ by µm; where a strip is as wide as the
+/// narrowest overhang counted, that flips it between counted and not.
 pub fn unsupported_with_support(
     stack: &[StackLayer],
     areas: &[SupportArea],
+    overhangs: &[Shapes],
     top_gap_mm: f64,
     opts: &OverhangOptions,
 ) -> Vec<Shapes> {
     use rayon::prelude::*;
     (0..stack.len())
         .into_par_iter()
-        .map(|j| match below_with_support(stack, areas, j, top_gap_mm) {
-            // On the bed (the first layer, or within the top gap of it).
-            None => Vec::new(),
-            Some(below) => hanging(stack[j].islands, &below, stack[j].thickness_mm, opts),
+        .map(|j| {
+            let without = overhangs.get(j).filter(|o| !o.is_empty());
+            match (without, below_with_support(stack, areas, j, top_gap_mm)) {
+                // Nothing hangs without support, or the layer is on the bed (the
+                // first layer, or within the top gap of it).
+                (None, _) | (_, None) => Vec::new(),
+                (Some(without), Some(below)) => {
+                    let with = hanging(stack[j].islands, &below, stack[j].thickness_mm, opts);
+                    let mut within = crate::geom::intersection(&with, without);
+                    retain_area_at_least(&mut within, opts.min_area_mm2);
+                    within
+                }
+            }
         })
         .collect()
 }
@@ -484,11 +499,11 @@ mod tests {
         let before = overhangs_of_stack(&s, &o.overhang);
         assert!(area(&before[8]).abs() > 10.0);
         let areas = built(&s, &o);
-        let after = unsupported_with_support(&s, &areas, 0.0, &o.overhang);
+        let after = unsupported_with_support(&s, &areas, &before, 0.0, &o.overhang);
         assert!(after.iter().all(Vec::is_empty), "{after:?}");
         // On the build plate only the left arm still hangs.
         let plate = built(&s, &opts(SupportMode::Buildplate));
-        let after = unsupported_with_support(&s, &plate, 0.0, &o.overhang);
+        let after = unsupported_with_support(&s, &plate, &before, 0.0, &o.overhang);
         let a = area(&after[8]).abs();
         assert!((a - 4.0 * 2.0).abs() < 0.5, "{a}");
     }
