@@ -517,6 +517,10 @@ pub struct LayerMoves {
     /// For every extrusion move: its index and the path in `paths` it builds (whose
     /// composition is the designed one there), to compare with what was built.
     pub extrusion_paths: Vec<(u32, u32)>,
+    /// For every extrusion move (as `extrusion_paths`): the composition the chamber's
+    /// model predicts leaves the nozzle during it (per material; the commanded one
+    /// where there is no chamber).
+    pub extrusion_exits: Vec<Vec<f64>>,
 }
 
 /// The ordered, flow-adjusted paths of a layer (steps 1–4 of [`crate::toolpath`]).
@@ -874,6 +878,7 @@ struct Builder<'a> {
     /// What is predicted to leave the nozzle over each road.
     road_exits: mixing::RoadExits,
     extrusion_paths: Vec<(u32, u32)>,
+    extrusion_exits: Vec<Vec<f64>>,
 }
 
 impl<'a> Builder<'a> {
@@ -906,6 +911,7 @@ impl<'a> Builder<'a> {
             support_path: false,
             road_exits: mixing::RoadExits::default(),
             extrusion_paths: Vec::new(),
+            extrusion_exits: Vec::new(),
         }
     }
 
@@ -950,6 +956,7 @@ impl<'a> Builder<'a> {
             paths,
             next_index: self.next,
             extrusion_paths: self.extrusion_paths,
+            extrusion_exits: self.extrusion_exits,
         }
     }
 }
@@ -1428,8 +1435,8 @@ impl Builder<'_> {
     }
 
     /// Push `volume_nl` of `commanded` through the chamber; compare what leaves the
-    /// nozzle with `designed`.
-    fn through_chamber(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) {
+    /// nozzle with `designed`; what leaves it.
+    fn through_chamber(&mut self, volume_nl: f64, commanded: &[f64], designed: &[f64]) -> Vec<f64> {
         if self.settings.v_dead_ul > 0.0 && self.state.chamber.is_none() {
             // A fresh chamber is full of the first designed composition (primed).
             self.state.chamber = Some(Mixer::new(&self.settings.mixer(), designed));
@@ -1438,13 +1445,14 @@ impl Builder<'_> {
             .push_through_chamber(volume_nl, commanded)
             .unwrap_or_else(|| commanded.to_vec());
         if self.support_path {
-            return;
+            return delivered;
         }
         self.road_exits.add(self.path_index, volume_nl, &delivered);
         let err = crate::material::max_fraction_difference(&delivered, designed);
         self.stats.composition_error_mean += err * volume_nl;
         self.error_volume_nl += volume_nl;
         self.stats.composition_error_max = self.stats.composition_error_max.max(err);
+        delivered
     }
 
     fn extrude(
@@ -1465,10 +1473,11 @@ impl Builder<'_> {
             .cloned()
             .unwrap_or_else(|| composition.to_vec());
         self.segment += 1;
-        self.through_chamber(volume_nl, &commanded, composition);
+        let delivered = self.through_chamber(volume_nl, &commanded, composition);
         self.extrude_move(b, factor, volume_nl, &commanded)?;
         self.extrusion_paths
             .push((self.next.saturating_sub(1), self.path_index));
+        self.extrusion_exits.push(delivered);
         self.stats.extruded_mm += len;
         self.stats.max_width_factor = self.stats.max_width_factor.max(factor);
         Ok(())

@@ -193,8 +193,8 @@ fn area_group(out: &mut String, f: &Frame, shapes: &crate::geom::Shapes, style: 
     let _ = writeln!(out, "</g>");
 }
 
-/// A road's colour: its composition's, support's own.
-fn road_colour(p: &crate::toolpath::ToolPath) -> String {
+/// The colour a road is drawn in: its composition's, or the support's grey.
+pub fn road_colour(p: &crate::toolpath::ToolPath) -> String {
     match p.role {
         crate::toolpath::PathRole::Support => SUPPORT_COLOUR.to_string(),
         crate::toolpath::PathRole::SupportInterface => SUPPORT_INTERFACE_COLOUR.to_string(),

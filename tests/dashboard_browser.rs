@@ -347,6 +347,7 @@ async fn drive(c: &Client, port: u16) {
             != first
     })
     .await;
+    live_colours_are_the_previews(c, &job).await;
     // The machine panel follows the print.
     let at = text(c, "#machine-position").await;
     assert!(at.starts_with("x "), "{at}");
@@ -436,6 +437,59 @@ async fn drive(c: &Client, port: u16) {
 }
 
 /// Click `css`, which asks for confirmation; the question, accepted or declined.
+/// The live view draws the layer's roads in the colours `edoctl plan --svg` gives them
+/// (their designed composition), many of them across the crown's grading, not the
+/// mix the syringes push (which once drew whole layers in one colour), and the
+/// composition panel names the design, the predicted nozzle exit and the syringes.
+async fn live_colours_are_the_previews(c: &Client, job: &Path) {
+    let caption = text(c, "#layer-caption").await;
+    let layer: usize = caption
+        .strip_prefix("Layer ")
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("caption {caption:?}"));
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_edoctl"))
+        .args(["plan", "--quiet", "--svg"])
+        .arg(dir.path())
+        .arg(job)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut preview = String::new();
+    for name in [
+        format!("layer-{:04}.svg", layer - 1),
+        format!("layer-{:04}-roads.svg", layer - 1),
+    ] {
+        preview += &std::fs::read_to_string(dir.path().join(name)).unwrap();
+    }
+    let live = c
+        .execute(
+            "return [...document.querySelectorAll('#layer-view > g:first-child line')]\
+             .map((l) => l.getAttribute('stroke')).filter((s) => s !== '#bbb');",
+            vec![],
+        )
+        .await
+        .unwrap();
+    let live: std::collections::BTreeSet<String> = serde_json::from_value(live).unwrap();
+    assert!(live.len() >= 3, "layer {layer} drawn in {live:?}");
+    for colour in &live {
+        assert!(
+            preview.contains(&format!("stroke=\"{colour}\"")),
+            "layer {layer}: {colour} is no road's colour in the preview ({live:?})"
+        );
+    }
+    let panel = text(c, "#composition").await;
+    assert!(
+        panel.contains("designed") && panel.contains("predicted to leave the nozzle"),
+        "{panel}"
+    );
+}
+
 async fn answer_confirmation(c: &Client, css: &str, accept: bool) -> String {
     c.find(Locator::Css(css))
         .await

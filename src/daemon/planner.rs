@@ -48,6 +48,41 @@ pub trait LayerSource: Send {
     fn take_preview_unsupported_mm2(&mut self) -> Option<f64> {
         None
     }
+
+    /// The road each extrusion of the layer last previewed builds, as designed (with
+    /// [`LayerSource::take_preview_svg`]), in move order.
+    fn take_preview_roads(&mut self) -> Option<Vec<DesignedRoad>> {
+        None
+    }
+}
+
+/// What an extrusion move builds as designed: the move, the road's composition and
+/// the colour the SVG previews give the road ([`crate::svg::road_colour`]: its
+/// composition's, or the support's grey); and what the planner's model of the mixing
+/// chamber predicts leaves the nozzle during the move. Compositions per material.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DesignedRoad {
+    pub move_index: u32,
+    pub composition: Vec<f64>,
+    pub colour: String,
+    pub exit: Vec<f64>,
+}
+
+/// The designed road of every extrusion of `lm`, in move order.
+fn designed_roads(lm: &crate::pipeline::LayerMoves) -> Vec<DesignedRoad> {
+    lm.extrusion_paths
+        .iter()
+        .zip(&lm.extrusion_exits)
+        .filter_map(|(&(move_index, path), exit)| {
+            let p = lm.paths.get(path as usize)?;
+            Some(DesignedRoad {
+                move_index,
+                composition: p.composition.clone(),
+                colour: crate::svg::road_colour(p),
+                exit: exit.clone(),
+            })
+        })
+        .collect()
 }
 
 /// Start a planner worker for job `job_id` that skips moves before `start_index`: on a
@@ -291,6 +326,8 @@ pub struct JobSource {
     draw_previews: bool,
     /// The last layer's preview, not taken yet.
     preview_svg: Option<String>,
+    /// The last layer's designed roads, not taken yet (while previews are drawn).
+    preview_roads: Option<Vec<DesignedRoad>>,
     /// The last layer planned (index, islands) while previews are drawn: what the next
     /// rests on, for its area resting on nothing (red in the preview).
     below: Option<(usize, Vec<crate::geom::Region>)>,
@@ -523,6 +560,7 @@ impl JobSource {
             placement,
             draw_previews: false,
             preview_svg: None,
+            preview_roads: None,
             below: None,
             recent_supports: Default::default(),
             supports: Vec::new(),
@@ -703,6 +741,7 @@ impl LayerSource for JobSource {
             )
             .map_err(|e| format!("layer {}: {e}", s.index))?;
             self.next_index = lm.next_index;
+            self.preview_roads = self.draw_previews.then(|| designed_roads(&lm));
             // Into the machine frame, and nothing outside the build volume.
             let mut moves = home.into_iter().chain(lm.moves).collect::<Vec<_>>();
             self.placement
@@ -735,6 +774,10 @@ impl LayerSource for JobSource {
 
     fn take_preview_unsupported_mm2(&mut self) -> Option<f64> {
         self.preview_unsupported_mm2.take()
+    }
+
+    fn take_preview_roads(&mut self) -> Option<Vec<DesignedRoad>> {
+        self.preview_roads.take()
     }
 }
 

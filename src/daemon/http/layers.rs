@@ -1,6 +1,9 @@
 //! A layer as the page draws it: its moves, in the order the machine runs them, with
-//! the position each ends at (mm, machine coordinates) and, for an extrusion, its
-//! composition and the colour the SVG previews give it ([`crate::svg::mix_colour`]).
+//! the position each ends at (mm, machine coordinates) and, for an extrusion, the
+//! road's designed composition and the colour the SVG previews give it
+//! ([`crate::svg::road_colour`]), and what the planner's model of the mixing chamber
+//! predicts leaves the nozzle meanwhile (the commanded volumes run the chamber's
+//! volume ahead of the nozzle, so they are neither).
 //! Moves that do not travel (layer marks, retracts, primes, dwells) are `null`, so the
 //! n-th entry is move `first_index + n` and the page can draw the moves executed.
 //!
@@ -9,15 +12,36 @@
 use serde_json::{json, Value};
 
 use crate::daemon::config::MachineConfig;
+use crate::daemon::planner::DesignedRoad;
 use crate::machine::{Move, MoveKind, PositionUm};
 
 fn mm(um: i32) -> f64 {
     f64::from(um) / 1000.0
 }
 
-/// One move as the page draws it.
-fn entry(m: &Move) -> Value {
+/// Fractions of `volumes_nl`'s total (none when nothing is pushed).
+fn fractions(volumes_nl: &[u32]) -> Option<Vec<f64>> {
+    let total: u64 = volumes_nl.iter().map(|&v| u64::from(v)).sum();
+    (total > 0).then(|| {
+        volumes_nl
+            .iter()
+            .map(|&v| f64::from(v) / total as f64)
+            .collect()
+    })
+}
+
+fn rounded(f: f64) -> f64 {
+    (f * 1000.0).round() / 1000.0
+}
+
+/// One move as the page draws it: `[x, y]` for a travel; for an extrusion `[x, y,
+/// colour, composition, exit colour, exit composition]`, the first pair the road's
+/// design (what the previews draw; the commanded mix where the design is not known),
+/// the second what the planner's model of the mixing chamber predicts leaves the
+/// nozzle meanwhile (none where nothing is pushed or the design is not known).
+fn entry(m: &Move, designed: Option<&DesignedRoad>) -> Value {
     let at = |to: &PositionUm| (mm(to.x_um), mm(to.y_um));
+    let round_all = |c: &[f64]| c.iter().copied().map(rounded).collect::<Vec<f64>>();
     match &m.kind {
         MoveKind::Travel { to, .. } => {
             let (x, y) = at(to);
@@ -25,15 +49,18 @@ fn entry(m: &Move) -> Value {
         }
         MoveKind::Extrude { to, volumes_nl, .. } => {
             let (x, y) = at(to);
-            let total: u64 = volumes_nl.iter().map(|&v| u64::from(v)).sum();
-            if total == 0 {
-                return json!([x, y, "#888888", null]);
+            let pushed = volumes_nl.iter().any(|&v| v > 0);
+            match (designed, fractions(volumes_nl)) {
+                (Some(d), _) => {
+                    let exit = pushed.then(|| round_all(&d.exit));
+                    let exit_colour = pushed.then(|| crate::svg::mix_colour(&d.exit));
+                    json!([x, y, d.colour, round_all(&d.composition), exit_colour, exit])
+                }
+                (None, Some(f)) => {
+                    json!([x, y, crate::svg::mix_colour(&f), round_all(&f), null, null])
+                }
+                (None, None) => json!([x, y, "#888888", null, null, null]),
             }
-            let f: Vec<f64> = volumes_nl
-                .iter()
-                .map(|&v| (f64::from(v) / total as f64 * 1000.0).round() / 1000.0)
-                .collect();
-            json!([x, y, crate::svg::mix_colour(&f), f])
         }
         _ => Value::Null,
     }
@@ -59,14 +86,28 @@ pub fn last_position(moves: &[Move]) -> Option<(f64, f64)> {
     })
 }
 
-/// The view of one planned layer.
-pub fn layer_value(layer: u32, moves: &[Move], start: Option<(f64, f64)>) -> Value {
+/// The view of one planned layer: its moves, each extrusion with the road it builds
+/// (`roads`, in move order, from the planner).
+pub fn layer_value(
+    layer: u32,
+    moves: &[Move],
+    start: Option<(f64, f64)>,
+    roads: &[DesignedRoad],
+) -> Value {
+    let mut roads = roads.iter().peekable();
+    let entries: Vec<Value> = moves
+        .iter()
+        .map(|m| {
+            while roads.next_if(|r| r.move_index < m.index).is_some() {}
+            entry(m, roads.next_if(|r| r.move_index == m.index))
+        })
+        .collect();
     json!({
         "layer": layer,
         "z_mm": layer_z(moves),
         "first_index": moves.first().map(|m| m.index),
         "start": start.map(|(x, y)| [x, y]),
-        "moves": moves.iter().map(entry).collect::<Vec<_>>(),
+        "moves": entries,
     })
 }
 

@@ -287,15 +287,16 @@ impl Plan {
     /// Keep a layer just planned: its view and SVG preview while within the bound.
     fn push(&mut self, moves: &[Move]) {
         let k = self.layers.len() as u32;
-        let (svg, count, unsupported_mm2) = match self.source.as_mut() {
+        let (svg, count, unsupported_mm2, roads) = match self.source.as_mut() {
             Some(s) => (
                 s.take_preview_svg(),
                 s.layer_count(),
                 s.take_preview_unsupported_mm2().unwrap_or(0.0),
+                s.take_preview_roads().unwrap_or_default(),
             ),
-            None => (None, None, 0.0),
+            None => (None, None, 0.0, Vec::new()),
         };
-        let mut view = layers::layer_value(k, moves, self.start);
+        let mut view = layers::layer_value(k, moves, self.start, &roads);
         view["layers"] = json!(count);
         let view = view.to_string();
         self.start = layers::last_position(moves).or(self.start);

@@ -881,3 +881,60 @@ async fn a_previewed_overhang_is_drawn_red() {
     assert!(drawn >= 3, "{drawn} of layers 1-{red} drawn red");
     assert!(!image(layers - 3).await.contains("unsupported"));
 }
+
+/// The layer view draws each road in its designed composition, the colour the SVG
+/// preview gives it (not the mix the syringes are commanded, which runs the mixing
+/// chamber's volume ahead of the nozzle), and gives what the chamber's model predicts
+/// leaves the nozzle: on a machine whose mixing lead meets the design, the same.
+#[tokio::test]
+async fn the_layer_view_draws_the_design_and_the_predicted_nozzle_exit() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = super::app(shared(dir.path(), 1 << 20).await, loopback());
+    let routes = super::routes(Arc::clone(&app));
+    let body = serde_json::json!({ "job": annulus(30.0) }).to_string();
+    let (s, out) = send(
+        routes.clone(),
+        post("/api/preview?layer=1").body(Body::from(body)).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{out:.300}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let id = v["id"].as_str().unwrap().to_string();
+    let (s, svg) = send(routes.clone(), get(&format!("/api/previews/{id}/layers/1"))).await;
+    assert_eq!(s, StatusCode::OK);
+    let view = &v["view"];
+    assert_eq!(view["layer"], 1, "{view:.300}");
+    let mut colours = std::collections::BTreeSet::new();
+    let (mut extrusions, mut exit_as_designed) = (0, 0);
+    for m in view["moves"].as_array().unwrap() {
+        let Some(colour) = m.get(2).and_then(|c| c.as_str()) else {
+            continue;
+        };
+        extrusions += 1;
+        assert!(
+            svg.contains(&format!("\"{colour}\"")),
+            "{colour} is not a colour of the preview's roads"
+        );
+        colours.insert(colour.to_string());
+        let designed: Vec<f64> = serde_json::from_value(m[3].clone()).unwrap();
+        // Nothing leaves the nozzle on a move that pushes nothing (a road's slanted
+        // start): no prediction.
+        let Ok(exit) = serde_json::from_value::<Vec<f64>>(m[5].clone()) else {
+            continue;
+        };
+        let off = designed
+            .iter()
+            .zip(&exit)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        if off <= 0.02 {
+            exit_as_designed += 1;
+        }
+    }
+    // The annulus grades across its width: many compositions in one layer.
+    assert!(colours.len() >= 5, "{colours:?}");
+    assert!(
+        exit_as_designed * 10 >= extrusions * 9,
+        "{exit_as_designed} of {extrusions} extrusions leave the nozzle as designed"
+    );
+}

@@ -288,18 +288,23 @@ function renderActive() {
     return;
   }
   $("active").textContent = "Job " + j.id + " (" + j.name + "): " + j.state + ", " + progressText(j) + ", ETA " + fmtEta(p.eta_s);
-  const designed = designedComposition();
-  const built = p.composition ? p.composition.map((f) => (f * 100).toFixed(0) + " %").join(" / ") : "not reported yet";
-  $("composition").textContent = "designed " + (designed || "not known yet") + "; built " + built;
+  const road = roadAtNozzle();
+  const pct = (c) => c.map((f) => (f * 100).toFixed(0) + " %").join(" / ");
+  const designed = road && road[3] ? pct(road[3]) : "not known yet";
+  const exit = road && road[5] ? pct(road[5]) : "not known yet";
+  const pushed = p.composition ? pct(p.composition) : "not reported yet";
+  $("composition").textContent = "Road at the nozzle: designed " + designed +
+    "; predicted to leave the nozzle " + exit + " (the planner's model of the mixing chamber)" +
+    "; syringes pushing " + pushed + " (they run the chamber's volume ahead).";
 }
 
-// The composition the plan gives the move the machine executed last.
-function designedComposition() {
+// The plan's entry for the extrusion the machine executed last.
+function roadAtNozzle() {
   const l = state.layer, p = state.progress;
   if (!l || !p || l.job !== p.job_id || l.first_index === null) return null;
   for (let i = Math.min(p.executed - l.first_index - 1, l.moves.length - 1); i >= 0; i--) {
     const m = l.moves[i];
-    if (m && m[3]) return m[3].map((f) => (f * 100).toFixed(0) + " %").join(" / ");
+    if (m && m[2]) return m;
   }
   return null;
 }
@@ -407,7 +412,8 @@ function drawLayer(svg, l) {
   $("layer-caption").textContent = "Layer " + (l.layer + 1) + (l.layers ? " of " + l.layers : "") + (l.z_mm != null ? ", z = " + l.z_mm.toFixed(2) + " mm" : "");
 }
 
-// The moves the machine has executed, over the plan: full colour and bold.
+// The moves the machine has executed, over the plan: bold, in the composition predicted
+// to leave the nozzle (the plan's design where there is no prediction).
 function drawExecuted() {
   const svg = $("layer-view"), l = state.layer, p = state.progress;
   if (!l || !p || l.job !== p.job_id || !svg.segments || l.first_index === null) return;
@@ -420,7 +426,8 @@ function drawExecuted() {
     if (!seg) continue;
     const c = seg.cloneNode();
     c.setAttribute("stroke-width", Number(seg.getAttribute("stroke-width")) * 1.3);
-    if (!l.moves[i][2]) c.setAttribute("stroke", "#333");
+    const m = l.moves[i];
+    c.setAttribute("stroke", m[2] ? (m[4] || m[2]) : "#333");
     done.append(c);
   }
   svg.dataset.drawn = String(upto);
