@@ -107,10 +107,22 @@ async fn attr(c: &Client, css: &str, name: &str) -> Option<String> {
 }
 
 /// Click `css`, finding it again if the page redrew it meanwhile.
+/// `css`'s element scrolled to the middle of the window, as an operator scrolls to a
+/// control before clicking it (WebDriver scrolls no element it deems in view, even one
+/// under the page's sticky header).
+async fn in_view(c: &Client, css: &str) -> Result<fantoccini::elements::Element, String> {
+    let e = c.find(Locator::Css(css)).await.map_err(|e| e.to_string())?;
+    let arg = serde_json::to_value(&e).map_err(|e| e.to_string())?;
+    c.execute("arguments[0].scrollIntoView({block: 'center'});", vec![arg])
+        .await
+        .map_err(|e| e.to_string())?;
+    Ok(e)
+}
+
 async fn click(c: &Client, css: &str) {
     let mut last = None;
     for _ in 0..20 {
-        match c.find(Locator::Css(css)).await {
+        match in_view(c, css).await {
             Ok(e) => match e.click().await {
                 Ok(()) => return,
                 Err(err) => last = Some(err.to_string()),
@@ -198,12 +210,15 @@ async fn the_dashboard_in_a_real_browser() {
     })
     .unwrap();
     let port = free_port();
-    let _edod = edod(
-        dir.path(),
-        &dir.path().join("tty"),
-        &format!("127.0.0.1:{port}"),
-        false,
-    );
+    let start_edod = || {
+        edod(
+            dir.path(),
+            &dir.path().join("tty"),
+            &format!("127.0.0.1:{port}"),
+            false,
+        )
+    };
+    let mut running = Some(start_edod());
     wait_http(port);
     let driver_port = free_port();
     let _driver = Kill(
@@ -218,6 +233,7 @@ async fn the_dashboard_in_a_real_browser() {
     use futures_util::FutureExt;
     let driven = std::panic::AssertUnwindSafe(async {
         drive(&c, port).await;
+        offline_and_back(&c, port, &mut running, start_edod).await;
         // Beyond loopback, with a token.
         let sub = dir.path().join("open");
         std::fs::create_dir_all(&sub).unwrap();
@@ -436,7 +452,6 @@ async fn drive(c: &Client, port: u16) {
     .await;
 }
 
-/// Click `css`, which asks for confirmation; the question, accepted or declined.
 /// The live view draws the layer's roads in the colours `edoctl plan --svg` gives them
 /// (their designed composition), many of them across the crown's grading, not the
 /// mix the syringes push (which once drew whole layers in one colour), and the
@@ -490,13 +505,99 @@ async fn live_colours_are_the_previews(c: &Client, job: &Path) {
     );
 }
 
-async fn answer_confirmation(c: &Client, css: &str, accept: bool) -> String {
-    c.find(Locator::Css(css))
-        .await
-        .unwrap()
-        .click()
+/// edod killed (SIGKILL) while the page shows a printing job: within a second every
+/// panel is greyed under a notice; once edod is back the page reads the state again
+/// before showing it: the job interrupted, with the reason, and its resume works.
+async fn offline_and_back(
+    c: &Client,
+    port: u16,
+    running: &mut Option<Kill>,
+    start_edod: impl FnOnce() -> Kill,
+) {
+    let job = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/tooth-crown.toml"),
+    )
+    .unwrap();
+    let id = c
+        .execute(
+            "return call('job.submit', {job: arguments[0]}).then((r) => r.id);",
+            vec![json!(job)],
+        )
         .await
         .unwrap();
+    let row = format!("#job-{}", id.as_u64().expect("a job id"));
+    wait_for("the third job printing", 60, || async {
+        attr(c, &row, "data-state").await.as_deref() == Some("printing")
+    })
+    .await;
+    // The second job's e-stop notice went when a job printed again.
+    let estop = c.find(Locator::Css("#estop-ack")).await.unwrap();
+    assert!(
+        !estop.is_displayed().await.unwrap(),
+        "an e-stop notice outlived its cause"
+    );
+    drop(running.take());
+    let killed = Instant::now();
+    loop {
+        let shown = c
+            .find(Locator::Css("#offline"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap();
+        if shown {
+            break;
+        }
+        assert!(
+            killed.elapsed() < Duration::from_secs(1),
+            "no offline notice a second after edod was killed"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let notice = text(c, "#offline").await;
+    assert!(notice.contains("not answering"), "{notice}");
+    assert!(
+        attr(c, "body", "class")
+            .await
+            .unwrap_or_default()
+            .contains("offline"),
+        "the panels are not greyed"
+    );
+    screenshot(c, "offline.png").await;
+    *running = Some(start_edod());
+    wait_http(port);
+    wait_for("the notice to clear once edod is back", 30, || async {
+        !c.find(Locator::Css("#offline"))
+            .await
+            .unwrap()
+            .is_displayed()
+            .await
+            .unwrap()
+    })
+    .await;
+    assert_eq!(
+        attr(c, &row, "data-state").await.as_deref(),
+        Some("interrupted"),
+        "the page shows the job as it was before edod died"
+    );
+    let said = text(c, &format!("{row} td.state")).await;
+    assert!(said.starts_with("interrupted: "), "no reason: {said}");
+    let active = text(c, "#active").await;
+    assert!(!active.contains("): printing"), "{active}");
+    click(c, &format!("{row} button[data-action=resume]")).await;
+    wait_for("the third job printing again", 60, || async {
+        matches!(
+            attr(c, &row, "data-state").await.as_deref(),
+            Some("printing" | "done")
+        )
+    })
+    .await;
+}
+
+/// Click `css`, which asks for confirmation; the question, accepted or declined.
+async fn answer_confirmation(c: &Client, css: &str, accept: bool) -> String {
+    in_view(c, css).await.unwrap().click().await.unwrap();
     let mut asked = None;
     for _ in 0..50 {
         if let Ok(t) = c.get_alert_text().await {

@@ -60,6 +60,24 @@ async function post(method, params) {
 
 function setLink(text) { $("link").textContent = text; }
 
+// edod is not answering: say so over every panel, greyed and inert, with the time the
+// page last knew its state; cleared only once the state has been read again.
+function goOffline(why) {
+  if (!document.body.classList.contains("offline")) state.lostAt = new Date();
+  document.body.classList.add("offline");
+  $("main").inert = true;
+  const o = $("offline");
+  o.textContent = "edod is not answering (" + why + "): what is shown is as it was at " +
+    state.lostAt.toLocaleTimeString() + ". Reconnecting…";
+  o.hidden = false;
+}
+
+function goOnline() {
+  document.body.classList.remove("offline");
+  $("main").inert = false;
+  $("offline").hidden = true;
+}
+
 // A GET or POST of the API, with the token when there is one (beyond loopback every
 // call of the API needs it, reads too).
 function api(path, init = {}) {
@@ -82,7 +100,8 @@ async function connect() {
     r = await api("/api/server");
   } catch {
     setLink("edod does not answer; retrying…");
-    setTimeout(connect, 2000);
+    goOffline("no answer");
+    setTimeout(connect, 1000);
     return;
   }
   if (r.status === 401) {
@@ -91,7 +110,8 @@ async function connect() {
   }
   if (!r.ok) {
     setLink("edod answers " + r.status + "; retrying…");
-    setTimeout(connect, 2000);
+    goOffline("HTTP " + r.status);
+    setTimeout(connect, 1000);
     return;
   }
   state.server = await r.json();
@@ -104,12 +124,18 @@ async function connect() {
   ws.onopen = async () => {
     setLink("connected to " + state.server.name + " " + state.server.version + " (" + state.server.port + ")");
     try {
+      // Everything read again before it is shown: what changed while the page was
+      // away (a restart interrupts the job; jobs deleted) replaces what it knew.
       await call("subscribe");
       const st = await call("machine.status");
+      const jobs = await call("job.list");
+      state.jobs = new Map(jobs.map((j) => [j.id, j]));
+      state.progress = null;
       onMachine(st);
       if (st.progress) onProgress(st.progress);
-      for (const j of await call("job.list")) state.jobs.set(j.id, j);
       renderJobs();
+      renderActive();
+      goOnline();
     } catch (e) { setLink("edod: " + e.message); }
   };
   ws.onclose = () => {
@@ -117,6 +143,7 @@ async function connect() {
     state.pending.clear();
     // Reconnecting asks /api/server first: a token edod no longer takes is asked for.
     setLink("disconnected; reconnecting…");
+    goOffline("connection lost");
     setTimeout(connect, 1000);
   };
 }
@@ -145,6 +172,11 @@ function fmtEta(s) {
   return (h ? h + " h " : "") + (h || m ? m + " min " : "") + r + " s";
 }
 
+// A job's state, and why where edod gives a reason (an interruption, a failure).
+function stateText(j) {
+  return j.reason && j.state !== "done" ? j.state + ": " + j.reason : j.state;
+}
+
 function progressText(j) {
   const p = j.progress;
   if (!p) {
@@ -165,7 +197,7 @@ function renderJobs() {
   $("no-jobs").hidden = jobs.length > 0;
   const keep = new Set();
   for (const j of jobs) {
-    const cells = [String(j.id), j.name, j.state, progressText(j), fmtEta(j.progress?.eta_s)];
+    const cells = [String(j.id), j.name, stateText(j), progressText(j), fmtEta(j.progress?.eta_s)];
     let tr = $("job-" + j.id);
     if (!tr || tr.dataset.state !== j.state) {
       const row = jobRow(j, cells);
@@ -241,9 +273,13 @@ async function onJobState(p) {
   if (j) { j.state = p.state; j.reason = p.reason; }
   await refreshJob(p.job_id, p.state);
   if (!["printing", "paused", "planning"].includes(p.state) && state.progress?.job_id === p.job_id) {
+    // Ended or interrupted: no progress or ETA of it stays on the page.
     const jj = state.jobs.get(p.job_id);
     if (jj) delete jj.progress;
+    state.progress = null;
   }
+  // An e-stop's notice goes once a job prints again (its cause is over).
+  if (p.state === "printing") $("estop-ack").hidden = true;
   renderJobs();
   renderActive();
 }
