@@ -364,11 +364,18 @@ async fn drive(c: &Client, port: u16) {
     })
     .await;
     live_colours_are_the_previews(c, &job).await;
-    // The machine panel follows the print.
-    let at = text(c, "#machine-position").await;
+    // The machine panel follows the print, written in place: the element found once
+    // keeps reading the new position (it was once rebuilt on every status pushed, and
+    // a reader holding it read nothing).
+    let position = c.find(Locator::Css("#machine-position")).await.unwrap();
+    let at = position.text().await.unwrap();
     assert!(at.starts_with("x "), "{at}");
     wait_for("the machine's position to change", 30, || async {
-        text(c, "#machine-position").await != at
+        position
+            .text()
+            .await
+            .expect("the position was rebuilt, not updated in place")
+            != at
     })
     .await;
     c.goto(&format!("{base}#live")).await.unwrap();

@@ -360,8 +360,8 @@ const FAULTS = [
 function onMachine(m) {
   const before = state.machine;
   state.machine = m;
-  const dl = $("machine");
-  dl.replaceChildren();
+  // Written in place: each pushed status changes only the text that changed, so an
+  // element read, selected or announced is not swapped under the reader.
   const rows = [
     ["connected", "Connected", m.connected ? "yes" : "no" + (m.disconnected_reason ? " (" + m.disconnected_reason + ")" : "")],
     ["state", "State", m.state || "not known"],
@@ -370,23 +370,36 @@ function onMachine(m) {
     ["queued", "Queued", String(m.queued)],
     ["underruns", "Underruns", String(m.underruns)],
   ];
+  const dl = $("machine");
   for (const [id, k, v] of rows) {
-    const dt = document.createElement("dt"), dd = document.createElement("dd");
-    dt.textContent = k; dd.textContent = v; dd.id = "machine-" + id;
-    dl.append(dt, dd);
+    let dd = $("machine-" + id);
+    if (!dd) {
+      const dt = document.createElement("dt");
+      dt.textContent = k;
+      dd = document.createElement("dd");
+      dd.id = "machine-" + id;
+      dl.append(dt, dd);
+    }
+    if (dd.textContent !== v) dd.textContent = v;
   }
   const caps = (state.server?.machine?.syringes) || [];
   const ul = $("syringes");
-  ul.replaceChildren();
+  if (ul.children.length !== m.remaining_nl.length) {
+    ul.replaceChildren(...m.remaining_nl.map(() => {
+      const li = document.createElement("li");
+      li.append(document.createElement("span"), " ", document.createElement("meter"));
+      return li;
+    }));
+  }
   m.remaining_nl.forEach((nl, i) => {
-    const li = document.createElement("li");
+    const li = ul.children[i];
     const cap = caps[i] ? caps[i].capacity_ml * 1e6 : 0;
     const name = caps[i] ? caps[i].name : "syringe " + i;
-    const meter = document.createElement("meter");
+    const label = name + ": " + (nl / 1e6).toFixed(2) + " ml";
+    const span = li.querySelector("span"), meter = li.querySelector("meter");
+    if (span.textContent !== label) span.textContent = label;
     meter.min = 0; meter.max = cap || nl || 1; meter.value = nl;
     meter.setAttribute("aria-label", name + " level");
-    li.append(name + ": " + (nl / 1e6).toFixed(2) + " ml ", meter);
-    ul.append(li);
   });
   // Alerts are announced when they appear: redrawn only when the faults change.
   if (!before || before.faults !== m.faults) renderFaults(m);
