@@ -388,6 +388,19 @@ async fn drive(c: &Client, port: u16) {
         .find(Locator::Css("#job-1 button[data-action=pause]"))
         .await
         .unwrap();
+    // Every control shown is a touch target of at least 44 × 44 CSS px.
+    let small = c
+        .execute(
+            "return [...document.querySelectorAll('button')]\
+             .filter((b) => b.offsetParent !== null)\
+             .map((b) => [b.textContent, b.getBoundingClientRect()])\
+             .filter(([, r]) => r.width < 44 || r.height < 44)\
+             .map(([t, r]) => t + ' ' + r.width + 'x' + r.height);",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(small, json!([]), "buttons under 44 px");
     let row = text(c, "#job-1").await;
     wait_for("progress to stream in", 20, || async {
         text(c, "#job-1").await != row
