@@ -318,16 +318,16 @@ pub fn run(args: &PlanArgs) -> Result<()> {
     let bounds = notes.bounds.or_else(|| job.extruded_bounds());
     let mut report = crate::report::build(&job, &slices, &layers, notes, planning_time_ms);
     let overhangs = match &supports {
-        Some((areas, _)) => still_hanging(&job, &slices, areas, &hanging),
+        Some(s) => still_hanging(&job, &slices, s),
         None => hanging,
     };
     crate::report::attach_overhangs(&mut report, job.overhang, &overhangs);
-    if let Some((areas, without)) = supports {
+    if let Some(s) = supports {
         if let Some(o) = report.overhang.as_mut() {
-            o.without_supports_mm2 = Some(without);
+            o.without_supports_mm2 = Some(s.without_mm2);
         }
-        crate::report::attach_supports(&mut report, &job, &areas);
-        for (layer, area) in layers.iter_mut().zip(areas) {
+        crate::report::attach_supports(&mut report, &job, &s.areas);
+        for (layer, area) in layers.iter_mut().zip(s.areas) {
             layer.support = area;
         }
     }
@@ -459,22 +459,17 @@ fn overhangs_of(job: &Job, slices: &[LayerSlice]) -> Vec<Option<crate::geom::Sha
     crate::slice::overhang::of_layers(&layers, &job.overhang_options())
 }
 
-/// What still rests on nothing with `areas` (the layers' supports) built.
+/// What still rests on nothing with `supports` built.
 fn still_hanging(
     job: &Job,
     slices: &[LayerSlice],
-    areas: &[crate::slice::support::SupportArea],
-    hanging: &[Option<crate::geom::Shapes>],
+    supports: &PlannedSupports,
 ) -> Vec<Option<crate::geom::Shapes>> {
-    let without: Vec<crate::geom::Shapes> = hanging
-        .iter()
-        .map(|h| h.clone().unwrap_or_default())
-        .collect();
     let mut out: Vec<Option<crate::geom::Shapes>> =
         crate::slice::support::unsupported_with_support(
             &stack_of(slices),
-            areas,
-            &without,
+            &supports.areas,
+            &supports.overhangs,
             job.support.top_gap_mm,
             &job.overhang_options(),
         )
@@ -500,22 +495,36 @@ fn stack_of(slices: &[LayerSlice]) -> Vec<crate::slice::support::StackLayer<'_>>
         .collect()
 }
 
+/// The supports of the layers planned, and what they were built under.
+struct PlannedSupports {
+    /// Each layer's support.
+    areas: Vec<crate::slice::support::SupportArea>,
+    /// Each layer's area hanging without supports (none: empty).
+    overhangs: Vec<crate::geom::Shapes>,
+    /// Their sum, mm².
+    without_mm2: f64,
+}
+
 /// Each layer's support under the layers' `hanging` area, with `[support]` on (of the
 /// layers planned: a range of layers planned on its own holds up only the overhangs
-/// within it), and the area hanging without it, mm².
+/// within it).
 fn support_areas_of(
     job: &Job,
     slices: &[LayerSlice],
     hanging: &[Option<crate::geom::Shapes>],
-) -> Option<(Vec<crate::slice::support::SupportArea>, f64)> {
+) -> Option<PlannedSupports> {
     let opts = job.support_area_options()?;
     let overhangs: Vec<crate::geom::Shapes> = hanging
         .iter()
         .map(|h| h.clone().unwrap_or_default())
         .collect();
-    let without = overhangs.iter().map(crate::slice::overhang::area_mm2).sum();
+    let without_mm2 = overhangs.iter().map(crate::slice::overhang::area_mm2).sum();
     let areas = crate::slice::support::support_areas(&stack_of(slices), &overhangs, &opts);
-    Some((areas, without))
+    Some(PlannedSupports {
+        areas,
+        overhangs,
+        without_mm2,
+    })
 }
 
 /// Make every layer's toolpaths, measure their coverage when asked (or when previews

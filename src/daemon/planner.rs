@@ -68,18 +68,19 @@ pub struct DesignedRoad {
     pub exit: Vec<f64>,
 }
 
-/// The designed road of every extrusion of `lm`, in move order.
-fn designed_roads(lm: &crate::pipeline::LayerMoves) -> Vec<DesignedRoad> {
+/// The designed road of every extrusion of `lm`, in move order (its exits taken).
+fn designed_roads(lm: &mut crate::pipeline::LayerMoves) -> Vec<DesignedRoad> {
+    let exits = std::mem::take(&mut lm.extrusion_exits);
     lm.extrusion_paths
         .iter()
-        .zip(&lm.extrusion_exits)
+        .zip(exits)
         .filter_map(|(&(move_index, path), exit)| {
             let p = lm.paths.get(path as usize)?;
             Some(DesignedRoad {
                 move_index,
                 composition: p.composition.clone(),
                 colour: crate::svg::road_colour(p),
-                exit: exit.clone(),
+                exit,
             })
         })
         .collect()
@@ -732,7 +733,7 @@ impl LayerSource for JobSource {
             } else {
                 None
             };
-            let lm = crate::pipeline::layer_moves(
+            let mut lm = crate::pipeline::layer_moves(
                 &plan,
                 &self.settings,
                 0,
@@ -741,7 +742,7 @@ impl LayerSource for JobSource {
             )
             .map_err(|e| format!("layer {}: {e}", s.index))?;
             self.next_index = lm.next_index;
-            self.preview_roads = self.draw_previews.then(|| designed_roads(&lm));
+            self.preview_roads = self.draw_previews.then(|| designed_roads(&mut lm));
             // Into the machine frame, and nothing outside the build volume.
             let mut moves = home.into_iter().chain(lm.moves).collect::<Vec<_>>();
             self.placement
