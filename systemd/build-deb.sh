@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Build the edo Debian package (edod, edoctl, hil-sim, the unit, /etc/edo/edod.toml, the
 # docs; metadata in Cargo.toml [package.metadata.deb]) and print the .deb's path.
-# Usage: systemd/build-deb.sh [PROFILE]   (default release)
+# Usage: systemd/build-deb.sh [PROFILE]   (default release; CI packs `dev`, the binaries
+# its `cargo test` built, which cargo-deb 3.8 takes with a warning)
 # hil-sim is a package of its own: it is built together with edo's binaries (one build,
 # edo's library compiled once), then `cargo deb --no-build` packs them.
 set -euo pipefail
@@ -9,7 +10,7 @@ cd "$(dirname "$0")/.."
 profile="${1:-release}"
 if ! cargo deb --version >/dev/null 2>&1; then
   echo "installing cargo-deb" >&2
-  cargo install cargo-deb --locked >&2
+  cargo install cargo-deb --version 3.8.0 --locked >&2
 fi
 cargo build --locked --profile "$profile" -p edo -p hil-sim --bins >&2
 # --strip: the release profile keeps line tables for backtraces (debug = 1); a host

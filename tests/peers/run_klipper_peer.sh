@@ -7,7 +7,8 @@
 # after the first's epilogue), the exact line stream a Klipper pty ran across edod's
 # SIGKILL and a resume (tests/daemon_gcode.rs, hil-sim's console log) and, as a negative
 # control, the crown with its syringe words one line early, which must fail the check.
-# A missing peer is a failure. .ci/run runs it after the release build.
+# A missing peer is a failure. .ci/run runs it after `cargo test` with EDOCTL set to the
+# edoctl that built (target/debug); alone it uses (or builds) the release edoctl.
 #
 # usage: tests/peers/run_klipper_peer.sh [--full]   (--full: the whole femur too)
 #
