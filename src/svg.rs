@@ -282,7 +282,7 @@ impl LegendPage {
             out,
             "<title>{} layer {} z={:.3} mm</title>",
             escape(input.job_name),
-            layer.index,
+            layer.index + 1,
             layer.z_mm
         );
         let _ = writeln!(
@@ -307,7 +307,9 @@ impl LegendPage {
             out,
             r#"<text x="{x0:.3}" y="{y:.3}" font-weight="bold">{} — layer {}, z {:.3} mm</text>"#,
             escape(input.job_name),
-            layer.index,
+            // Counted from 1, as edoctl and the dashboard name layers to people (the
+            // file is layer-NNNN.svg from 0).
+            layer.index + 1,
             layer.z_mm
         );
         y += line;

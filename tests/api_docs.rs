@@ -91,10 +91,12 @@ fn check_result(method: &str, v: &Value) -> Result<(), String> {
         JobCancel,
         JobStartNext,
         JobDelete,
+        JobReprint,
         MachineStatus,
         MachineEstop,
         MachineRefill,
-        Subscribe
+        Subscribe,
+        LogRecent
     )
 }
 

@@ -954,6 +954,28 @@ fn finished_jobs_are_deleted_on_request_and_beyond_the_newest_kept() {
     );
     let out = d.edoctl(["delete", &a.to_string()]);
     assert!(!out.status.success());
+    // Nor printed again before it is finished.
+    let e = c.call("job.reprint", json!({"id": a})).unwrap_err();
+    assert_eq!(e["code"], json!(-32002), "{e}");
+    let e = c.call("job.reprint", json!({"id": 999})).unwrap_err();
+    assert_eq!(e["code"], json!(-32001), "{e}");
+    // Progress by planned machine time, once edod has planned the job whole: 3000
+    // moves of 0.1 s, the ETA what is left of them at the pace measured.
+    c.wait("the planned time", |c| {
+        c.call("machine.status", json!({})).unwrap()["progress"]["planned_s"].is_number()
+    });
+    let p = c.call("machine.status", json!({})).unwrap()["progress"].clone();
+    let planned_s = p["planned_s"].as_f64().unwrap();
+    assert!((290.0..=310.0).contains(&planned_s), "{p}");
+    let percent = p["percent"].as_f64().unwrap();
+    let executed = p["executed"].as_f64().unwrap();
+    assert!((percent - 100.0 * executed / 3000.0).abs() < 1.0, "{p}");
+    assert_eq!(
+        p["total"],
+        json!(3000),
+        "the total known from the plan: {p}"
+    );
+    assert!(p["eta_s"].as_f64().unwrap() > 0.0, "{p}");
     let e = c.call("job.delete", json!({"id": 999})).unwrap_err();
     assert_eq!(e["code"], json!(-32001));
     let e = c.call("job.delete", json!({"id": "one"})).unwrap_err();
@@ -985,6 +1007,46 @@ fn finished_jobs_are_deleted_on_request_and_beyond_the_newest_kept() {
         .map(|j| j["id"].as_u64().unwrap())
         .collect();
     assert_eq!(ids, [done[1], done[2], q]);
+    // The history of a finished job: when it started and ended, what it used.
+    let j = c.call("job.get", json!({"id": done[2]})).unwrap();
+    let (started, ended) = (
+        j["started_ms"].as_i64().unwrap(),
+        j["ended_ms"].as_i64().unwrap(),
+    );
+    assert!(
+        started >= j["submitted_ms"].as_i64().unwrap() && ended >= started,
+        "{j}"
+    );
+    assert_eq!(
+        j["checkpoint"]["used_nl"],
+        json!([0, 0]),
+        "a dry run extrudes nothing: {j}"
+    );
+    // Printed again from what edod stored: a new job of the same name.
+    let out = d.edoctl_ok(["reprint", &done[2].to_string()]);
+    let said = String::from_utf8_lossy(&out).trim().to_string();
+    let again: u64 = said
+        .rsplit(' ')
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{said}"));
+    assert_eq!(said, format!("job {} queued again as job {again}", done[2]));
+    let r = c.call("job.get", json!({"id": again})).unwrap();
+    assert_eq!(r["name"], j["name"]);
+    assert!(r["ended_ms"].is_null(), "{r}");
+    c.call("job.cancel", json!({"id": again})).unwrap();
+    // edod's log, numbered, the lines of a job naming it.
+    let lines = c.call("log.recent", json!({})).unwrap();
+    let lines = lines.as_array().unwrap();
+    assert!(
+        lines.iter().any(
+            |l| l["job_id"] == json!(a) && l["message"].as_str().unwrap().contains("cancelled")
+        ),
+        "{lines:?}"
+    );
+    let last = lines.last().unwrap()["seq"].as_u64().unwrap();
+    let after = c.call("log.recent", json!({"after": last - 1})).unwrap();
+    assert_eq!(after.as_array().unwrap().len(), 1, "{after}");
     // Unfinished jobs (the queued one) are never pruned.
     c.call("job.cancel", json!({"id": q})).unwrap();
     drop(c);

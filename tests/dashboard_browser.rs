@@ -158,6 +158,26 @@ async fn shown_layer(c: &Client) -> Option<u32> {
     v.as_u64().map(|n| n as u32)
 }
 
+/// The page as docs/dashboard.md shows it, while a job prints: the active job at a
+/// desktop's 1440 × 900 and a phone's 390 × 844, light and dark (in
+/// target/dashboard-screenshots/, copied to docs/dashboard/ when the page changes).
+async fn docs_screenshots(c: &Client, base: &str) {
+    let (w0, h0) = c.get_window_size().await.unwrap();
+    for (w, h, at) in [(1440, 900, "#live"), (390, 844, "#queue")] {
+        c.set_window_size(w, h).await.unwrap();
+        for theme in ["light", "dark"] {
+            c.execute(&format!("applyTheme('{theme}');"), vec![])
+                .await
+                .unwrap();
+            c.goto(&format!("{base}{at}")).await.unwrap();
+            tokio::time::sleep(Duration::from_millis(600)).await;
+            screenshot(c, &format!("dashboard-{w}x{h}-{theme}.png")).await;
+        }
+    }
+    c.execute("applyTheme('auto');", vec![]).await.unwrap();
+    c.set_window_size(w0 as u32, h0 as u32).await.unwrap();
+}
+
 async fn screenshot(c: &Client, name: &str) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/dashboard-screenshots");
     std::fs::create_dir_all(&dir).unwrap();
@@ -364,6 +384,46 @@ async fn drive(c: &Client, port: u16) {
     })
     .await;
     live_colours_are_the_previews(c, &job).await;
+    // Progress by the planned machine time once edod has planned the job whole.
+    wait_for("a percentage of the planned time", 60, || async {
+        text(c, "#job-1 td[data-label=Progress]")
+            .await
+            .contains(" %")
+    })
+    .await;
+    let bar = attr(c, "#active-progress", "value")
+        .await
+        .unwrap_or_default();
+    assert!(bar.parse::<f64>().is_ok(), "progress bar value {bar:?}");
+    // The stacked view draws the whole crown (its 4 layers), the current one marked.
+    wait_for("the whole part stacked", 30, || async {
+        attr(c, "#stack", "data-layers-drawn").await.as_deref() == Some("4")
+    })
+    .await;
+    let current = attr(c, "#stack", "data-current").await.unwrap_or_default();
+    assert!(
+        current.parse::<u32>().is_ok(),
+        "no current layer marked: {current:?}"
+    );
+    let inked = c
+        .execute(
+            "const c = document.getElementById('stack'); \
+             const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; \
+             let n = 0; for (let i = 3; i < d.length; i += 4) if (d[i] > 0) n++; return n;",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert!(
+        inked.as_u64().unwrap_or(0) > 5000,
+        "stacked view drew {inked} pixels"
+    );
+    // The console shows edod's log of the job.
+    wait_for("the job's lines in the console", 20, || async {
+        text(c, "#console").await.contains("job 1")
+    })
+    .await;
+    docs_screenshots(c, &base).await;
     // The machine panel follows the print, written in place: the element found once
     // keeps reading the new position (it was once rebuilt on every status pushed, and
     // a reader holding it read nothing).
@@ -406,6 +466,13 @@ async fn drive(c: &Client, port: u16) {
         text(c, "#job-1").await != row
     })
     .await;
+    // Scrolled to, as an operator scrolls to it (the same element, not found again).
+    c.execute(
+        "arguments[0].scrollIntoView({block: 'center'});",
+        vec![serde_json::to_value(&pause).unwrap()],
+    )
+    .await
+    .expect("the pause button was rebuilt under the pointer");
     pause
         .click()
         .await
@@ -414,6 +481,34 @@ async fn drive(c: &Client, port: u16) {
         attr(c, "#job-1", "data-state").await.as_deref() == Some("paused")
     })
     .await;
+    // The keyboard focus stays on the job's controls (its row is redrawn for the new
+    // state, pause becoming resume: the focus goes there, not to the page's body).
+    let focused = c
+        .execute(
+            "const a = document.activeElement; \
+             return a.tagName + ' ' + (a.closest('tr') ? a.closest('tr').id : '') + ' ' + (a.dataset.action || '');",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(focused, json!("BUTTON job-1 resume"), "focus after pausing");
+    // While paused the ETA holds still: it is planned time left at the pace measured
+    // while printing, and a pause is not printing.
+    // (The move under way when the pause came finishes first, and the ETA with it:
+    // read once the machine reports it holds.)
+    wait_for("the machine to hold", 20, || async {
+        text(c, "#machine-state").await == "Held"
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let eta = text(c, "#job-1 td[data-label=ETA]").await;
+    assert!(eta.ends_with(" s"), "no ETA while paused: {eta:?}");
+    tokio::time::sleep(Duration::from_millis(2500)).await;
+    assert_eq!(
+        text(c, "#job-1 td[data-label=ETA]").await,
+        eta,
+        "the ETA moved while paused"
+    );
     click(c, "#job-1 button[data-action=resume]").await;
     wait_for("job 1 printing again", 20, || async {
         attr(c, "#job-1", "data-state").await.as_deref() == Some("printing")
@@ -423,8 +518,27 @@ async fn drive(c: &Client, port: u16) {
         attr(c, "#job-1", "data-state").await.as_deref() == Some("done")
     })
     .await;
-    c.goto(&format!("{base}#queue")).await.unwrap();
-    screenshot(c, "queue.png").await;
+    // Done: in the history, with when, how long and what it used.
+    let finished = "#history-jobs #job-1";
+    wait_for("job 1 in the history", 10, || async {
+        c.find(Locator::Css(finished)).await.is_ok()
+    })
+    .await;
+    let took = text(c, &format!("{finished} td[data-label=Duration]")).await;
+    assert!(took.ends_with(" s"), "duration {took:?}");
+    let material = text(c, &format!("{finished} td[data-label=Material]")).await;
+    let used: f64 = material
+        .split(' ')
+        .filter_map(|w| w.parse::<f64>().ok())
+        .sum();
+    assert!(
+        material.contains(" ml") && used > 0.0,
+        "material {material:?}"
+    );
+    let moves = text(c, &format!("{finished} td[data-label=Moves]")).await;
+    assert!(moves.contains(" of "), "moves {moves:?}");
+    c.goto(&format!("{base}#history")).await.unwrap();
+    screenshot(c, "history.png").await;
 
     // A second job, e-stopped from the page: the machine's acknowledgement is shown.
     choose_job(c, &job).await;
@@ -462,6 +576,19 @@ async fn drive(c: &Client, port: u16) {
     answer_confirmation(c, "#job-2 button[data-action=cancel]", true).await;
     wait_for("job 2 cancelled", 20, || async {
         attr(c, "#job-2", "data-state").await.as_deref() == Some("cancelled")
+    })
+    .await;
+    // A finished job printed again without its files: job 3, from job 2's; cancelled.
+    click(c, "#job-2 button[data-action=reprint]").await;
+    wait_for("job 3, job 2 again", 20, || async {
+        c.find(Locator::Css("#jobs #job-3")).await.is_ok()
+    })
+    .await;
+    let toasted = text(c, "#toasts").await;
+    assert!(toasted.contains("queued again as job 3"), "{toasted}");
+    answer_confirmation(c, "#job-3 button[data-action=cancel]", true).await;
+    wait_for("job 3 cancelled", 30, || async {
+        attr(c, "#job-3", "data-state").await.as_deref() == Some("cancelled")
     })
     .await;
     let asked = answer_confirmation(c, "#job-1 button[data-action=delete]", true).await;
@@ -605,7 +732,14 @@ async fn offline_and_back(
     assert!(said.starts_with("interrupted: "), "no reason: {said}");
     let active = text(c, "#active").await;
     assert!(!active.contains("): printing"), "{active}");
-    click(c, &format!("{row} button[data-action=resume]")).await;
+    // It holds the queue (edod restarted under it): the notice says so and what to do.
+    wait_for("the held-queue notice", 10, || async {
+        text(c, "#held-text").await.contains("The queue waits: job")
+    })
+    .await;
+    screenshot(c, "held.png").await;
+    let asked = answer_confirmation(c, &format!("{row} button[data-action=resume]"), true).await;
+    assert!(asked.contains("interrupted"), "{asked}");
     wait_for("the third job printing again", 60, || async {
         matches!(
             attr(c, &row, "data-state").await.as_deref(),

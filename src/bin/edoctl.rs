@@ -107,6 +107,12 @@ enum Commands {
         /// Job id.
         id: u32,
     },
+    /// Queue a finished job again as a new job, from the job file and mesh edod stored
+    /// with it (nothing to send again).
+    Reprint {
+        /// Job id of the finished job.
+        id: u32,
+    },
     /// Emergency stop: goes out ahead of everything queued.
     Estop,
     /// The syringes were refilled: clear the fault and continue.
@@ -181,6 +187,13 @@ fn daemon(cli: &Cli) -> anyhow::Result<ExitCode> {
             &c.request::<method::JobDelete>(&JobIdParams { id: *id })?,
             |_| format!("job {id} deleted"),
         ),
+        Commands::Reprint { id } => {
+            let r = c.request::<method::JobReprint>(&JobIdParams { id: *id })?;
+            for w in &r.result.warnings {
+                eprintln!("warning: {w}");
+            }
+            out.print(&r, |r| format!("job {id} queued again as job {}", r.id))
+        }
         Commands::Estop => out.print(&c.request::<method::MachineEstop>(&NoParams {})?, |r| {
             let acked = r
                 .acked_after_us

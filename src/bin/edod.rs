@@ -55,15 +55,26 @@ fn main() -> ExitCode {
     let journal = std::env::var_os("JOURNAL_STREAM").is_some();
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
+    // Beside the log on stderr (RUST_LOG, default info), the dashboard's console
+    // (`log.recent`), which keeps edod's own info lines whatever RUST_LOG says.
+    use tracing_subscriber::layer::SubscriberExt as _;
+    use tracing_subscriber::util::SubscriberInitExt as _;
+    use tracing_subscriber::Layer as _;
+    let stderr = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_ansi(!journal && std::io::IsTerminal::is_terminal(&std::io::stderr()));
-    if journal {
-        builder.without_time().init();
+    let stderr = if journal {
+        stderr.without_time().boxed()
     } else {
-        builder.init();
-    }
+        stderr.boxed()
+    };
+    tracing_subscriber::registry()
+        .with(stderr.with_filter(filter))
+        .with(
+            edo::daemon::log_feed::FeedLayer
+                .with_filter(tracing_subscriber::filter::LevelFilter::INFO),
+        )
+        .init();
     ignore_file_size_signal();
     let cfg = match edo::daemon::Config::load(&cli.config) {
         Ok(c) => c,

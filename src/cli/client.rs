@@ -287,6 +287,9 @@ pub fn progress_line(p: &Progress) -> String {
     if let Some(l) = layer_of(p.layer, p.layers) {
         s.push_str(&format!(", {l}"));
     }
+    if let (Some(pc), Some(t)) = (p.percent, p.planned_s) {
+        s.push_str(&format!(", {pc:.0} % of {} planned", eta_text(t)));
+    }
     if let Some(e) = p.eta_s {
         s.push_str(&format!(", about {} left", eta_text(e)));
     }
@@ -456,6 +459,8 @@ mod tests {
                 ..Checkpoint::default()
             },
             submitted_ms: 0,
+            started_ms: None,
+            ended_ms: None,
             updated_ms: 0,
             progress: None,
         }

@@ -160,9 +160,11 @@ async fn dispatch(call: Call, shared: &Arc<Shared>) -> Result<MethodResult, ApiE
         Call::JobCancel(JobIdParams { id }) => job_cancel(id, shared).await?.into(),
         Call::JobStartNext(p) => ask(shared, |r| Control::StartNext(p.id, r)).await?.into(),
         Call::JobDelete(JobIdParams { id }) => job_delete(id, shared).await?.into(),
+        Call::JobReprint(JobIdParams { id }) => job_reprint(id, shared).await?.into(),
         Call::MachineStatus => machine_status(shared).into(),
         Call::MachineEstop => machine_estop(shared).await?.into(),
         Call::MachineRefill => machine_refill(shared).await?.into(),
+        Call::LogRecent(p) => super::log_feed::recent(&shared.log, p.after).into(),
     })
 }
 
@@ -205,6 +207,46 @@ async fn job_submit(p: SubmitParams, shared: &Shared) -> Result<Submitted, ApiEr
             Vec::new(),
         ),
     };
+    queue_job(shared, name, spec, warnings).await
+}
+
+/// `job.reprint`: finished job `id` queued again as a new job from the job file and
+/// mesh stored with it, checked as a submission is (the machine may have changed).
+async fn job_reprint(id: u32, shared: &Shared) -> Result<Submitted, ApiError> {
+    let (job, mesh) = shared.store.reader.source(id).await.map_err(api_error)?;
+    if !job.state.is_final() {
+        return Err(ApiError::new(
+            ApiError::BAD_STATE,
+            format!(
+                "job {id} is {}: only a done, failed or cancelled job is printed again",
+                job.state.as_str()
+            ),
+        ));
+    }
+    if let Some(why) = &job.unreadable {
+        return Err(ApiError::new(
+            ApiError::INVALID_JOB,
+            format!("job {id}: {why}"),
+        ));
+    }
+    let (spec, warnings) = match job.spec {
+        JobSpec::Toml { toml, .. } => {
+            let (spec, _, warnings) = checked_file_job(toml, mesh, shared).await?;
+            (spec, warnings)
+        }
+        dry_run @ JobSpec::DryRun { .. } => (dry_run, Vec::new()),
+    };
+    info!(job = id, "job printed again");
+    queue_job(shared, job.name, spec, warnings).await
+}
+
+/// Store an accepted job (on disk before the reply), tell subscribers and the streamer.
+async fn queue_job(
+    shared: &Shared,
+    name: String,
+    spec: JobSpec,
+    warnings: Vec<String>,
+) -> Result<Submitted, ApiError> {
     let id = store_submission(shared, &name, spec).await?;
     info!(job = id, name = %name, "job accepted");
     shared.notify(Event::JobState(JobStateChanged {
@@ -230,12 +272,6 @@ async fn file_job(
     mesh_base64: Option<&str>,
     shared: &Shared,
 ) -> Result<(JobSpec, String, Vec<String>), ApiError> {
-    let job = crate::job::Job::from_toml(&toml, "submitted job")
-        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
-    // What would fail when it starts is refused now: its materials against the
-    // machine's syringes, its process settings against the machine's limits.
-    super::planner::process_settings(&job, &shared.config.machine, "submitted job")
-        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e))?;
     let mesh = mesh_base64
         .map(|b| {
             base64_decode(b).map_err(|e| {
@@ -246,6 +282,23 @@ async fn file_job(
             })
         })
         .transpose()?;
+    checked_file_job(toml, mesh, shared).await
+}
+
+/// A job file (and its mesh) checked as a submission: the file parsed (-32003), its
+/// materials and process settings against the machine, its part placed
+/// ([`check_part`]).
+async fn checked_file_job(
+    toml: String,
+    mesh: Option<Vec<u8>>,
+    shared: &Shared,
+) -> Result<(JobSpec, String, Vec<String>), ApiError> {
+    let job = crate::job::Job::from_toml(&toml, "submitted job")
+        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
+    // What would fail when it starts is refused now: its materials against the
+    // machine's syringes, its process settings against the machine's limits.
+    super::planner::process_settings(&job, &shared.config.machine, "submitted job")
+        .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e))?;
     let (mesh, warnings) = check_part(&job, mesh, &shared.config.machine, &shared.budget).await?;
     Ok((JobSpec::Toml { toml, mesh }, job.name, warnings))
 }
@@ -298,6 +351,8 @@ fn job_view(j: JobRecord, live: Option<&Progress>) -> Job {
         total_moves: j.total_moves,
         checkpoint: j.checkpoint,
         submitted_ms: j.submitted_ms,
+        started_ms: j.started_ms,
+        ended_ms: j.ended_ms,
         updated_ms: j.updated_ms,
     }
 }

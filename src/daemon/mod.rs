@@ -37,6 +37,7 @@ pub mod edo_link;
 pub mod gcode_link;
 pub mod http;
 pub mod instance;
+pub mod log_feed;
 pub mod planner;
 pub mod port_watch;
 pub mod preflight;
@@ -101,6 +102,8 @@ pub struct Shared {
     pub budget: connections::Budget,
     /// Set when edod starts stopping: previews and layer views stop planning.
     pub stopping: Arc<std::sync::atomic::AtomicBool>,
+    /// The last lines of edod's log ([`log_feed`]), for `log.recent`.
+    pub log: watch::Sender<Arc<Vec<crate::proto::LogLine>>>,
 }
 
 /// A store error as the API's: -32001 for a job not there, -32005 when another process

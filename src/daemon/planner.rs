@@ -14,6 +14,7 @@ use crate::machine::placement::{BuildVolume, Placement};
 // Placing a part is planning, shared with `edoctl plan` and `edoctl demo`; the daemon
 // uses the core's (and keeps the old path for its API).
 pub use crate::machine::placement::{place_part, placed_settings};
+use crate::machine::time::PlannedTimeBuilder;
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT};
 
 /// Produces a job's moves one layer at a time, indices counting from 0 without gaps.
@@ -92,20 +93,49 @@ fn designed_roads(lm: &mut crate::pipeline::LayerMoves) -> Vec<DesignedRoad> {
 /// the layer count once known, where the job stands at the resume index (when
 /// resuming), the moves layer by layer, then `Done` (or `Failed`). Dropping the
 /// receiver stops the worker at its next layer.
+///
+/// Beside it, a second worker plans the job whole from a source of its own for its
+/// planned machine time ([`PlannedTime`], sent as [`PlannerOutput::Estimate`]): what
+/// progress and ETA are measured by. It keeps no moves, and stops when the receiver is
+/// dropped; a planning failure is the first worker's to report.
 pub fn spawn(
-    source: impl FnOnce() -> Result<Box<dyn LayerSource>, String> + Send + 'static,
+    source: impl Fn() -> Result<Box<dyn LayerSource>, String> + Send + Sync + 'static,
     job_id: u32,
     start_index: u32,
     layers_ahead: usize,
 ) -> mpsc::Receiver<PlannerOutput> {
     let (tx, rx) = mpsc::channel(layers_ahead.max(1));
+    let source = std::sync::Arc::new(source);
+    let (estimate_source, estimate_tx) = (std::sync::Arc::clone(&source), tx.clone());
     tokio::task::spawn_blocking(move || match source() {
         Ok(source) => plan(source, job_id, start_index, &tx),
         Err(e) => {
             let _ = tx.blocking_send(PlannerOutput::Failed(e));
         }
     });
+    tokio::task::spawn_blocking(move || {
+        if let Ok(source) = estimate_source() {
+            estimate(source, &estimate_tx);
+        }
+    });
     rx
+}
+
+/// The estimator: the planned machine time of all of `source`'s moves to `tx`.
+fn estimate(mut source: Box<dyn LayerSource>, tx: &mpsc::Sender<PlannerOutput>) {
+    let mut time = PlannedTimeBuilder::new();
+    while let Some(layer) = source.next_layer() {
+        let Ok(moves) = layer else {
+            return;
+        };
+        if tx.is_closed() {
+            return;
+        }
+        for mv in &moves {
+            time.push(mv);
+        }
+    }
+    let _ = tx.blocking_send(PlannerOutput::Estimate(time.finish()));
 }
 
 /// What the moves before the resume index left behind.
@@ -1082,8 +1112,10 @@ mod tests {
         let mut resume = None;
         let mut total = None;
         let mut layers = None;
+        let mut estimate = None;
         while let Some(m) = rx.recv().await {
             match m {
+                PlannerOutput::Estimate(t) => estimate = Some(t),
                 PlannerOutput::Layers(count) => {
                     assert!(
                         layers.is_none() && got.is_empty(),
@@ -1098,6 +1130,16 @@ mod tests {
                 PlannerOutput::Ended => panic!("not sent by the worker"),
             }
         }
+        // The whole job's planned time, from its first move (not only the resumed
+        // part): 25 moves, 3 of them layer marks, the others 1 mm at 10 mm/s (the
+        // first from an unknown position, a layer's first a step up).
+        let estimate = estimate.expect("the estimator's planned time");
+        assert_eq!(estimate.moves(), 25);
+        assert!(
+            (1_900_000..=2_300_000).contains(&estimate.total_us()),
+            "{}",
+            estimate.total_us()
+        );
         assert_eq!(total, Some(25));
         assert_eq!(layers, Some(3));
         assert_eq!(got.first().map(|m| (m.job_id, m.index)), Some((7, 13)));

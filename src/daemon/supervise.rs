@@ -417,8 +417,10 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         alive: Default::default(),
         budget: super::connections::Budget::new(&cfg.api),
         stopping: Default::default(),
+        log: watch::channel(Default::default()).0,
         config: cfg,
     });
+    let log_keeper = tokio::spawn(super::log_feed::keep(Arc::clone(&shared)));
     let streamer = tokio::spawn(
         Streamer::new(
             Arc::clone(&shared),
@@ -446,6 +448,7 @@ pub async fn run_until(cfg: Config, stop: impl std::future::Future<Output = ()>)
         let _ = tokio::time::timeout(Duration::from_secs(5), rx).await;
     }
     api.abort();
+    log_keeper.abort();
     if let Some(d) = dashboard {
         d.abort();
     }

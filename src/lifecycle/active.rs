@@ -5,6 +5,7 @@ use std::collections::VecDeque;
 
 use super::io::ResumePoint;
 use super::job::Checkpoint;
+use crate::machine::time::{add_used_nl, PlannedTime};
 use crate::machine::{composition_of, Move, MoveKind};
 
 /// What follows a flush.
@@ -132,6 +133,12 @@ pub(super) struct Active {
     pub first_move_after_ms: Option<i64>,
     pub started_us: u64,
     pub executed_at_start: u32,
+    /// The job's planned machine time, once the estimator planned it whole.
+    pub planned: Option<PlannedTime>,
+    /// Time spent printing since the job (re)started (not paused, interrupted or
+    /// waiting for a refill), µs; counted up to `running_at_us`.
+    pub running_us: u64,
+    pub running_at_us: u64,
     pub machine_was_empty: bool,
     /// Moves have gone out since the job (re)started.
     pub printing: bool,
@@ -161,6 +168,9 @@ impl Active {
             layer_at_start: checkpoint.layer.unwrap_or(0),
             executed_at_start: checkpoint.next_index,
             checkpoint,
+            planned: None,
+            running_us: 0,
+            running_at_us: now_us,
             saved_at_us: now_us,
             dirty: false,
             submitted_ms,
@@ -190,6 +200,7 @@ impl Active {
         while self.sent.front().is_some_and(|m| m.index <= index) {
             if let Some(m) = self.sent.pop_front() {
                 self.ran = true;
+                add_used_nl(&mut self.checkpoint.used_nl, &m.kind);
                 match &m.kind {
                     MoveKind::LayerMark { layer, .. } => self.checkpoint.layer = Some(*layer),
                     MoveKind::Extrude { volumes_nl, .. } => {
@@ -204,6 +215,15 @@ impl Active {
         self.checkpoint.remaining_nl = remaining_nl.to_vec();
         self.dirty = true;
         true
+    }
+
+    /// Count the time since the last event as printing if the job streamed (the phase
+    /// changes only at events, so it held since the last).
+    pub fn count_running(&mut self, now_us: u64) {
+        if self.phase == Phase::Streaming {
+            self.running_us += now_us.saturating_sub(self.running_at_us);
+        }
+        self.running_at_us = now_us;
     }
 
     /// Every move is planned and executed.

@@ -176,6 +176,10 @@ impl Lifecycle {
             PlannerOutput::Layers(count) => a.layers = Some(count),
             PlannerOutput::Moves(v) => a.queue.extend(v),
             PlannerOutput::ResumeAt(r) => a.resume_point = Some(r),
+            PlannerOutput::Estimate(t) => {
+                a.planned = Some(t);
+                self.publish_progress(true, now_us);
+            }
             PlannerOutput::Done { total } => {
                 a.total = Some(total);
                 a.planning_done = true;

@@ -137,6 +137,9 @@ pub enum PlannerOutput {
         /// Total moves.
         total: u32,
     },
+    /// The job's planned machine time, planned whole apart from the moves streamed
+    /// (what progress and ETA are measured by).
+    Estimate(crate::machine::time::PlannedTime),
     /// Planning failed.
     Failed(String),
     /// The planner stopped sending (after `Done`, `Failed`, or on its own).

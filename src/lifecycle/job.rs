@@ -81,6 +81,10 @@ pub struct Checkpoint {
     pub composition: Option<Vec<f64>>,
     /// Syringe volumes left after the last executed move (nl).
     pub remaining_nl: Vec<u32>,
+    /// Material each syringe gave for the moves executed so far (nl; pushed by
+    /// extrusions and primes less what retracts pulled back).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub used_nl: Vec<u64>,
 }
 
 /// A job as the store holds it, as far as the lifecycle needs it.
@@ -113,11 +117,33 @@ pub struct Progress {
     pub layer: Option<u32>,
     /// Composition of the last executed extrusion.
     pub composition: Option<Vec<f64>>,
-    /// Estimated seconds left: from the move rate so far once `total` is known, before
-    /// that from the layer rate (after the first layer finished since the start).
+    /// Estimated seconds left: the planned machine time of the moves not executed, at
+    /// the pace measured since the job (re)started ([`time_left_planned_s`]); before the
+    /// job is planned whole, from the move rate once `total` is known, else from the
+    /// layer rate (after the first layer finished since the start).
     pub eta_s: Option<f64>,
+    /// Share of the job's planned machine time executed, percent (once planned whole).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub percent: Option<f64>,
+    /// The job's planned machine time, seconds (once planned whole).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub planned_s: Option<f64>,
     /// From submission to the machine executing the first move (ms).
     pub first_move_after_ms: Option<i64>,
+}
+
+/// Planned machine time of the job counted as if it were all this long before the
+/// measured pace counts fully, µs: the first minutes' ETA is the plan's, then the
+/// machine's own pace takes over.
+const PACE_PRIOR_US: f64 = 30e6;
+
+/// Seconds left of a job planned whole: the planned time of the moves not executed
+/// (`left_us`) at the pace measured since it (re)started (`running_us` printing for
+/// `done_us` of planned time; [`PACE_PRIOR_US`] of the plan's own pace blended in). The
+/// clock stops while the job does not print, so the estimate holds while paused.
+pub fn time_left_planned_s(left_us: u64, done_us: u64, running_us: u64) -> f64 {
+    let pace = (running_us as f64 + PACE_PRIOR_US) / (done_us as f64 + PACE_PRIOR_US);
+    left_us as f64 * pace.clamp(0.05, 100.0) / 1e6
 }
 
 /// Seconds left of a job that has run `elapsed_s` since it (re)started: from the move

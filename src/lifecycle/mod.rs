@@ -199,6 +199,9 @@ impl Lifecycle {
             }
             return;
         }
+        if let Some(a) = self.active.as_mut() {
+            a.count_running(now_us);
+        }
         match event {
             Event::MachineConnected(r) => self.on_connected(r, now_us),
             Event::MachineStatus(r) => self.on_status(r, now_us),
@@ -235,6 +238,9 @@ impl Lifecycle {
     pub fn handle_timeout(&mut self, now_us: u64) {
         if self.is_stopped() {
             return;
+        }
+        if let Some(a) = self.active.as_mut() {
+            a.count_running(now_us);
         }
         self.expire_replies(now_us);
         self.advance(now_us);

@@ -19,7 +19,7 @@ use super::io::{
     Action, Answer, Applied, Command, JobUpdate, Level, MachineCommand, Record, Refusal,
     RefusalKind, RequestId, StateNote,
 };
-use super::job::{time_left_s, JobState, Progress};
+use super::job::{time_left_planned_s, time_left_s, JobState, Progress};
 use super::{Lifecycle, StoreFailing, WaitingReply};
 
 /// While the store's writes fail, a warning at most this often (µs).
@@ -44,6 +44,13 @@ impl Lifecycle {
         reason: Option<String>,
         with_checkpoint: bool,
     ) {
+        // What the log (and the dashboard's console) says of a job pausing or
+        // cancelled; done, failed and interrupted are logged where they happen.
+        if matches!(state, JobState::Paused | JobState::Cancelled) {
+            let why = reason.as_deref().unwrap_or("no reason given");
+            let message = format!("job {id} {}: {why}", state.as_str());
+            self.log(Level::Info, Some(id), message);
+        }
         self.jobs.set_state(id, state);
         let mut checkpoint = None;
         if let Some(a) = self.active.as_mut().filter(|a| a.id == id) {
@@ -320,19 +327,35 @@ impl Lifecycle {
         let executed = a.checkpoint.next_index;
         let done_since = executed.saturating_sub(a.executed_at_start);
         let elapsed_s = now_us.saturating_sub(a.started_us) as f64 / 1e6;
-        let p = Progress {
-            job_id: a.id,
-            executed,
-            total: a.total,
-            layers: a.layers,
-            layer: a.checkpoint.layer,
-            composition: a.checkpoint.composition.clone(),
-            eta_s: time_left_s(
+        let planned = a.planned.as_ref().filter(|t| t.total_us() > 0);
+        let eta_s = match planned {
+            Some(t) => {
+                let done_us = t.before_us(executed);
+                let done_since_us = done_us.saturating_sub(t.before_us(a.executed_at_start));
+                Some(time_left_planned_s(
+                    t.total_us().saturating_sub(done_us),
+                    done_since_us,
+                    a.running_us,
+                ))
+            }
+            None => time_left_s(
                 a.total.map(|t| (t, executed, done_since)),
                 a.layers.zip(a.checkpoint.layer),
                 a.layer_at_start,
                 elapsed_s,
             ),
+        };
+        let p = Progress {
+            job_id: a.id,
+            executed,
+            total: a.total.or(planned.map(|t| t.moves())),
+            layers: a.layers,
+            layer: a.checkpoint.layer,
+            composition: a.checkpoint.composition.clone(),
+            eta_s,
+            percent: planned
+                .map(|t| (100.0 * t.before_us(executed) as f64 / t.total_us() as f64).min(100.0)),
+            planned_s: planned.map(|t| t.total_us() as f64 / 1e6),
             first_move_after_ms: a.first_move_after_ms,
         };
         if self.last_progress.as_ref() != Some(&p) {

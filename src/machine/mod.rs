@@ -20,6 +20,7 @@
 pub mod gcode;
 pub mod placement;
 pub mod record;
+pub mod time;
 
 use serde::{Deserialize, Serialize};
 

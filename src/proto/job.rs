@@ -24,6 +24,13 @@ pub struct Job {
     pub checkpoint: Checkpoint,
     /// Submission time (ms since the Unix epoch).
     pub submitted_ms: i64,
+    /// When it first printed (ms since the Unix epoch; null before, and for jobs
+    /// stored by an edod before the history was kept).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub started_ms: Option<i64>,
+    /// When it was done, failed or cancelled (ms since the Unix epoch; null before).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_ms: Option<i64>,
     /// Last change (ms since the Unix epoch).
     pub updated_ms: i64,
     /// Live progress, for the active job only (absent otherwise).

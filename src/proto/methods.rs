@@ -47,6 +47,31 @@ pub struct StartNextParams {
     pub id: Option<u32>,
 }
 
+/// `log.recent`'s params: `{after?}`, the lines after sequence number `after` (all kept
+/// when absent).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogParams {
+    /// The last sequence number the caller has.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub after: Option<u64>,
+}
+
+/// A line of edod's log (`log.recent`): what edod logged at `info` or above.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LogLine {
+    /// Sequence number, from 1 at edod's start, without gaps.
+    pub seq: u64,
+    /// When (ms since the Unix epoch).
+    pub at_ms: i64,
+    /// `"info"`, `"warn"` or `"error"`.
+    pub level: String,
+    /// The job it is about, if any.
+    pub job_id: Option<u32>,
+    /// The message, then its fields as `name=value`.
+    pub message: String,
+}
+
 /// `job.submit`'s params: `{job, mesh_base64?, name?}` or `{dry_run_moves, name?}`
 /// (checked by [`SubmitParams::submission`]).
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -252,7 +277,7 @@ impl Subscribed {
 
 /// Markers of the methods, one per method, each naming its params and result.
 pub mod method {
-    use super::{JobIdParams, Method, NoParams, StartNextParams, SubmitParams};
+    use super::{JobIdParams, LogParams, Method, NoParams, StartNextParams, SubmitParams};
 
     macro_rules! methods {
         ($($(#[$doc:meta])* $marker:ident = $name:literal, $params:ty => $result:ty;)*) => {
@@ -290,6 +315,8 @@ pub mod method {
         JobStartNext = "job.start_next", StartNextParams => super::StateChange;
         /// Delete a finished job and its mesh.
         JobDelete = "job.delete", JobIdParams => super::Deleted;
+        /// Queue a finished job again from its stored file and mesh.
+        JobReprint = "job.reprint", JobIdParams => super::Submitted;
         /// The machine snapshot and the active job's progress.
         MachineStatus = "machine.status", NoParams => super::MachineStatus;
         /// Emergency stop ahead of everything queued.
@@ -298,6 +325,8 @@ pub mod method {
         MachineRefill = "machine.refill", NoParams => super::Refilled;
         /// Receive notifications from now on.
         Subscribe = "subscribe", NoParams => super::Subscribed;
+        /// edod's log lines kept (the dashboard's console).
+        LogRecent = "log.recent", LogParams => Vec<super::LogLine>;
     }
 }
 
@@ -325,6 +354,8 @@ pub enum Call {
     JobStartNext(StartNextParams),
     /// `job.delete`.
     JobDelete(JobIdParams),
+    /// `job.reprint`.
+    JobReprint(JobIdParams),
     /// `machine.status`.
     MachineStatus,
     /// `machine.estop`.
@@ -333,6 +364,8 @@ pub enum Call {
     MachineRefill,
     /// `subscribe`.
     Subscribe,
+    /// `log.recent`.
+    LogRecent(LogParams),
 }
 
 /// Read `M`'s params: absent and null are `{}`; anything but an object is refused.
@@ -379,10 +412,12 @@ impl Call {
             m::JobCancel::NAME => Call::JobCancel(params::<m::JobCancel>(p)?),
             m::JobStartNext::NAME => Call::JobStartNext(params::<m::JobStartNext>(p)?),
             m::JobDelete::NAME => Call::JobDelete(params::<m::JobDelete>(p)?),
+            m::JobReprint::NAME => Call::JobReprint(params::<m::JobReprint>(p)?),
             m::MachineStatus::NAME => params::<m::MachineStatus>(p).map(|_| Call::MachineStatus)?,
             m::MachineEstop::NAME => params::<m::MachineEstop>(p).map(|_| Call::MachineEstop)?,
             m::MachineRefill::NAME => params::<m::MachineRefill>(p).map(|_| Call::MachineRefill)?,
             m::Subscribe::NAME => params::<m::Subscribe>(p).map(|_| Call::Subscribe)?,
+            m::LogRecent::NAME => Call::LogRecent(params::<m::LogRecent>(p)?),
             other => {
                 return Err(ApiError::new(
                     ApiError::METHOD_NOT_FOUND,
@@ -405,10 +440,12 @@ impl Call {
             Call::JobCancel(_) => m::JobCancel::NAME,
             Call::JobStartNext(_) => m::JobStartNext::NAME,
             Call::JobDelete(_) => m::JobDelete::NAME,
+            Call::JobReprint(_) => m::JobReprint::NAME,
             Call::MachineStatus => m::MachineStatus::NAME,
             Call::MachineEstop => m::MachineEstop::NAME,
             Call::MachineRefill => m::MachineRefill::NAME,
             Call::Subscribe => m::Subscribe::NAME,
+            Call::LogRecent(_) => m::LogRecent::NAME,
         }
     }
 
@@ -421,8 +458,10 @@ impl Call {
             | Call::JobPause(p)
             | Call::JobResume(p)
             | Call::JobCancel(p)
-            | Call::JobDelete(p) => job(p),
+            | Call::JobDelete(p)
+            | Call::JobReprint(p) => job(p),
             Call::JobStartNext(p) => serde_json::to_value(p).ok(),
+            Call::LogRecent(p) => serde_json::to_value(p).ok(),
             Call::ServerInfo
             | Call::JobList
             | Call::MachineStatus
@@ -457,6 +496,8 @@ pub enum MethodResult {
     Refilled(Refilled),
     /// `subscribe`.
     Subscribed(Subscribed),
+    /// `log.recent`.
+    Log(Vec<LogLine>),
 }
 
 macro_rules! method_result_from {
@@ -472,7 +513,8 @@ macro_rules! method_result_from {
 method_result_from!(
     ServerInfo => ServerInfo, Submitted => Submitted, Vec<Job> => Jobs, Job => Job,
     StateChange => StateChange, Deleted => Deleted, MachineStatus => MachineStatus,
-    EStopTiming => EStop, Refilled => Refilled, Subscribed => Subscribed
+    EStopTiming => EStop, Refilled => Refilled, Subscribed => Subscribed,
+    Vec<LogLine> => Log
 );
 
 /// What a daemon notifies subscribers of: the `method` and `params` of a
@@ -573,10 +615,12 @@ mod tests {
             Call::JobCancel(job),
             Call::JobStartNext(StartNextParams { id: Some(7) }),
             Call::JobDelete(job),
+            Call::JobReprint(job),
             Call::MachineStatus,
             Call::MachineEstop,
             Call::MachineRefill,
             Call::Subscribe,
+            Call::LogRecent(LogParams { after: Some(3) }),
         ];
         assert_eq!(calls.clone().map(|c| c.method()), METHODS);
         for c in calls {

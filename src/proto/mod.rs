@@ -25,7 +25,7 @@ pub use envelope::{
 pub use job::{Checkpoint, Job, JobState, JobStateChanged, Progress};
 pub use machine::{EStopTiming, MachineSnapshot, MachineStatus};
 pub use methods::{
-    method, Call, Deleted, Event, JobIdParams, JobSource, Method, MethodResult, NoParams, Refilled,
-    ServerInfo, StartNextParams, StateChange, Submission, SubmitParams, Submitted, Subscribed,
-    API_VERSION, METHODS,
+    method, Call, Deleted, Event, JobIdParams, JobSource, LogLine, LogParams, Method, MethodResult,
+    NoParams, Refilled, ServerInfo, StartNextParams, StateChange, Submission, SubmitParams,
+    Submitted, Subscribed, API_VERSION, METHODS,
 };

@@ -26,7 +26,8 @@ use super::layers;
 use crate::daemon::planner::{JobSource, LayerSource};
 use crate::daemon::store::{JobRecord, JobSpec};
 use crate::daemon::Config;
-use crate::machine::Move;
+use crate::machine::time::{add_used_nl, PlannedTimeBuilder};
+use crate::machine::{Move, MoveKind};
 
 /// Most layers a preview plans (the rest are named, not planned).
 pub const PREVIEW_LAYERS: u32 = 2000;
@@ -139,6 +140,40 @@ struct Layer {
     kept: bool,
     /// Its area resting on nothing beyond the allowed overhang, mm² (0 undrawn).
     unsupported_mm2: f64,
+    /// Its planned machine time, s.
+    time_s: f64,
+}
+
+/// What the planned layers take: machine time, material, and where on the bed.
+#[derive(Default)]
+struct Takes {
+    time: PlannedTimeBuilder,
+    used_nl: Vec<u64>,
+    /// The extrusions' bounds in the machine frame, mm: min and max x, y, z.
+    extent_mm: Option<[[f64; 3]; 2]>,
+}
+
+impl Takes {
+    fn push(&mut self, mv: &Move) {
+        self.time.push(mv);
+        add_used_nl(&mut self.used_nl, &mv.kind);
+        if let MoveKind::Extrude { to, .. } = &mv.kind {
+            let p = [to.x_um, to.y_um, to.z_um].map(|v| f64::from(v) / 1000.0);
+            let e = self.extent_mm.get_or_insert([p, p]);
+            for k in 0..3 {
+                e[0][k] = e[0][k].min(p[k]);
+                e[1][k] = e[1][k].max(p[k]);
+            }
+        }
+    }
+
+    fn summary(&self) -> Value {
+        json!({
+            "time_s": self.time.so_far_us() as f64 / 1e6,
+            "used_nl": self.used_nl,
+            "extent_mm": self.extent_mm.map(|[min, max]| json!({"min": min, "max": max})),
+        })
+    }
 }
 
 /// Which planned layers keep their view and image.
@@ -162,6 +197,7 @@ pub struct Plan {
     /// Where the nozzle stands after the layers planned.
     start: Option<(f64, f64)>,
     total_moves: u64,
+    takes: Takes,
     bytes: usize,
     keep: Keep,
     /// Why the last request's planning stopped short of what it asked ([`Stop`]).
@@ -247,6 +283,10 @@ impl Plan {
             layers: Vec::new(),
             start: None,
             total_moves: 0,
+            takes: Takes {
+                time: PlannedTimeBuilder::new(),
+                ..Takes::default()
+            },
             bytes: 0,
             keep: Keep::UpTo(usize::MAX),
             stopped: None,
@@ -301,6 +341,11 @@ impl Plan {
         let view = view.to_string();
         self.start = layers::last_position(moves).or(self.start);
         self.total_moves += moves.len() as u64;
+        let before_us = self.takes.time.so_far_us();
+        for mv in moves {
+            self.takes.push(mv);
+        }
+        let time_s = (self.takes.time.so_far_us() - before_us) as f64 / 1e6;
         let size = view.len() + svg.as_ref().map_or(0, String::len);
         let kept = match self.keep {
             Keep::UpTo(bound) => self.bytes + size <= bound,
@@ -314,13 +359,13 @@ impl Plan {
             svg: svg.filter(|_| kept),
             kept,
             unsupported_mm2,
+            time_s,
         });
     }
 
     /// The preview's answer: `{id, ok, name, problems, warnings, layers: [{z_mm, moves,
-    /// unsupported_area_mm2}],
-    /// total_moves, view}`, `view` being layer `layer`'s (null if not planned or not
-    /// kept).
+    /// unsupported_area_mm2, time_s}], total_moves, time_s, used_nl, extent_mm, view}`,
+    /// `view` being layer `layer`'s (null if not planned or not kept).
     pub fn summary(&self, key: &Key, layer: u32) -> Value {
         let mut problems = self.problems.clone();
         if let Some(why) = &self.stopped {
@@ -333,6 +378,7 @@ impl Plan {
                 "only the first {PREVIEW_LAYERS} layers were previewed"
             ));
         }
+        let takes = self.takes.summary();
         let view = self
             .layers
             .get(layer as usize)
@@ -344,8 +390,11 @@ impl Plan {
             "name": self.name,
             "problems": problems,
             "warnings": self.warnings(),
-            "layers": self.layers.iter().map(|l| json!({"z_mm": l.z_mm, "moves": l.moves, "unsupported_area_mm2": l.unsupported_mm2})).collect::<Vec<_>>(),
+            "layers": self.layers.iter().map(|l| json!({"z_mm": l.z_mm, "moves": l.moves, "unsupported_area_mm2": l.unsupported_mm2, "time_s": l.time_s})).collect::<Vec<_>>(),
             "total_moves": self.total_moves,
+            "time_s": takes["time_s"],
+            "used_nl": takes["used_nl"],
+            "extent_mm": takes["extent_mm"],
             "view": view,
         })
     }

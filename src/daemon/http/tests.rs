@@ -53,6 +53,7 @@ async fn shared_with(dir: &std::path::Path, set: impl FnOnce(&mut Config)) -> Ar
         port: "sim".into(),
         alive: Default::default(),
         stopping: Default::default(),
+        log: watch::channel(Default::default()).0,
     })
 }
 
@@ -519,6 +520,26 @@ async fn a_preview_its_images_and_the_jobs_layer_views_share_one_plan() {
     let layers = v["layers"].as_array().unwrap().len();
     assert!(layers >= 2, "{v:.300}");
     assert_eq!(made(), 1);
+    // What it takes: planned machine time (the layers' in all), material per
+    // syringe, and where on the bed (the annulus of radius 30 centred on the bed).
+    let time_s = v["time_s"].as_f64().unwrap();
+    let layer_times: f64 = v["layers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["time_s"].as_f64().unwrap())
+        .sum();
+    assert!(
+        time_s > 1.0 && (time_s - layer_times).abs() < 1e-6,
+        "{time_s} {layer_times}"
+    );
+    let used: Vec<u64> = serde_json::from_value(v["used_nl"].clone()).unwrap();
+    assert!(used.len() == 2 && used.iter().all(|&nl| nl > 0), "{used:?}");
+    let (min, max) = (&v["extent_mm"]["min"], &v["extent_mm"]["max"]);
+    let width_mm = max[0].as_f64().unwrap() - min[0].as_f64().unwrap();
+    assert!((59.0..=61.0).contains(&width_mm), "{:?}", v["extent_mm"]);
+    let centre_mm = (max[0].as_f64().unwrap() + min[0].as_f64().unwrap()) / 2.0;
+    assert!((centre_mm - 100.0).abs() < 1.0, "{:?}", v["extent_mm"]);
     let again = preview_of(&routes, &job).await;
     assert_eq!(again["id"], v["id"]);
     assert_eq!(again["total_moves"], v["total_moves"]);
@@ -533,7 +554,7 @@ async fn a_preview_its_images_and_the_jobs_layer_views_share_one_plan() {
         let svg = r.into_body().collect().await.unwrap().to_bytes();
         let svg = String::from_utf8_lossy(&svg);
         assert!(
-            svg.starts_with("<svg") && svg.contains(&format!("layer {layer} z=")),
+            svg.starts_with("<svg") && svg.contains(&format!("layer {} z=", layer + 1)),
             "{svg:.200}"
         );
     }

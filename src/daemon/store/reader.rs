@@ -79,6 +79,11 @@ impl Reader {
         self.ask(|r| Read::Get(id, r)).await
     }
 
+    /// Job `id` and its mesh (a mesh job's), for a task.
+    pub async fn source(&self, id: u32) -> Source {
+        self.ask(|r| Read::Source(id, r)).await
+    }
+
     /// The queued and interrupted jobs, answered as [`Event::QueuedJobs`].
     pub fn queued(&self) {
         let _ = self.tx.send(Read::Queued);

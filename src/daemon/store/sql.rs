@@ -57,6 +57,10 @@ pub struct JobRecord {
     pub checkpoint: Checkpoint,
     /// Submission time (ms since the Unix epoch).
     pub submitted_ms: i64,
+    /// When it first printed (ms since the Unix epoch).
+    pub started_ms: Option<i64>,
+    /// When it was done, failed or cancelled (ms since the Unix epoch).
+    pub ended_ms: Option<i64>,
     /// Last change (ms since the Unix epoch).
     pub updated_ms: i64,
     /// How its moves are produced (not serialised in listings).
@@ -194,7 +198,7 @@ pub struct Store {
 
 /// The columns a [`JobRecord`] is read from (all but the mesh).
 const COLUMNS: &str = "id, name, state, reason, spec, total_moves, next_index, layer, \
-     composition, remaining_nl, submitted_ms, updated_ms";
+     composition, remaining_nl, used_nl, submitted_ms, started_ms, ended_ms, updated_ms";
 
 const SCHEMA: &str = "
 CREATE TABLE IF NOT EXISTS jobs (
@@ -209,7 +213,10 @@ CREATE TABLE IF NOT EXISTS jobs (
     layer INTEGER,
     composition TEXT,
     remaining_nl TEXT NOT NULL DEFAULT '[]',
+    used_nl TEXT NOT NULL DEFAULT '[]',
     submitted_ms INTEGER NOT NULL,
+    started_ms INTEGER,
+    ended_ms INTEGER,
     updated_ms INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -280,7 +287,16 @@ pub const DB_FILE: &str = "edod.db";
 /// 1: the job id high-water mark is kept in `meta` (`job_id_high_water`) apart from the
 /// jobs table, so ids stay unique even if that table is lost.
 /// 2: `gcode_marks` ([`GcodeMark`]), created empty.
-pub const SCHEMA_VERSION: i64 = 2;
+/// 3: a job's history: `used_nl` (material per syringe), `started_ms` (first printing),
+/// `ended_ms` (done, failed or cancelled); older jobs have none of them.
+pub const SCHEMA_VERSION: i64 = 3;
+
+/// The columns schema 3 added to `jobs`, with their definitions.
+const HISTORY_COLUMNS: [(&str, &str); 3] = [
+    ("used_nl", "TEXT NOT NULL DEFAULT '[]'"),
+    ("started_ms", "INTEGER"),
+    ("ended_ms", "INTEGER"),
+];
 
 /// `meta` key of the highest job id ever given.
 const HIGH_WATER: &str = "job_id_high_water";
@@ -291,6 +307,26 @@ const HIGHEST_ID: &str = "MAX(
     COALESCE((SELECT value FROM meta WHERE key = 'job_id_high_water'), 0),
     COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'jobs'), 0),
     COALESCE((SELECT MAX(id) FROM jobs), 0))";
+
+/// Schema 3's columns on a `jobs` table made before (a table made now has them).
+fn add_history_columns(tx: &Transaction<'_>) -> Result<(), StoreError> {
+    let mut have = Vec::new();
+    {
+        let mut st = tx.prepare("SELECT name FROM pragma_table_info('jobs')")?;
+        for name in st.query_map([], |r| r.get::<_, String>(0))? {
+            have.push(name?);
+        }
+    }
+    for (name, definition) in HISTORY_COLUMNS {
+        if !have.iter().any(|h| h == name) {
+            tx.execute(
+                &format!("ALTER TABLE jobs ADD COLUMN {name} {definition}"),
+                [],
+            )?;
+        }
+    }
+    Ok(())
+}
 
 /// An error reading the file at start (while `doing`): damaged if SQLite says it is
 /// corrupt or no database.
@@ -389,6 +425,9 @@ impl Store {
                     ),
                     [],
                 )?;
+            }
+            if version < 3 {
+                add_history_columns(&tx)?;
             }
             if version < SCHEMA_VERSION {
                 tx.pragma_update(None, "user_version", SCHEMA_VERSION)?;
@@ -489,6 +528,9 @@ impl Store {
         let remaining_nl = column::<String>(r, "remaining_nl", &mut bad)
             .and_then(|v| json(&v, "remaining_nl", &mut bad))
             .unwrap_or_default();
+        let used_nl = column::<String>(r, "used_nl", &mut bad)
+            .and_then(|v| json(&v, "used_nl", &mut bad))
+            .unwrap_or_default();
         let mut j = JobRecord {
             id,
             name: column(r, "name", &mut bad).unwrap_or_default(),
@@ -500,8 +542,11 @@ impl Store {
                 layer: count(r, "layer", &mut bad),
                 composition,
                 remaining_nl,
+                used_nl,
             },
             submitted_ms: column(r, "submitted_ms", &mut bad).unwrap_or(0),
+            started_ms: column(r, "started_ms", &mut bad).flatten(),
+            ended_ms: column(r, "ended_ms", &mut bad).flatten(),
             updated_ms: column(r, "updated_ms", &mut bad).unwrap_or(0),
             spec,
             unreadable: None,
@@ -603,8 +648,12 @@ impl Store {
         state: JobState,
         reason: Option<&str>,
     ) -> Result<(), StoreError> {
+        // History: the first time it prints, and when it ended.
         let n = self.conn()?.execute(
-            "UPDATE jobs SET state = ?2, reason = ?3, updated_ms = ?4 WHERE id = ?1",
+            "UPDATE jobs SET state = ?2, reason = ?3, updated_ms = ?4,
+             started_ms = CASE WHEN ?2 = 'printing' THEN COALESCE(started_ms, ?4) ELSE started_ms END,
+             ended_ms = CASE WHEN ?2 IN ('done', 'failed', 'cancelled') THEN ?4 ELSE ended_ms END
+             WHERE id = ?1",
             params![id, state.as_str(), reason, now_ms()],
         )?;
         if n == 0 {
@@ -626,7 +675,7 @@ impl Store {
     pub fn checkpoint(&self, id: u32, c: &Checkpoint) -> Result<(), StoreError> {
         self.conn()?.execute(
             "UPDATE jobs SET next_index = ?2, layer = ?3, composition = ?4, remaining_nl = ?5,
-             updated_ms = ?6 WHERE id = ?1",
+             updated_ms = ?6, used_nl = ?7 WHERE id = ?1",
             params![
                 id,
                 c.next_index,
@@ -635,7 +684,8 @@ impl Store {
                     .as_ref()
                     .and_then(|v| serde_json::to_string(v).ok()),
                 serde_json::to_string(&c.remaining_nl).unwrap_or_else(|_| "[]".into()),
-                now_ms()
+                now_ms(),
+                serde_json::to_string(&c.used_nl).unwrap_or_else(|_| "[]".into()),
             ],
         )?;
         Ok(())
@@ -1035,6 +1085,7 @@ mod tests {
                 layer: Some(1),
                 composition: Some(vec![0.25, 0.75]),
                 remaining_nl: vec![5, 6],
+                used_nl: vec![4_000_000_000_000, 0],
             };
             s.checkpoint(a, &c).unwrap();
             assert_eq!(s.reserve_service_indices(100).unwrap(), (0, 100));
@@ -1241,7 +1292,7 @@ mod tests {
             "{m}"
         );
         assert!(
-            m.contains("schema version 7, newer than this edod knows (2)"),
+            m.contains("schema version 7, newer than this edod knows (3)"),
             "{m}"
         );
         assert_eq!(user_version(dir.path()), 7, "left as it was");

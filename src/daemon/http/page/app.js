@@ -8,7 +8,48 @@ const SVG = "http://www.w3.org/2000/svg";
 const state = {
   ws: null, nextId: 1, pending: new Map(), jobs: new Map(), machine: null,
   progress: null, server: null, layer: null, preview: null, token: sessionStorage.getItem("edo-token"),
+  logSeq: 0,
 };
+
+// ---- theme: light, dark, or the system's ------------------------------------------
+
+const THEMES = ["auto", "light", "dark"];
+
+function applyTheme(t) {
+  if (!THEMES.includes(t)) t = "auto";
+  document.documentElement.dataset.theme = t;
+  const next = THEMES[(THEMES.indexOf(t) + 1) % THEMES.length];
+  $("theme").textContent = "Theme: " + t;
+  $("theme").setAttribute("aria-label", "Theme: " + (t === "auto" ? "follows the system" : t) + " (click for " + next + ")");
+  state.theme = t;
+}
+
+$("theme").addEventListener("click", () => {
+  const next = THEMES[(THEMES.indexOf(state.theme) + 1) % THEMES.length];
+  try { localStorage.setItem("edo-theme", next); } catch { /* private mode: not kept */ }
+  applyTheme(next);
+});
+applyTheme((() => { try { return localStorage.getItem("edo-theme"); } catch { return null; } })());
+
+// ---- toasts: done, fault, e-stop -----------------------------------------------------
+
+// A notice in the corner that goes by itself (errors stay longer), with a close button.
+function toast(text, kind = "info") {
+  const box = document.createElement("div");
+  box.className = "toast " + kind;
+  box.setAttribute("role", kind === "error" ? "alert" : "status");
+  const p = document.createElement("p");
+  p.textContent = text;
+  const close = document.createElement("button");
+  close.type = "button";
+  close.textContent = "×";
+  close.setAttribute("aria-label", "Dismiss: " + text);
+  close.addEventListener("click", () => box.remove());
+  box.append(p, close);
+  $("toasts").append(box);
+  while ($("toasts").children.length > 5) $("toasts").firstElementChild.remove();
+  setTimeout(() => box.remove(), kind === "error" ? 30000 : 10000);
+}
 
 // ---- the connection ---------------------------------------------------------------
 
@@ -136,6 +177,10 @@ async function connect() {
       renderJobs();
       renderActive();
       goOnline();
+      // The log of the edod connected to (it may have restarted): read whole again.
+      state.logSeq = 0;
+      $("console").replaceChildren();
+      pollLog();
     } catch (e) { setLink("edod: " + e.message); }
   };
   ws.onclose = () => {
@@ -162,8 +207,9 @@ $("token-form").addEventListener("submit", (e) => {
 const ACTIONS = {
   queued: ["cancel"], planning: ["cancel"], printing: ["pause", "cancel"],
   paused: ["resume", "cancel"], interrupted: ["resume", "cancel"],
-  done: ["delete"], failed: ["delete"], cancelled: ["delete"],
+  done: ["reprint", "delete"], failed: ["reprint", "delete"], cancelled: ["reprint", "delete"],
 };
+const FINISHED = ["done", "failed", "cancelled"];
 
 function fmtEta(s) {
   if (s === null || s === undefined) return "—";
@@ -172,8 +218,25 @@ function fmtEta(s) {
   return (h ? h + " h " : "") + (h || m ? m + " min " : "") + r + " s";
 }
 
-// A job's state, and why where edod gives a reason (an interruption, a failure).
+function fmtTime(ms) {
+  if (ms === null || ms === undefined) return "—";
+  const d = new Date(ms);
+  const today = new Date().toDateString() === d.toDateString();
+  return today ? d.toLocaleTimeString() : d.toLocaleString();
+}
+
+// Material per syringe, by the machine's syringe names, ml.
+function materialText(nl) {
+  if (!nl || !nl.length) return "—";
+  const names = (state.server?.machine?.syringes || []).map((s) => s.name);
+  return nl.map((v, i) => (names[i] || "syringe " + (i + 1)) + " " + (v / 1e6).toFixed(2) + " ml").join(", ");
+}
+
+// A job's state, and why where edod gives a reason (an interruption, a failure), or
+// what a queued job waits for.
 function stateText(j) {
+  const held = state.machine?.queue_held_by;
+  if (j.state === "queued" && held) return "queued: waits, job " + held + " holds the queue";
   return j.reason && j.state !== "done" ? j.state + ": " + j.reason : j.state;
 }
 
@@ -183,34 +246,68 @@ function progressText(j) {
     if (j.state === "done") return "done";
     return j.total_moves ? j.total_moves + " moves" : "—";
   }
+  const pct = p.percent !== null && p.percent !== undefined ? p.percent.toFixed(0) + " %, " : "";
   const layer = p.layers ? "layer " + ((p.layer ?? 0) + 1) + " of " + p.layers : "planning layers";
   const moves = p.executed + (p.total ? " of " + p.total : "") + " moves";
-  return layer + ", " + moves;
+  return pct + layer + ", " + moves;
+}
+
+// Each table's cells of a job: [label, text, class].
+function queueCells(j) {
+  return [["#", String(j.id)], ["Job", j.name], ["State", stateText(j), "state"],
+    ["Progress", progressText(j)], ["ETA", fmtEta(j.progress?.eta_s)]];
+}
+
+function historyCells(j) {
+  const ended = j.ended_ms ?? null;
+  const took = j.started_ms && ended ? fmtEta((ended - j.started_ms) / 1000) : "—";
+  const moves = j.checkpoint.next_index + (j.total_moves ? " of " + j.total_moves : "");
+  return [["#", String(j.id)], ["Job", j.name], ["Result", stateText(j), "state"],
+    ["Started", fmtTime(j.started_ms)], ["Ended", fmtTime(ended)], ["Duration", took],
+    ["Moves", moves], ["Material", materialText(j.checkpoint.used_nl)]];
+}
+
+function renderJobs() {
+  const all = [...state.jobs.values()];
+  const waiting = all.filter((j) => !FINISHED.includes(j.state)).sort((a, b) => a.id - b.id);
+  const finished = all.filter((j) => FINISHED.includes(j.state)).sort((a, b) => b.id - a.id);
+  renderRows($("jobs"), waiting, queueCells);
+  renderRows($("history-jobs"), finished, historyCells);
+  $("no-jobs").hidden = waiting.length > 0;
+  $("no-history").hidden = finished.length > 0;
+  renderHeld();
 }
 
 // A row is made anew only for a new job or a new state (its buttons change); else only
 // its text cells that changed are written, so a button stays under the pointer and
 // keeps the keyboard focus while progress streams in.
-function renderJobs() {
-  const body = $("jobs");
-  const jobs = [...state.jobs.values()].sort((a, b) => a.id - b.id);
-  $("no-jobs").hidden = jobs.length > 0;
+function renderRows(body, jobs, cellsOf) {
   const keep = new Set();
-  for (const j of jobs) {
-    const cells = [String(j.id), j.name, stateText(j), progressText(j), fmtEta(j.progress?.eta_s)];
+  jobs.forEach((j, i) => {
+    const cells = cellsOf(j);
     let tr = $("job-" + j.id);
-    if (!tr || tr.dataset.state !== j.state) {
+    let refocus = false;
+    if (!tr || tr.dataset.state !== j.state || tr.parentNode !== body) {
       const row = jobRow(j, cells);
-      if (tr) tr.replaceWith(row); else body.append(row);
+      // The keyboard focus was on the old row's control: it goes to the new row's
+      // (pause becomes resume), not back to the page's body.
+      // (A button disabled while its call is out may have lost the focus already.)
+      refocus = !!tr && (tr.contains(document.activeElement) || state.focusJob === j.id);
+      if (tr) tr.remove();
       tr = row;
     } else {
-      cells.forEach((text, i) => {
-        const td = tr.children[i];
+      cells.forEach(([, text], k) => {
+        const td = tr.children[k];
         if (td && td.textContent !== text) td.textContent = text;
       });
     }
+    if (body.children[i] !== tr) body.insertBefore(tr, body.children[i] || null);
+    if (refocus) {
+      tr.querySelector("button")?.focus();
+      state.focusJob = null;
+    }
     keep.add(tr);
-  }
+  });
   for (const tr of [...body.children]) if (!keep.has(tr)) tr.remove();
 }
 
@@ -218,13 +315,15 @@ function jobRow(j, cells) {
   const tr = document.createElement("tr");
   tr.id = "job-" + j.id;
   tr.dataset.state = j.state;
-  cells.forEach((text, i) => {
+  for (const [label, text, cls] of cells) {
     const td = document.createElement("td");
     td.textContent = text;
-    if (i === 2) td.className = "state";
+    td.dataset.label = label;
+    if (cls) td.className = cls;
     tr.append(td);
-  });
+  }
   const td = document.createElement("td");
+  td.dataset.label = "Actions";
   for (const action of ACTIONS[j.state] || []) {
     const b = document.createElement("button");
     b.type = "button";
@@ -238,26 +337,75 @@ function jobRow(j, cells) {
   return tr;
 }
 
-// What cannot be undone is asked first, naming the job.
+// What cannot be undone, and a resume after an interruption, are asked first, naming
+// the job.
 const CONFIRM = {
   cancel: (j) => "Cancel job " + j.id + " (" + j.name + ")? It stops for good: a cancelled job cannot be resumed.",
   delete: (j) => "Delete job " + j.id + " (" + j.name + ") and its record?",
+  resume: (j) => j.state !== "interrupted" ? null : "Resume job " + j.id + " (" + j.name + ")?" +
+    (j.reason ? " It was interrupted: " + j.reason + "." : "") +
+    " Check the part is still on the bed and the nozzle is clear: the machine homes, primes and continues from move " +
+    (j.checkpoint?.next_index ?? 0) + ".",
 };
 
 async function jobAction(action, j, button) {
   const id = j.id;
-  if (CONFIRM[action] && !window.confirm(CONFIRM[action](j))) return;
+  const question = CONFIRM[action] && CONFIRM[action](state.jobs.get(id) || j);
+  if (question && !window.confirm(question)) return;
+  if (button.closest("tr")) state.focusJob = id;
   button.disabled = true;
   try {
     const r = await call("job." + action, { id });
     if (action === "delete") state.jobs.delete(id);
-    else await refreshJob(id, r.state);
+    else if (action === "reprint") {
+      toast("Job " + id + " (" + j.name + ") queued again as job " + r.id + ".");
+      await refreshJob(r.id, r.state);
+      button.disabled = false;
+    } else await refreshJob(id, r.state);
     renderJobs();
   } catch (e) {
     setLink("job " + id + ": " + e.message);
+    toast("Job " + id + ": " + action + " refused: " + e.message, "error");
     button.disabled = false;
   }
 }
+
+// The queue held by a job edod found interrupted when it started: why, and the three
+// ways on.
+function renderHeld() {
+  const id = state.machine?.queue_held_by;
+  const j = id && state.jobs.get(id);
+  $("held").hidden = !id;
+  if (!id) return;
+  const text = "The queue waits: job " + id + (j ? " (" + j.name + ")" : "") + " was interrupted" +
+    (j && j.reason ? " (" + j.reason + ")" : "") + ". Resume it, cancel it, or, once its part is off the bed, start the next job.";
+  if ($("held-text").textContent !== text) $("held-text").textContent = text;
+  $("held-start-next").hidden = ![...state.jobs.values()].some((q) => q.state === "queued");
+}
+
+$("held-resume").addEventListener("click", () => {
+  const j = state.jobs.get(state.machine?.queue_held_by);
+  if (j) jobAction("resume", j, $("held-resume"));
+});
+$("held-cancel").addEventListener("click", () => {
+  const j = state.jobs.get(state.machine?.queue_held_by);
+  if (j) jobAction("cancel", j, $("held-cancel"));
+});
+$("held-start-next").addEventListener("click", async () => {
+  const held = state.machine?.queue_held_by;
+  if (!window.confirm("Start the next queued job now? Job " + held + " stays interrupted. Take its half-finished part off the bed first: the next job prints where it stands.")) return;
+  const b = $("held-start-next");
+  b.disabled = true;
+  try {
+    const r = await call("job.start_next");
+    await refreshJob(r.id, r.state);
+    renderJobs();
+  } catch (e) {
+    toast("Start next refused: " + e.message, "error");
+  } finally {
+    b.disabled = false;
+  }
+});
 
 async function refreshJob(id, fallbackState) {
   try {
@@ -268,8 +416,19 @@ async function refreshJob(id, fallbackState) {
   }
 }
 
+// What an operator should hear of at once, wherever the page is scrolled.
+function announce(p, j) {
+  const name = "Job " + p.job_id + (j ? " (" + j.name + ")" : "");
+  if (p.state === "done") toast(name + " is done.", "success");
+  else if (p.state === "failed") toast(name + " failed: " + (p.reason || "no reason given"), "error");
+  else if (p.state === "interrupted") toast(name + " was interrupted: " + (p.reason || "no reason given") + ". Resume it from the queue.", "error");
+  // A pause the operator asked for is no news; one the machine made (an empty syringe) is.
+  else if (p.state === "paused" && p.reason && !p.reason.includes("by an operator")) toast(name + " is paused: " + p.reason, "error");
+}
+
 async function onJobState(p) {
   const j = state.jobs.get(p.job_id);
+  if (j && j.state !== p.state) announce(p, j);
   if (j) { j.state = p.state; j.reason = p.reason; }
   await refreshJob(p.job_id, p.state);
   if (!["printing", "paused", "planning"].includes(p.state) && state.progress?.job_id === p.job_id) {
@@ -294,6 +453,8 @@ function onProgress(p) {
   renderActive();
   const layer = p.layer ?? 0;
   const want = p.job_id + "/" + layer;
+  if (p.layers) loadStack(p.job_id, p.layers);
+  if (!state.stack || state.stack.current !== layer) drawStack();
   if (p.layers && (!state.layer || state.layer.key !== want) && state.layerLoading !== want) {
     loadLayer(p.job_id, layer, want);
   } else {
@@ -318,11 +479,15 @@ async function loadLayer(job, layer, key) {
 function renderActive() {
   const p = state.progress;
   const j = p && state.jobs.get(p.job_id);
+  const bar = $("active-progress");
   if (!p || !j) {
     $("active").textContent = "No job is printing.";
     $("composition").textContent = "No job is printing.";
+    bar.hidden = true;
     return;
   }
+  bar.hidden = p.percent === null || p.percent === undefined;
+  if (!bar.hidden) bar.value = p.percent;
   $("active").textContent = "Job " + j.id + " (" + j.name + "): " + j.state + ", " + progressText(j) + ", ETA " + fmtEta(p.eta_s);
   const road = roadAtNozzle();
   const pct = (c) => c.map((f) => (f * 100).toFixed(0) + " %").join(" / ");
@@ -402,14 +567,39 @@ function onMachine(m) {
     meter.setAttribute("aria-label", name + " level");
   });
   // Alerts are announced when they appear: redrawn only when the faults change.
-  if (!before || before.faults !== m.faults) renderFaults(m);
+  const problems = (x) => [x.faults, x.connected, x.disconnected_reason, x.store_problem, x.link_problem].join("|");
+  if (!before || problems(before) !== problems(m)) renderFaults(m);
+  if (before && before.connected && !m.connected) {
+    toast("The machine is not connected" + (m.disconnected_reason ? ": " + m.disconnected_reason : ""), "error");
+  }
+  if (before && !before.store_problem && m.store_problem) toast("The job store cannot write: " + m.store_problem, "error");
+  if (before && (m.faults & ~before.faults)) {
+    for (const [bit, what] of FAULTS) if (m.faults & ~before.faults & bit) toast(what, "error");
+  }
   if (m.store_problem) setLink("job store: " + m.store_problem);
+  if (!before || before.queue_held_by !== m.queue_held_by) renderJobs();
+}
+
+// Besides the machine's own faults, what keeps edod from printing: the machine not
+// connected, a link not answering as it should, a job store that cannot write.
+function hostProblems(m) {
+  const found = [];
+  if (!m.connected) {
+    found.push([0, "The machine is not connected" + (m.disconnected_reason ? ": " + m.disconnected_reason : "") + ".",
+      "Check its power and cable; edod connects again by itself, and an interrupted job resumes from the queue.", null]);
+  }
+  if (m.link_problem) found.push([0, m.link_problem + ".", "edod is asking the machine; if it stays silent the link is declared lost.", null]);
+  if (m.store_problem) {
+    found.push([0, "The job store cannot write: " + m.store_problem + ".",
+      "Free space for edod's state directory: new jobs and state changes are refused until it can write again.", null]);
+  }
+  return found;
 }
 
 function renderFaults(m) {
   const box = $("faults");
   box.replaceChildren();
-  const found = FAULTS.filter(([bit]) => m.faults & bit);
+  const found = hostProblems(m).concat(FAULTS.filter(([bit]) => m.faults & bit));
   if (!found.length) { box.append(Object.assign(document.createElement("p"), { textContent: "None." })); return; }
   for (const [, what, todo, action] of found) {
     const div = document.createElement("div");
@@ -484,6 +674,117 @@ function drawExecuted() {
   renderActive();
 }
 
+// ---- the whole part, stacked -------------------------------------------------------------
+
+// Layers of a job drawn in the stacked view at most (spread evenly, the last always).
+const STACK_LAYERS = 40;
+
+// The job's layer views for the stacked view, fetched one after another (edod plans a
+// stored job's layers as far as asked, once).
+async function loadStack(job, layers) {
+  const key = job + "/" + layers;
+  if (state.stack && state.stack.key === key) return;
+  const s = { key, job, layers, drawn: new Map(), current: null };
+  state.stack = s;
+  const step = Math.max(1, Math.ceil(layers / STACK_LAYERS));
+  const wanted = [];
+  for (let l = 0; l < layers; l += step) wanted.push(l);
+  if (wanted[wanted.length - 1] !== layers - 1) wanted.push(layers - 1);
+  for (const l of wanted) {
+    if (state.stack !== s) return;
+    let v;
+    try {
+      const r = await api("/api/jobs/" + job + "/layers/" + l);
+      if (!r.ok) return;
+      v = await r.json();
+    } catch { return; }
+    if (state.stack !== s) return;
+    s.drawn.set(l, { z: v.z_mm ?? (l + 1) * 0.2, roads: roadsOf(v) });
+    drawStack();
+  }
+}
+
+// A layer view's extrusions as segments [x0, y0, x1, y1, colour].
+function roadsOf(v) {
+  const roads = [];
+  let at = v.start;
+  for (const m of v.moves) {
+    if (!m) continue;
+    if (m[2] && at) roads.push([at[0], at[1], m[0], m[1], m[2]]);
+    at = [m[0], m[1]];
+  }
+  return roads;
+}
+
+// The stacked view: each layer drawn seen from the front left (x and y on a 30° axonometry,
+// z up, exaggerated when the part is flat), bottom first; the layers still to print faint,
+// the current one outlined.
+function drawStack() {
+  const s = state.stack, canvas = $("stack");
+  if (!s || !canvas) return;
+  const current = state.progress && state.progress.job_id === s.job ? (state.progress.layer ?? 0) : null;
+  s.current = current;
+  const ratio = window.devicePixelRatio || 1;
+  const w = Math.max(200, Math.round(canvas.clientWidth * ratio)), h = Math.round(w * 0.6);
+  if (canvas.width !== w) canvas.width = w;
+  if (canvas.height !== h) canvas.height = h;
+  const g = canvas.getContext("2d");
+  g.clearRect(0, 0, w, h);
+  const layers = [...s.drawn.entries()].sort((a, b) => a[0] - b[0]);
+  if (!layers.length) return;
+  let [x0, y0, z0, x1, y1, z1] = [Infinity, Infinity, Infinity, -Infinity, -Infinity, -Infinity];
+  for (const [, l] of layers) {
+    z0 = Math.min(z0, l.z); z1 = Math.max(z1, l.z);
+    for (const r of l.roads) {
+      x0 = Math.min(x0, r[0], r[2]); x1 = Math.max(x1, r[0], r[2]);
+      y0 = Math.min(y0, r[1], r[3]); y1 = Math.max(y1, r[1], r[3]);
+    }
+  }
+  if (!isFinite(x0)) return;
+  const span = Math.max(x1 - x0, y1 - y0, 1e-3);
+  const zs = Math.max(1, (0.5 * span) / Math.max(z1 - z0, 1e-3));
+  const cx = (x0 + x1) / 2, cy = (y0 + y1) / 2;
+  const u = (x, y) => (x - cx - (y - cy)) * 0.866;
+  const v = (x, y, z) => (x - cx + (y - cy)) * 0.5 - (z - z0) * zs;
+  const uSpan = (span * 2) * 0.866, vSpan = span + (z1 - z0) * zs;
+  const k = Math.min(w / uSpan, h / vSpan) * 0.9;
+  const ox = w / 2, oy = h / 2 + ((z1 - z0) * zs * k) / 2;
+  const lw = Math.max(1, k * 0.3);
+  for (const [index, l] of layers) {
+    const ahead = current !== null && index > current;
+    g.globalAlpha = ahead ? 0.12 : 0.9;
+    g.lineWidth = lw;
+    for (const r of l.roads) {
+      g.strokeStyle = r[4];
+      g.beginPath();
+      g.moveTo(ox + u(r[0], r[1]) * k, oy + v(r[0], r[1], l.z) * k);
+      g.lineTo(ox + u(r[2], r[3]) * k, oy + v(r[2], r[3], l.z) * k);
+      g.stroke();
+    }
+  }
+  // The current layer (or the nearest drawn below it), outlined over everything.
+  const mark = current === null ? null : layers.filter(([i]) => i <= current).pop();
+  if (mark) {
+    const [, l] = mark;
+    g.globalAlpha = 1;
+    g.strokeStyle = getComputedStyle(document.documentElement).getPropertyValue("--fg") || "#000";
+    g.lineWidth = lw * 2.5;
+    g.beginPath();
+    for (const r of l.roads) {
+      g.moveTo(ox + u(r[0], r[1]) * k, oy + v(r[0], r[1], l.z) * k);
+      g.lineTo(ox + u(r[2], r[3]) * k, oy + v(r[2], r[3], l.z) * k);
+    }
+    g.globalAlpha = 0.35;
+    g.stroke();
+    g.globalAlpha = 1;
+  }
+  canvas.dataset.layersDrawn = String(layers.length);
+  canvas.dataset.current = current === null ? "" : String(current);
+  $("stack-caption").textContent = "Job " + s.job + ": " + layers.length + " of " + s.layers + " layers drawn" +
+    (current !== null ? ", layer " + (current + 1) + " printing" : "") +
+    (zs > 1.01 ? "; height drawn " + zs.toFixed(0) + " times" : "") + ".";
+}
+
 // ---- e-stop -----------------------------------------------------------------------
 
 $("estop").addEventListener("click", async () => {
@@ -499,6 +800,7 @@ $("estop").addEventListener("click", async () => {
       ? "E-stop acknowledged by the machine after " + (t.acked_after_us / 1000).toFixed(1) + " ms"
       : "E-stop written after " + (t.written_after_us / 1000).toFixed(1) + " ms; the machine has NOT acknowledged it: cut its power";
     ack.dataset.acked = t.acked_after_us !== null ? "yes" : "no";
+    toast(ack.textContent, "error");
   } catch (e) {
     ack.textContent = "E-stop failed: " + e.message + ": cut the machine's power";
     ack.dataset.acked = "no";
@@ -551,6 +853,7 @@ function showPreview(v) {
   $("preview").hidden = false;
   const n = v.layers.length;
   $("preview-summary").textContent = (v.name ? v.name + ": " : "") + n + " layers, " + (v.total_moves ?? 0) + " moves" + (v.ok ? "" : ": cannot be printed as it is");
+  showTakes(v);
   const ul = $("preview-problems");
   ul.replaceChildren();
   for (const p of v.problems) {
@@ -568,6 +871,24 @@ function showPreview(v) {
   slider.disabled = n === 0;
   $("confirm").disabled = !v.ok;
   showPreviewLayer(0);
+}
+
+// What the plan takes: machine time, material per syringe, and where the part stands
+// on the bed.
+function showTakes(v) {
+  const rows = [["Machine time", v.time_s != null ? fmtEta(v.time_s) + " planned (at the planned feeds)" : "—"],
+    ["Material", materialText(v.used_nl)]];
+  const e = v.extent_mm, bed = state.server?.machine?.build_volume_mm;
+  if (e) {
+    const r = (k) => e.min[k].toFixed(1) + "–" + e.max[k].toFixed(1);
+    rows.push(["Placement", "x " + r(0) + ", y " + r(1) + " mm, " + e.max[2].toFixed(1) + " mm high" +
+      (bed ? ", on the " + bed[0] + " × " + bed[1] + " mm bed" : "")]);
+  }
+  const dl = $("preview-takes");
+  dl.replaceChildren(...rows.flatMap(([k, val]) => [
+    Object.assign(document.createElement("dt"), { textContent: k }),
+    Object.assign(document.createElement("dd"), { textContent: val }),
+  ]));
 }
 
 // Layer `layer`'s image, fetched with the token and shown from a blob: URL. A preview
@@ -624,5 +945,32 @@ $("discard").addEventListener("click", () => {
   state.preview = null;
   $("job-file").focus();
 });
+
+// ---- console --------------------------------------------------------------------------
+
+// edod's log lines (log.recent), read every second while connected; newest last.
+async function pollLog() {
+  if (state.logTimer) clearTimeout(state.logTimer);
+  try {
+    if (state.ws && state.ws.readyState === WebSocket.OPEN) {
+      const lines = await call("log.recent", state.logSeq ? { after: state.logSeq } : {});
+      for (const l of lines) addLogLine(l);
+      if (lines.length) state.logSeq = lines[lines.length - 1].seq;
+    }
+  } catch { /* offline: the notice says so */ }
+  state.logTimer = setTimeout(pollLog, 1000);
+}
+
+function addLogLine(l) {
+  const ol = $("console");
+  const atEnd = ol.scrollTop + ol.clientHeight >= ol.scrollHeight - 4;
+  const li = document.createElement("li");
+  li.className = "log-" + l.level;
+  li.textContent = new Date(l.at_ms).toLocaleTimeString() + " " + l.level.toUpperCase() +
+    (l.job_id ? " job " + l.job_id : "") + ": " + l.message;
+  ol.append(li);
+  while (ol.children.length > 500) ol.firstElementChild.remove();
+  if (atEnd) ol.scrollTop = ol.scrollHeight;
+}
 
 connect();
