@@ -5,12 +5,13 @@
 //! Pure: [`Job::from_toml`] takes the text (and a name for messages); reading the file
 //! is the caller's business.
 
+pub mod placement;
 mod support;
 use crate::geom::{self as shapes, Region, Tolerances};
-use crate::machine::placement::PlacementMode;
 use crate::material::{Composition, GradientFunction, OffsetDirection};
 use crate::plan::{GradientDesign, LayerSlice, Pattern, PlanOptions, Subdivision};
 use glam::{DVec2, DVec3};
+use placement::PlacementMode;
 use serde::Deserialize;
 pub use support::PartSupports;
 
@@ -331,7 +332,7 @@ pub struct Job {
     /// seams (defaults where absent), with `nozzle_mm` = `process.nozzle`.
     pub toolpath: crate::pipeline::ProcessSettings,
     /// Where the part goes on the machine's bed (`geometry.placement`, see
-    /// [`crate::machine::placement`]).
+    /// [`crate::job::placement`]).
     pub placement: PlacementMode,
 }
 

@@ -328,7 +328,7 @@ pub struct MeshNotes {
 /// build volume `edoctl plan` was given.
 #[derive(Debug, Clone, Serialize)]
 pub struct PlacementReport {
-    pub mode: crate::machine::placement::PlacementMode,
+    pub mode: crate::job::placement::PlacementMode,
     pub build_volume_mm: [f64; 3],
     /// The part's bounding box in its own coordinates (the layers' and previews').
     pub part_min_mm: [f64; 3],
@@ -346,10 +346,10 @@ impl PlacementReport {
     /// The report of placing a part with bounding box `bounds` (its own coordinates)
     /// into `build_volume_mm`: `placed` is the placement or why there is none.
     pub fn new(
-        mode: crate::machine::placement::PlacementMode,
+        mode: crate::job::placement::PlacementMode,
         build_volume_mm: [f64; 3],
         bounds: (glam::DVec3, glam::DVec3),
-        placed: &Result<crate::machine::placement::Placement, String>,
+        placed: &Result<crate::job::placement::Placement, String>,
     ) -> PlacementReport {
         let (lo, hi) = (bounds.0.to_array(), bounds.1.to_array());
         let offset = placed.as_ref().ok().map(|p| p.offset_mm());

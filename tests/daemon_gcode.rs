@@ -12,8 +12,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use edo::daemon::gcode_link::streamed_lines;
+use edo::gcode_link::writer::GcodeSettings;
 use edo::gcode_link::{command_word, Dialect, MixWriting};
-use edo::machine::gcode::GcodeSettings;
 use edo::machine::Move;
 use serde_json::{json, Value};
 
@@ -265,7 +265,7 @@ const AREA_MM2: f64 = std::f64::consts::PI / 4.0 * 100.0;
 fn offline(moves: &[Move], firmware: &str) -> String {
     let settings = GcodeSettings::for_mix(&mix_of(firmware), AREA_MM2);
     let mut text = String::new();
-    edo::machine::gcode::write_gcode(moves, 2, &settings, &[], &mut text).unwrap();
+    edo::gcode_link::writer::write_gcode(moves, 2, &settings, &[], &mut text).unwrap();
     text
 }
 
@@ -377,7 +377,7 @@ fn plan_machine_equals_what_edod_streams(firmware: &str) {
     let config = edo::daemon::config::Config::load(&dir.path().join("edod.toml")).unwrap();
     let settings = config.gcode_link().unwrap().unwrap().settings();
     let mut prologue = Vec::new();
-    edo::machine::gcode::MoveWriter::new(2, &settings)
+    edo::gcode_link::writer::MoveWriter::new(2, &settings)
         .unwrap()
         .connection_prologue(&mut prologue);
     let text = std::fs::read_to_string(&file).unwrap();
@@ -477,7 +477,7 @@ fn job_streams_the_offline_file(firmware: &str, faults: &str, seed: u64) {
     );
     // Per-drive E of the file, in nl as the simulator turns travel into volume.
     let flavor = GcodeSettings::for_mix(&mix_of(firmware), AREA_MM2).flavor;
-    let file_e = edo::machine::gcode::summed_drive_e(&text, 2, flavor);
+    let file_e = edo::gcode_link::writer::summed_drive_e(&text, 2, flavor);
     let built = extruded_nl(&record);
     for (k, (e, nl)) in file_e.iter().zip(&built).enumerate() {
         let want = e * AREA_MM2 * 1000.0;
@@ -1077,7 +1077,7 @@ fn octoprint_virtual_printer_through_edod_runs_the_offline_file() {
     let mut expected: Vec<String> = Vec::new();
     let settings = GcodeSettings::for_mix(&mix_of("marlin"), AREA_MM2);
     let mut prologue = Vec::new();
-    edo::machine::gcode::MoveWriter::new(2, &settings)
+    edo::gcode_link::writer::MoveWriter::new(2, &settings)
         .unwrap()
         .preamble(&[], &mut prologue);
     expected.extend(streamed_lines(&prologue.join("\n")).map(str::to_string));

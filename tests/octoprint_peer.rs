@@ -13,8 +13,8 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use edo::gcode_link::writer::{write_gcode, Flavor, GcodeSettings};
 use edo::gcode_link::{Dialect, LineEvent, LineHost, LineLinkConfig, LinkState, Micros};
-use edo::machine::gcode::{write_gcode, Flavor, GcodeSettings};
 use edo::pipeline::{job_layer_moves, ProcessSettings, StreamState};
 use edo::plan::plan_layers;
 use peer::start_shim;

@@ -84,8 +84,8 @@ fn example_jobs_become_exact_move_streams() {
 /// the barrel area, for both flavours.
 #[test]
 fn gcode_drive_sums_equal_plan_volumes() {
-    use edo::machine::gcode::{summed_drive_e, Flavor, GcodeSettings};
-    use edo::machine::placement::{place, BuildVolume};
+    use edo::gcode_link::writer::{summed_drive_e, Flavor, GcodeSettings};
+    use edo::job::placement::{place, BuildVolume};
     let job = job("paper-annulus");
     let slices = job.layer_slices(0, job.extruded_layers().unwrap());
     let layers = plan_layers(&slices, &job.plan, None).unwrap();

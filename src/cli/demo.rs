@@ -38,9 +38,9 @@ use serde_json::json;
 
 use super::client::{watch, Client};
 use crate::daemon::Config;
+use crate::gcode_link::writer::GcodeSettings;
+use crate::job::placement::{place_part, placed_settings};
 use crate::job::Job;
-use crate::machine::gcode::GcodeSettings;
-use crate::machine::placement::{place_part, placed_settings};
 use crate::machine::record::{self, RecordLine};
 use crate::machine::MoveKind;
 use crate::pipeline::{LayerMoves, StreamState};
@@ -559,7 +559,7 @@ struct Planned {
     road_width_mm: f64,
     /// Where edod puts the part on the bed (the moves are placed; `layers`' paths and
     /// `islands` stay in the part's coordinates).
-    placement: crate::machine::placement::Placement,
+    placement: crate::job::placement::Placement,
 }
 
 fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Result<Planned> {

@@ -2,9 +2,9 @@
 //! [`GcodeArgs`] into `PlanArgs` (`#[command(flatten)]`) and calls [`write`] with the
 //! planned layers.
 
+use crate::gcode_link::writer::{Flavor, GcodeSettings, GcodeStats, MoveWriter};
+use crate::job::placement::{BuildVolume, Placement};
 use crate::job::Job;
-use crate::machine::gcode::{Flavor, GcodeSettings, GcodeStats, MoveWriter};
-use crate::machine::placement::{BuildVolume, Placement};
 use crate::pipeline::{for_each_layer_moves, LayerStats, ProcessSettings, StreamState};
 use crate::plan::LayerPlan;
 use anyhow::{Context, Result};
@@ -58,7 +58,7 @@ pub struct GcodeSummary {
 const LAYERS_PER_BATCH: usize = 16;
 
 /// Turn planned layers into moves with `process` settings, place them on the machine
-/// (`placement`, inside `volume`: see [`crate::machine::placement`]) and write them as
+/// (`placement`, inside `volume`: see [`crate::job::placement`]) and write them as
 /// G-code to `path`, a batch of layers at a time. The file is written beside `path` and
 /// renamed onto it at the end: a job refused half-way (a move outside the volume) leaves
 /// no file, and an older file stays whole until the new one is.

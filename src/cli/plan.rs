@@ -2,8 +2,8 @@
 //! offline. Reads the job and its mesh (relative paths are relative to the job file),
 //! slices, runs the EDO method on every layer, writes the report and previews.
 
+use crate::job::placement::{place_part, placed_settings, BuildVolume};
 use crate::job::{Geometry, Job};
-use crate::machine::placement::{place_part, placed_settings, BuildVolume};
 use crate::mesh::MeshLimits;
 use crate::plan::LayerSlice;
 use crate::plan::{plan_layers, LayerPlan};
@@ -99,7 +99,7 @@ impl Machine {
     }
 
     /// How edod writes this machine's G-code.
-    fn gcode_settings(&self) -> Result<crate::machine::gcode::GcodeSettings> {
+    fn gcode_settings(&self) -> Result<crate::gcode_link::writer::GcodeSettings> {
         match self.config.gcode_link() {
             Ok(Some(g)) => Ok(g.settings()),
             Ok(None) => anyhow::bail!(
@@ -675,7 +675,7 @@ fn write_plan_summary(
 
 /// One line: the G-code file written, its moves and syringe volumes.
 fn gcode_summary(
-    flavor: crate::machine::gcode::Flavor,
+    flavor: crate::gcode_link::writer::Flavor,
     g: &crate::cli::gcode::GcodeSummary,
     path: &Path,
 ) -> String {

@@ -30,12 +30,7 @@ fn response_line(id: Id, outcome: Result<MethodResult, ApiError>) -> String {
 }
 
 /// An error response line.
-fn error_line(id: Id, e: ApiError) -> String {
-    serde_json::to_string(&Response::<MethodResult>::new(id, Err(e))).unwrap_or_else(|_| {
-        r#"{"jsonrpc":"2.0","id":null,"error":{"code":-32603,"message":"cannot write an error"}}"#
-            .to_string()
-    })
-}
+use super::connections::error_line;
 
 /// A mesh job needs its mesh, and the mesh must load and stack into layers; the part
 /// must fit the machine's build volume where `geometry.placement` puts it. Checked here

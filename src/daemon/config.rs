@@ -155,8 +155,8 @@ impl SyringeRole {
 
 impl SyringeConfig {
     /// The plunger's limits.
-    pub fn plunger_limits(&self) -> crate::machine::gcode::PlungerLimits {
-        crate::machine::gcode::PlungerLimits {
+    pub fn plunger_limits(&self) -> crate::gcode_link::writer::PlungerLimits {
+        crate::gcode_link::writer::PlungerLimits {
             max_mm_s: self.max_plunger_mm_s,
             max_accel_mm_s2: self.max_plunger_accel_mm_s2,
         }
@@ -164,10 +164,10 @@ impl SyringeConfig {
 }
 
 fn default_max_plunger() -> f64 {
-    crate::machine::gcode::PlungerLimits::default().max_mm_s
+    crate::gcode_link::writer::PlungerLimits::default().max_mm_s
 }
 fn default_max_plunger_accel() -> f64 {
-    crate::machine::gcode::PlungerLimits::default().max_accel_mm_s2
+    crate::gcode_link::writer::PlungerLimits::default().max_accel_mm_s2
 }
 
 /// `[machine]`.
@@ -290,8 +290,8 @@ impl MachineConfig {
     }
 
     /// `build_volume_mm` as a [`BuildVolume`] (an error names the bad side).
-    pub fn build_volume(&self) -> Result<crate::machine::placement::BuildVolume, String> {
-        crate::machine::placement::BuildVolume::new(self.build_volume_mm)
+    pub fn build_volume(&self) -> Result<crate::job::placement::BuildVolume, String> {
+        crate::job::placement::BuildVolume::new(self.build_volume_mm)
     }
 }
 

@@ -33,12 +33,12 @@ use std::collections::VecDeque;
 
 use tracing::{debug, info, warn};
 
+use crate::gcode_link::writer::{GcodeSettings, MoveWriter};
 use crate::gcode_link::{
     Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState, NozzleAt,
 };
 use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveAt};
 use crate::link::{LinkStats, MachineState, Micros, MoveRef, Status};
-use crate::machine::gcode::{GcodeSettings, MoveWriter};
 use crate::machine::{Move, MoveKind};
 
 use super::adapter::LinkAdapter;
@@ -1096,7 +1096,7 @@ impl LinkAdapter for GcodeLink {
     }
 
     fn job_ended(&mut self, _job_id: u32) {
-        if self.settings.flavor == crate::machine::gcode::Flavor::Klipper {
+        if self.settings.flavor == crate::gcode_link::writer::Flavor::Klipper {
             self.release_axes_when_idle = true;
             self.release_axes_if_idle();
         }

@@ -23,7 +23,12 @@
 //!   carries out its actions. Progress is what the machine reports executed.
 //! - [`edo_link`]: the adapter between the lifecycle and the edo link
 //!   ([`crate::link::Host`]): link events to lifecycle events, machine commands to link
-//!   calls. A G-code firmware link will be a second adapter beside it.
+//!   calls.
+//! - [`gcode_link`]: the adapter between the lifecycle and a G-code firmware
+//!   ([`crate::gcode_link::LineHost`]): the offline writer's lines per move, executed
+//!   counted behind the firmware's queue.
+//! - [`log_feed`]: the last lines of edod's log for `log.recent` (the dashboard's
+//!   console).
 //! - [`instance`]: one edod per state directory and socket (locks taken first), the
 //!   modes of the files it creates.
 //! - [`supervise`]: signals, systemd notify (READY, STATUS, WATCHDOG), the simulated

@@ -9,11 +9,11 @@
 
 use tokio::sync::mpsc;
 
+use crate::job::placement::{BuildVolume, Placement};
 use crate::lifecycle::{PlannerOutput, ResumePoint};
-use crate::machine::placement::{BuildVolume, Placement};
 // Placing a part is planning, shared with `edoctl plan` and `edoctl demo`; the daemon
 // uses the core's (and keeps the old path for its API).
-pub use crate::machine::placement::{place_part, placed_settings};
+pub use crate::job::placement::{place_part, placed_settings};
 use crate::machine::time::PlannedTimeBuilder;
 use crate::machine::{Move, MoveKind, PositionUm, FACTOR_NOMINAL_PPT};
 

@@ -44,6 +44,7 @@ mod host;
 mod position;
 mod reply;
 pub mod testkit;
+pub mod writer;
 
 pub use firmware::{
     Firmware, FirmwareConfig, FirmwareStats, ProcessedLine, RxOverflow, CHECKSUM_ERROR,

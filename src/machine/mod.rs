@@ -17,8 +17,6 @@
 //! A move with [`MAX_SYRINGES`] syringes encodes (postcard) to at most [`MAX_MOVE_BYTES`]
 //! bytes, well inside one link frame (see `docs/protocol.md`).
 
-pub mod gcode;
-pub mod placement;
 pub mod record;
 pub mod time;
 

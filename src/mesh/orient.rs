@@ -26,6 +26,13 @@ pub enum Orientation {
     Rotate([f64; 3]),
 }
 
+/// The default allowed overhang: 30 degrees from vertical (a wall may lean out by
+/// tan 30 deg = 0.58 of a layer's thickness per layer, so each bead rests on at least
+/// about 70 % of its width on the bead below at a layer of half the road). Plastic
+/// slicers allow 45 to 55 degrees; a paste has no cooling to set it and slumps. The
+/// orientation is chosen by it, and `slice::overhang` measures layers by it.
+pub const DEFAULT_OVERHANG_ANGLE_DEG: f64 = 30.0;
+
 /// What scoring a candidate needs.
 #[derive(Debug, Clone, Copy)]
 pub struct OrientOptions {
@@ -43,7 +50,7 @@ pub struct OrientOptions {
 impl Default for OrientOptions {
     fn default() -> Self {
         OrientOptions {
-            overhang_angle_deg: crate::slice::overhang::DEFAULT_OVERHANG_ANGLE_DEG,
+            overhang_angle_deg: DEFAULT_OVERHANG_ANGLE_DEG,
             on_bed_mm: 0.1,
             max_candidates: 12,
             tie_fraction: 0.01,

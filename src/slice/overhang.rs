@@ -15,11 +15,9 @@
 use crate::geom::{area, difference, offset, Region, Shapes};
 use serde::{Deserialize, Serialize};
 
-/// The default allowed overhang: 30 degrees from vertical (a wall may lean out by
-/// tan 30 deg = 0.58 of a layer's thickness per layer, so each bead rests on at least
-/// about 70 % of its width on the bead below at a layer of half the road). Plastic
-/// slicers allow 45 to 55 degrees; a paste has no cooling to set it and slumps.
-pub const DEFAULT_OVERHANG_ANGLE_DEG: f64 = 30.0;
+/// The default allowed overhang (defined with the part's orientation, which is chosen
+/// by it before any slice is cut).
+pub use crate::mesh::orient::DEFAULT_OVERHANG_ANGLE_DEG;
 
 /// How far a layer may reach past the layer below without support (`[process]
 /// overhang`).

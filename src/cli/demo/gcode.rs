@@ -14,7 +14,7 @@ use anyhow::Result;
 
 use crate::daemon::gcode_link::streamed_lines;
 use crate::gcode_link::command_word;
-use crate::machine::gcode::{Flavor, GcodeSettings, MoveWriter};
+use crate::gcode_link::writer::{Flavor, GcodeSettings, MoveWriter};
 use crate::machine::record::RecordLine;
 use crate::machine::{Move, MoveKind};
 use crate::pipeline::LayerMoves;

@@ -102,15 +102,15 @@ pub struct GcodeLink {
     /// Barrel cross-section, mm² (E = V / 1000 / A).
     pub barrel_area_mm2: f64,
     /// Each syringe's plunger limits (Klipper's `LIMIT_VELOCITY`, `LIMIT_ACCEL`).
-    pub plunger_limits: Vec<crate::machine::gcode::PlungerLimits>,
+    pub plunger_limits: Vec<crate::gcode_link::writer::PlungerLimits>,
 }
 
 impl GcodeLink {
     /// How edod writes this machine's moves: what `edoctl plan --machine` writes too.
-    pub fn settings(&self) -> crate::machine::gcode::GcodeSettings {
-        crate::machine::gcode::GcodeSettings {
+    pub fn settings(&self) -> crate::gcode_link::writer::GcodeSettings {
+        crate::gcode_link::writer::GcodeSettings {
             plunger_limits: self.plunger_limits.clone(),
-            ..crate::machine::gcode::GcodeSettings::for_mix(&self.mix, self.barrel_area_mm2)
+            ..crate::gcode_link::writer::GcodeSettings::for_mix(&self.mix, self.barrel_area_mm2)
         }
     }
 }

@@ -126,7 +126,7 @@ pub fn fits(
             let part = job
                 .mesh_layers(bytes, limits)
                 .map_err(|e| format!("{path}: {e}"))?;
-            crate::machine::placement::place_part(job, part.bounds(), &volume)
+            crate::job::placement::place_part(job, part.bounds(), &volume)
                 .map(|_| ())
                 .map_err(|e| format!("{path}: {e}"))
         }

@@ -23,8 +23,8 @@
 //! Whole micrometres, so a placed move's position is exactly its unplaced position
 //! (already rounded to µm) plus the offset: placing changes no planned geometry.
 
-use super::{Move, MoveKind, PositionUm};
-use crate::job::Job;
+use super::Job;
+use crate::machine::{Move, MoveKind, PositionUm};
 use crate::pipeline::ProcessSettings;
 use glam::DVec3;
 use serde::Serialize;

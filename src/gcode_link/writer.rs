@@ -7,7 +7,7 @@
 //! are rounded cumulatively per drive (to 10⁻⁵ mm), so the sum of each drive's E over the
 //! file equals that drive's commanded volume / A within 10⁻⁵ mm.
 
-use super::{Move, MoveKind, PositionUm};
+use crate::machine::{Move, MoveKind, PositionUm};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write;
 
@@ -102,8 +102,8 @@ impl GcodeSettings {
     /// The settings that write a G-code link's mix (`[machine.gcode] mix`,
     /// `docs/firmware.md`): per-drive E → RRF, `M163` or direct mixing → Marlin, axes →
     /// Klipper with those letters.
-    pub fn for_mix(mix: &crate::gcode_link::MixWriting, barrel_area_mm2: f64) -> Self {
-        use crate::gcode_link::MixWriting;
+    pub fn for_mix(mix: &super::MixWriting, barrel_area_mm2: f64) -> Self {
+        use super::MixWriting;
         let (flavor, marlin_direct_mixing, axes) = match mix {
             MixWriting::PerDriveE => (Flavor::Rrf, false, Vec::new()),
             MixWriting::MarlinM163 => (Flavor::Marlin, false, Vec::new()),
