@@ -13,7 +13,7 @@ use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use edo::gcode_link::writer::{write_gcode, Flavor, GcodeSettings};
+use edo::gcode_link::writer::{write_gcode, GcodeSettings};
 use edo::gcode_link::{Dialect, LineEvent, LineHost, LineLinkConfig, LinkState, Micros};
 use edo::pipeline::{job_layer_moves, ProcessSettings, StreamState};
 use edo::plan::plan_layers;
@@ -42,7 +42,7 @@ fn offline_gcode(moves: usize) -> String {
         .collect();
     all.truncate(moves);
     let settings = GcodeSettings {
-        flavor: Flavor::Marlin,
+        flavor: Dialect::Marlin,
         ..GcodeSettings::default()
     };
     let mut out = String::new();

@@ -84,7 +84,7 @@ fn example_jobs_become_exact_move_streams() {
 /// the barrel area, for both flavours.
 #[test]
 fn gcode_drive_sums_equal_plan_volumes() {
-    use edo::gcode_link::writer::{summed_drive_e, Flavor, GcodeSettings};
+    use edo::gcode_link::writer::{summed_drive_e, Dialect, GcodeSettings};
     use edo::job::placement::{place, BuildVolume};
     let job = job("paper-annulus");
     let slices = job.layer_slices(0, job.extruded_layers().unwrap());
@@ -92,10 +92,10 @@ fn gcode_drive_sums_equal_plan_volumes() {
     let process = ProcessSettings::for_nozzle(job.plan.nozzle_mm);
     let dir = tempfile::tempdir().unwrap();
     for (flavor, direct) in [
-        (Flavor::Rrf, false),
-        (Flavor::Marlin, false),
-        (Flavor::Marlin, true),
-        (Flavor::Klipper, false),
+        (Dialect::Rrf, false),
+        (Dialect::Marlin, false),
+        (Dialect::Marlin, true),
+        (Dialect::Klipper, false),
     ] {
         let settings = GcodeSettings {
             flavor,
@@ -136,7 +136,7 @@ fn gcode_drive_sums_equal_plan_volumes() {
             let want = *v as f64 / 1000.0 / 165.0;
             // RRF and direct mixing print each drive's E (1e-6 mm, cumulative); M163
             // mixes keep each drive within 5e-5 mm of its plan (docs/gcode.md).
-            let tolerance = if flavor == Flavor::Marlin && !direct {
+            let tolerance = if flavor == Dialect::Marlin && !direct {
                 5e-5
             } else {
                 2e-6
@@ -149,13 +149,13 @@ fn gcode_drive_sums_equal_plan_volumes() {
         }
         assert!(want_nonzero(&summary.commanded_nl));
         match flavor {
-            Flavor::Rrf => assert!(text.contains("M563 P0 D0:1")),
-            Flavor::Klipper => {
+            Dialect::Rrf => assert!(text.contains("M563 P0 D0:1")),
+            Dialect::Klipper => {
                 assert!(text.contains("MANUAL_STEPPER STEPPER=syringe_b GCODE_AXIS=B"));
                 assert!(!text.contains(" E") && !text.contains("M163"));
             }
-            Flavor::Marlin if direct => assert!(text.contains(" A") && !text.contains("M163")),
-            Flavor::Marlin => {
+            Dialect::Marlin if direct => assert!(text.contains(" A") && !text.contains("M163")),
+            Dialect::Marlin => {
                 assert!(text.contains("M163 S1") && text.contains("M164 S0"));
                 // A mix goes out when the composition changes or rounding drifts, not
                 // before every move.

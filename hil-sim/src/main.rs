@@ -59,8 +59,8 @@ struct Cli {
     #[arg(long)]
     no_stdin: bool,
     /// Speak G-code as this firmware (model of edo::gcode_link) instead of the edo link.
-    #[arg(long, value_name = "FIRMWARE", value_parser = ["rrf", "marlin", "klipper"])]
-    gcode: Option<String>,
+    #[arg(long, value_name = "FIRMWARE", value_parser = edo::gcode_link::Dialect::from_name)]
+    gcode: Option<edo::gcode_link::Dialect>,
     /// How the mix is written (default per firmware: rrf per-drive-e, marlin m163,
     /// klipper axes).
     #[arg(long, value_name = "MIX", requires = "gcode",
@@ -123,14 +123,9 @@ fn install_signal_handlers() -> anyhow::Result<()> {
 
 /// `--gcode` and its options.
 fn gcode_options(cli: &Cli) -> anyhow::Result<Option<hil_sim::GcodeOptions>> {
-    use edo::gcode_link::{Dialect, MixWriting};
-    let Some(name) = &cli.gcode else {
+    use edo::gcode_link::MixWriting;
+    let Some(dialect) = cli.gcode else {
         return Ok(None);
-    };
-    let dialect = match name.as_str() {
-        "rrf" => Dialect::Rrf,
-        "marlin" => Dialect::Marlin,
-        _ => Dialect::Klipper,
     };
     let mut opts = hil_sim::GcodeOptions::new(dialect, cli.syringes);
     opts.advanced_ok = cli.gcode_advanced_ok;

@@ -52,9 +52,14 @@ enum Commands {
         /// (docs/firmware.md).
         #[arg(long, value_enum, default_value = "edo")]
         protocol: LinkProtocol,
-        /// With --protocol gcode: the firmware (rrf, marlin, klipper).
-        #[arg(long, value_name = "F", required_if_eq("protocol", "gcode"))]
-        firmware: Option<String>,
+        /// With --protocol gcode: the firmware.
+        #[arg(
+            long,
+            value_enum,
+            value_name = "F",
+            required_if_eq("protocol", "gcode")
+        )]
+        firmware: Option<edo::gcode_link::Dialect>,
         /// With --protocol gcode: lines in flight ("auto", "advanced-ok" or a number;
         /// a window over 1 only for boards on native USB, docs/firmware.md).
         #[arg(long, value_name = "W", default_value = "auto")]
@@ -289,16 +294,12 @@ fn gcode_link_test(
     port: PathBuf,
     moves: u32,
     baud: u32,
-    (firmware, window): (&str, &str),
+    (firmware, window): (Option<edo::gcode_link::Dialect>, &str),
     json: bool,
 ) -> anyhow::Result<ExitCode> {
-    use edo::gcode_link::{Dialect, Window};
-    let firmware = match firmware {
-        "rrf" => Dialect::Rrf,
-        "marlin" => Dialect::Marlin,
-        "klipper" => Dialect::Klipper,
-        other => anyhow::bail!("--firmware {other:?}: rrf, marlin or klipper"),
-    };
+    use edo::gcode_link::Window;
+    // clap requires it with --protocol gcode.
+    let firmware = firmware.ok_or_else(|| anyhow::anyhow!("--firmware: rrf, marlin or klipper"))?;
     let window = match window {
         "auto" => Window::Auto,
         "advanced-ok" => Window::AdvancedOk,
@@ -374,13 +375,7 @@ fn main() -> ExitCode {
             firmware,
             window,
             ..
-        } => gcode_link_test(
-            port.clone(),
-            *moves,
-            *baud,
-            (firmware.as_deref().unwrap_or_default(), window),
-            cli.json,
-        ),
+        } => gcode_link_test(port.clone(), *moves, *baud, (*firmware, window), cli.json),
         _ => daemon(&cli),
     };
     match result {

@@ -45,7 +45,7 @@ use crate::machine::record::{self, RecordLine};
 use crate::machine::MoveKind;
 use crate::pipeline::{LayerMoves, StreamState};
 
-pub use gcode::Firmware;
+pub use crate::gcode_link::Dialect;
 
 /// The bundled job.
 pub const DEMO_JOB: &str = include_str!("../../config/examples/tooth-crown.toml");
@@ -76,7 +76,7 @@ pub struct DemoArgs {
     /// Stream G-code to this firmware (the simulator runs as `hil-sim --gcode FIRMWARE`;
     /// with --port, a machine started so) instead of over edo's own link.
     #[arg(long, value_name = "FIRMWARE", value_enum)]
-    pub firmware: Option<Firmware>,
+    pub firmware: Option<Dialect>,
     /// The machine's mixing chamber (edod's `[machine.mixer]`; volume default 1000 nl):
     /// the simulator builds through it and edod plans for it (with --port, a machine
     /// started with the same `hil-sim --mixer`).
@@ -373,7 +373,7 @@ fn gcode_writing(cfg: &Config) -> Result<Option<(GcodeSettings, usize)>> {
 fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
     let mut cfg = match args.firmware {
         None => Config::from_toml("", "demo")?,
-        Some(f) => Config::from_toml(&f.machine_toml(), "demo")?,
+        Some(f) => Config::from_toml(&gcode::machine_toml(f), "demo")?,
     };
     let record_path = match (&args.port, &args.record) {
         (Some(port), Some(rec)) => {

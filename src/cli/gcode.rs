@@ -2,7 +2,7 @@
 //! [`GcodeArgs`] into `PlanArgs` (`#[command(flatten)]`) and calls [`write`] with the
 //! planned layers.
 
-use crate::gcode_link::writer::{Flavor, GcodeSettings, GcodeStats, MoveWriter};
+use crate::gcode_link::writer::{Dialect, GcodeSettings, GcodeStats, MoveWriter};
 use crate::job::placement::{BuildVolume, Placement};
 use crate::job::Job;
 use crate::pipeline::{for_each_layer_moves, LayerStats, ProcessSettings, StreamState};
@@ -18,7 +18,7 @@ pub struct GcodeArgs {
     pub gcode: Option<PathBuf>,
     /// Firmware the G-code is for.
     #[arg(long, value_enum, default_value = "rrf")]
-    pub flavor: Flavor,
+    pub flavor: Dialect,
     /// Syringe barrel cross-section, mm² (E is plunger travel in mm).
     #[arg(long, value_name = "MM2", default_value_t = 165.0)]
     pub barrel_area: f64,

@@ -675,7 +675,7 @@ fn write_plan_summary(
 
 /// One line: the G-code file written, its moves and syringe volumes.
 fn gcode_summary(
-    flavor: crate::gcode_link::writer::Flavor,
+    flavor: crate::gcode_link::writer::Dialect,
     g: &crate::cli::gcode::GcodeSummary,
     path: &Path,
 ) -> String {

@@ -1096,7 +1096,7 @@ impl LinkAdapter for GcodeLink {
     }
 
     fn job_ended(&mut self, _job_id: u32) {
-        if self.settings.flavor == crate::gcode_link::writer::Flavor::Klipper {
+        if self.settings.flavor == crate::gcode_link::writer::Dialect::Klipper {
             self.release_axes_when_idle = true;
             self.release_axes_if_idle();
         }

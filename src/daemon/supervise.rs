@@ -142,13 +142,8 @@ fn gcode_restart_advice(dialect: crate::gcode_link::Dialect, known: bool) -> &'s
 
 /// hil-sim's options for the firmware `g` describes (`hil-sim --gcode FIRMWARE`).
 fn gcode_sim_args(g: &super::config::GcodeLink) -> Vec<String> {
-    use crate::gcode_link::{Dialect, MixWriting, Window};
-    let firmware = match g.link.dialect {
-        Dialect::Rrf => "rrf",
-        Dialect::Marlin => "marlin",
-        Dialect::Klipper => "klipper",
-    };
-    let mut args = vec!["--gcode".to_string(), firmware.to_string()];
+    use crate::gcode_link::{MixWriting, Window};
+    let mut args = vec!["--gcode".to_string(), g.link.dialect.name().to_string()];
     let mix = match &g.mix {
         MixWriting::PerDriveE => "per-drive-e",
         MixWriting::MarlinM163 => "m163",

@@ -62,8 +62,12 @@ pub use position::{
 
 pub use crate::link::Micros;
 
-/// The firmware at the other end of the line.
+/// The firmware at the other end of the line, or that reads a G-code file: the one
+/// name of the three for every place that names them (edod.toml's
+/// `[machine.gcode] firmware`, `edoctl gcode --flavor`, `edoctl demo --firmware`,
+/// `edoctl link-test --firmware`, `hil-sim --gcode`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "daemon", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Dialect {
     /// Marlin 1.1 / 2.x: line numbers and checksums checked, `Resend:` on error.
@@ -76,6 +80,35 @@ pub enum Dialect {
 }
 
 impl Dialect {
+    /// Every firmware, in the order they are listed to people.
+    pub const ALL: [Dialect; 3] = [Dialect::Rrf, Dialect::Marlin, Dialect::Klipper];
+
+    /// The name configurations and command lines use (`rrf`, `marlin`, `klipper`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Dialect::Rrf => "rrf",
+            Dialect::Marlin => "marlin",
+            Dialect::Klipper => "klipper",
+        }
+    }
+
+    /// The firmware named `name` ([`Dialect::name`]), or what the names are.
+    pub fn from_name(name: &str) -> Result<Dialect, String> {
+        Dialect::ALL
+            .into_iter()
+            .find(|d| d.name() == name)
+            .ok_or_else(|| format!("no firmware {name:?}: rrf, marlin or klipper"))
+    }
+
+    /// The firmware's own name, for people.
+    pub fn display_name(self) -> &'static str {
+        match self {
+            Dialect::Rrf => "RepRapFirmware",
+            Dialect::Marlin => "Marlin",
+            Dialect::Klipper => "Klipper",
+        }
+    }
+
     /// Whether lines go out as `N<n> <text>*<checksum>` (else plain `<text>`).
     pub fn numbers_lines(self) -> bool {
         !matches!(self, Dialect::Klipper)
@@ -299,6 +332,18 @@ fn is_line_number_word(word: &str) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn one_name_per_firmware_everywhere() {
+        for d in Dialect::ALL {
+            assert_eq!(Dialect::from_name(d.name()), Ok(d));
+            // serde (edod.toml, GcodeSettings) reads the same name.
+            let json = serde_json::to_string(&d).unwrap();
+            assert_eq!(json, format!("\"{}\"", d.name()));
+        }
+        let e = Dialect::from_name("repetier").unwrap_err();
+        assert!(e.contains("rrf, marlin or klipper"), "{e}");
+    }
 
     #[test]
     fn handshake_line_has_the_well_known_checksum() {

@@ -11,28 +11,19 @@ use crate::machine::{Move, MoveKind, PositionUm};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write;
 
-/// Which firmware reads the file.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[cfg_attr(feature = "daemon", derive(clap::ValueEnum))]
-#[serde(rename_all = "kebab-case")]
-pub enum Flavor {
-    /// RepRapFirmware 3: a tool over all drives (`M563 P0 D0:1:..`), per-move `E a:b:c`.
-    Rrf,
-    /// Marlin with `MIXING_EXTRUDER`: mix set per move with `M163`/`M164` (or `A B C ..`
-    /// weights in `G1` with `DIRECT_MIXING_IN_G1`), total E per move.
-    Marlin,
-    /// Klipper: each syringe a manual stepper moved as a `G1` axis of its own
-    /// (`MANUAL_STEPPER STEPPER=syringe_a GCODE_AXIS=A`), absolute plunger positions in mm.
-    /// Also what a Marlin multi-axis build reads (its `MANUAL_STEPPER` lines are unknown
-    /// commands there, answered and ignored).
-    Klipper,
-}
+/// Which firmware reads the file: the G-code link's [`Dialect`] (RepRapFirmware 3: a
+/// tool over all drives (`M563 P0 D0:1:..`), per-move `E a:b:c`; Marlin with
+/// `MIXING_EXTRUDER`: mix set per move with `M163`/`M164`, or `A B C ..` weights in `G1`
+/// with `DIRECT_MIXING_IN_G1`, total E per move; Klipper: each syringe a manual stepper
+/// moved as a `G1` axis of its own (`MANUAL_STEPPER STEPPER=syringe_a GCODE_AXIS=A`),
+/// absolute plunger positions in mm, also what a Marlin multi-axis build reads).
+pub use super::Dialect;
 
 /// Export settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GcodeSettings {
-    pub flavor: Flavor,
+    pub flavor: Dialect,
     /// Barrel cross-section of every syringe, mm². Default 165 (a 10 mL syringe, 14.5 mm
     /// bore).
     pub barrel_area_mm2: f64,
@@ -89,7 +80,7 @@ impl PlungerLimits {
 impl Default for GcodeSettings {
     fn default() -> Self {
         GcodeSettings {
-            flavor: Flavor::Rrf,
+            flavor: Dialect::Rrf,
             barrel_area_mm2: 165.0,
             marlin_direct_mixing: false,
             axes: Vec::new(),
@@ -105,10 +96,10 @@ impl GcodeSettings {
     pub fn for_mix(mix: &super::MixWriting, barrel_area_mm2: f64) -> Self {
         use super::MixWriting;
         let (flavor, marlin_direct_mixing, axes) = match mix {
-            MixWriting::PerDriveE => (Flavor::Rrf, false, Vec::new()),
-            MixWriting::MarlinM163 => (Flavor::Marlin, false, Vec::new()),
-            MixWriting::MarlinDirect => (Flavor::Marlin, true, Vec::new()),
-            MixWriting::Axes(letters) => (Flavor::Klipper, false, letters.clone()),
+            MixWriting::PerDriveE => (Dialect::Rrf, false, Vec::new()),
+            MixWriting::MarlinM163 => (Dialect::Marlin, false, Vec::new()),
+            MixWriting::MarlinDirect => (Dialect::Marlin, true, Vec::new()),
+            MixWriting::Axes(letters) => (Dialect::Klipper, false, letters.clone()),
         };
         GcodeSettings {
             flavor,
@@ -362,12 +353,12 @@ impl MoveWriter {
         if !(a.is_finite() && a > 0.0) {
             return Err(GcodeError::BarrelArea(a));
         }
-        if settings.flavor == Flavor::Marlin && drives > MARLIN_MIX_AXES.len() {
+        if settings.flavor == Dialect::Marlin && drives > MARLIN_MIX_AXES.len() {
             return Err(GcodeError::TooManyDrives(drives));
         }
         let drives = drives.max(1);
         let axes = match settings.flavor {
-            Flavor::Klipper => settings.axis_letters(drives)?,
+            Dialect::Klipper => settings.axis_letters(drives)?,
             _ => Vec::new(),
         };
         Ok(MoveWriter {
@@ -426,7 +417,7 @@ impl MoveWriter {
     /// purge macro can move the plungers with `MANUAL_STEPPER ... MOVE=`; nothing on the
     /// other flavours.
     pub fn epilogue(&mut self, out: &mut Vec<String>) {
-        if self.settings.flavor != Flavor::Klipper {
+        if self.settings.flavor != Dialect::Klipper {
             return;
         }
         for (d, c) in self.axes.clone().into_iter().enumerate() {
@@ -446,7 +437,7 @@ impl MoveWriter {
     fn set_up(&mut self, take_axes: bool, out: &mut Vec<String>) {
         let all: Vec<String> = (0..self.drives).map(|d| d.to_string()).collect();
         match self.settings.flavor {
-            Flavor::Rrf => {
+            Dialect::Rrf => {
                 self.line(
                     "; RepRapFirmware 3: one mixing tool over all syringe drives".into(),
                     out,
@@ -454,14 +445,14 @@ impl MoveWriter {
                 self.line(format!("M563 P0 D{} H-1 S\"edo\"", all.join(":")), out);
                 self.line("T0".into(), out);
             }
-            Flavor::Marlin => {
+            Dialect::Marlin => {
                 self.line(
                     "; Marlin MIXING_EXTRUDER: mix per move, E is the total plunger travel".into(),
                     out,
                 );
                 self.line("T0".into(), out);
             }
-            Flavor::Klipper if take_axes => {
+            Dialect::Klipper if take_axes => {
                 self.line(
                     "; Klipper: each syringe a manual stepper on its own G1 axis, positions in mm"
                         .into(),
@@ -469,7 +460,7 @@ impl MoveWriter {
                 );
                 self.take_axes(out);
             }
-            Flavor::Klipper => {}
+            Dialect::Klipper => {}
         }
         self.line("G21 ; millimetres".into(), out);
         self.line("G90 ; absolute positions".into(), out);
@@ -585,17 +576,17 @@ impl MoveWriter {
         let feed = most * 60_000.0 / f64::from(duration_ms.max(1));
         let what = if sign < 0.0 { "retract" } else { "prime" };
         match self.settings.flavor {
-            Flavor::Rrf => {
+            Dialect::Rrf => {
                 let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
                 let f = self.modal.feed_word(f_plunger(feed));
                 let _ = write!(s, "G1 E{}{f} ; {what}", es.join(":"));
             }
-            Flavor::Marlin => {
+            Dialect::Marlin => {
                 let total: i64 = units.iter().sum();
                 let f = self.modal.feed_word(f_plunger(feed));
                 let _ = write!(s, "G1 E{}{f} ; {what}", e(total));
             }
-            Flavor::Klipper => {
+            Dialect::Klipper => {
                 s.push_str("G1");
                 self.axis_positions(false, s);
                 let f = self.modal.feed_word(f_plunger(feed));
@@ -625,11 +616,11 @@ impl MoveWriter {
         let f = self.modal.feed_word(f_mm_min(feed_um_s));
         let total: i64 = units.iter().sum();
         match self.settings.flavor {
-            Flavor::Rrf => {
+            Dialect::Rrf => {
                 let es: Vec<String> = units.iter().map(|&u| e(u)).collect();
                 let _ = write!(s, "{xyz} E{}{f}", es.join(":"));
             }
-            Flavor::Marlin if self.settings.marlin_direct_mixing => {
+            Dialect::Marlin if self.settings.marlin_direct_mixing => {
                 let _ = write!(s, "{xyz} E{}", e(total));
                 if total > 0 {
                     for (d, u) in units.iter().enumerate() {
@@ -638,7 +629,7 @@ impl MoveWriter {
                 }
                 s.push_str(&f);
             }
-            Flavor::Marlin => {
+            Dialect::Marlin => {
                 if let Some(weights) = self.mix.next(&units) {
                     for (d, w) in weights.iter().enumerate() {
                         self.line(format!("M163 S{d} P{w:.6}"), out);
@@ -647,7 +638,7 @@ impl MoveWriter {
                 }
                 let _ = write!(s, "{xyz} E{}{f}", e(total));
             }
-            Flavor::Klipper => {
+            Dialect::Klipper => {
                 s.push_str(&xyz);
                 self.axis_positions(true, s);
                 s.push_str(&f);
@@ -797,8 +788,8 @@ impl MarlinMix {
 /// Sum each drive's E over the Extrude lines of a file this module wrote (for checks).
 /// RRF: the `E a:b:c` values; Marlin: the total E split by the preceding `M163` weights
 /// (or the `A B C` weights on the line); Klipper: each axis' travel on those lines.
-pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
-    if flavor == Flavor::Klipper {
+pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Dialect) -> Vec<f64> {
+    if flavor == Dialect::Klipper {
         return summed_axis_travel(gcode, drives);
     }
     let mut sums = vec![0.0; drives];
@@ -840,12 +831,12 @@ pub fn summed_drive_e(gcode: &str, drives: usize, flavor: Flavor) -> Vec<f64> {
             }
         }
         match flavor {
-            Flavor::Rrf => {
+            Dialect::Rrf => {
                 for (s, v) in sums.iter_mut().zip(&es) {
                     *s += v;
                 }
             }
-            Flavor::Marlin | Flavor::Klipper => {
+            Dialect::Marlin | Dialect::Klipper => {
                 let total = es.first().copied().unwrap_or(0.0);
                 let w = if direct { &line_weights } else { &weights };
                 let wsum: f64 = w.iter().sum();
@@ -943,7 +934,7 @@ mod tests {
 
     fn klipper(axes: Vec<char>) -> GcodeSettings {
         GcodeSettings {
-            flavor: Flavor::Klipper,
+            flavor: Dialect::Klipper,
             barrel_area_mm2: 100.0,
             axes,
             ..GcodeSettings::default()
@@ -1079,7 +1070,7 @@ mod tests {
         assert!(lines.contains(&"G1 X2 U0.006 F600"));
         assert_eq!(stats.extrude_e_mm, vec![0.006, 0.001]);
         assert_eq!(
-            summed_drive_e(&text, 2, Flavor::Klipper),
+            summed_drive_e(&text, 2, Dialect::Klipper),
             vec![0.006, 0.001]
         );
         assert_eq!(stats.lines, lines.len());

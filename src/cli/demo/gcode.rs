@@ -14,54 +14,23 @@ use anyhow::Result;
 
 use crate::daemon::gcode_link::streamed_lines;
 use crate::gcode_link::command_word;
-use crate::gcode_link::writer::{Flavor, GcodeSettings, MoveWriter};
+use crate::gcode_link::writer::{Dialect, GcodeSettings, MoveWriter};
 use crate::machine::record::RecordLine;
 use crate::machine::{Move, MoveKind};
 use crate::pipeline::LayerMoves;
 
-/// The firmware `edoctl demo --firmware` streams to.
-#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Firmware {
-    /// RepRapFirmware 3 (Duet): one mixing tool, `E a:b` per move.
-    Rrf,
-    /// Marlin with MIXING_EXTRUDER: `M163`/`M164` mixes, total E per move.
-    Marlin,
-    /// Klipper: each syringe a manual stepper on a `G1` axis of its own.
-    Klipper,
-}
-
-impl Firmware {
-    /// The name `[machine.gcode] firmware` takes.
-    pub fn config_name(self) -> &'static str {
-        match self {
-            Firmware::Rrf => "rrf",
-            Firmware::Marlin => "marlin",
-            Firmware::Klipper => "klipper",
-        }
-    }
-
-    /// The `[machine]` table of edod's configuration for this firmware on the demo's
-    /// machine (two syringes; Klipper's manual steppers on axes A and B), with
-    /// `docs/firmware.md`'s defaults otherwise.
-    pub fn machine_toml(self) -> String {
-        let axes = match self {
-            Firmware::Klipper => "axes = [\"A\", \"B\"]\n",
-            _ => "",
-        };
-        format!(
-            "[machine]\nprotocol = \"gcode\"\n[machine.gcode]\nfirmware = \"{}\"\n{axes}",
-            self.config_name()
-        )
-    }
-
-    /// The firmware's own name.
-    pub fn display_name(self) -> &'static str {
-        match self {
-            Firmware::Rrf => "RepRapFirmware",
-            Firmware::Marlin => "Marlin",
-            Firmware::Klipper => "Klipper",
-        }
-    }
+/// The `[machine]` table of edod's configuration for `firmware` on the demo's machine
+/// (two syringes; Klipper's manual steppers on axes A and B), with
+/// `docs/firmware.md`'s defaults otherwise.
+pub fn machine_toml(firmware: Dialect) -> String {
+    let axes = match firmware {
+        Dialect::Klipper => "axes = [\"A\", \"B\"]\n",
+        _ => "",
+    };
+    format!(
+        "[machine]\nprotocol = \"gcode\"\n[machine.gcode]\nfirmware = \"{}\"\n{axes}",
+        firmware.name()
+    )
 }
 
 /// The recording matched to the plan by lines.
@@ -230,7 +199,7 @@ fn volume_mismatch(
         }
     }
     let slack_nl = match settings.flavor {
-        Flavor::Marlin => 1.0 + 5e-5 * settings.barrel_area_mm2 * 1000.0,
+        Dialect::Marlin => 1.0 + 5e-5 * settings.barrel_area_mm2 * 1000.0,
         _ => 1.0,
     };
     let off = want
