@@ -1151,7 +1151,7 @@ layer = 0.2
     let e = c
         .call(
             "job.submit",
-            json!({"job": job_toml, "mesh_base64": edo::daemon::api::base64_encode(&tall)}),
+            json!({"job": job_toml, "mesh_base64": edo::proto::mesh_bytes::base64_encode(&tall)}),
         )
         .unwrap_err();
     assert_eq!(e["code"], json!(-32003));
@@ -2393,7 +2393,7 @@ fn a_job_with_supports_is_printed_whole_with_them() {
     let r = c
         .call(
             "job.submit",
-            json!({"job": job, "mesh_base64": edo::daemon::api::base64_encode(&ball)}),
+            json!({"job": job, "mesh_base64": edo::proto::mesh_bytes::base64_encode(&ball)}),
         )
         .unwrap();
     assert!(r.get("warnings").is_none(), "{r}");
@@ -2432,7 +2432,7 @@ fn a_submitted_job_that_hangs_in_mid_air_is_warned_about() {
     let r = c
         .call(
             "job.submit",
-            json!({"job": job, "mesh_base64": edo::daemon::api::base64_encode(&ball)}),
+            json!({"job": job, "mesh_base64": edo::proto::mesh_bytes::base64_encode(&ball)}),
         )
         .unwrap();
     let warnings = r["warnings"].as_array().expect("warnings");
@@ -2448,7 +2448,7 @@ fn a_submitted_job_that_hangs_in_mid_air_is_warned_about() {
         .call(
             "job.submit",
             json!({"job": format!("{job}[support]\nrequired = true\n"),
-                   "mesh_base64": edo::daemon::api::base64_encode(&ball)}),
+                   "mesh_base64": edo::proto::mesh_bytes::base64_encode(&ball)}),
         )
         .unwrap_err();
     assert_eq!(e["code"], json!(-32003));
@@ -2462,7 +2462,7 @@ fn a_submitted_job_that_hangs_in_mid_air_is_warned_about() {
         .call(
             "job.submit",
             json!({"job": job.replace("r_mach = 2.0", "r_mach = 0.8"),
-                   "mesh_base64": edo::daemon::api::base64_encode(&tube)}),
+                   "mesh_base64": edo::proto::mesh_bytes::base64_encode(&tube)}),
         )
         .unwrap();
     assert!(r.get("warnings").is_none(), "{r}");

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use edo::daemon::gcode_link::streamed_lines;
+use edo::gcode_link::writer::streamed_lines;
 use edo::gcode_link::writer::GcodeSettings;
 use edo::gcode_link::{command_word, Dialect, MixWriting};
 use edo::machine::Move;

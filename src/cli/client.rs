@@ -219,7 +219,7 @@ pub fn submit_params(job: &Path) -> Result<SubmitParams> {
         let path = job.parent().unwrap_or(Path::new(".")).join(mesh);
         let bytes =
             std::fs::read(&path).with_context(|| format!("cannot read mesh {}", path.display()))?;
-        mesh_base64 = Some(crate::daemon::api::base64_encode(&bytes));
+        mesh_base64 = Some(crate::proto::mesh_bytes::base64_encode(&bytes));
     }
     Ok(SubmitParams::file(text, mesh_base64))
 }

@@ -269,7 +269,7 @@ async fn file_job(
 ) -> Result<(JobSpec, String, Vec<String>), ApiError> {
     let mesh = mesh_base64
         .map(|b| {
-            base64_decode(b).map_err(|e| {
+            crate::proto::mesh_bytes::base64_decode(b).map_err(|e| {
                 ApiError::new(
                     ApiError::INVALID_PARAMS,
                     format!("mesh_base64: not base64: {e}"),
@@ -415,36 +415,4 @@ async fn machine_estop(shared: &Shared) -> Result<EStopTiming, ApiError> {
 async fn machine_refill(shared: &Shared) -> Result<Refilled, ApiError> {
     ask(shared, Control::Refill).await?;
     Ok(Refilled { refilled: true })
-}
-
-/// Decode standard base64 (RFC 4648, padding optional).
-pub fn base64_decode(s: &str) -> Result<Vec<u8>, base64::DecodeError> {
-    use base64::Engine;
-    base64::engine::general_purpose::GeneralPurpose::new(
-        &base64::alphabet::STANDARD,
-        base64::engine::GeneralPurposeConfig::new()
-            .with_decode_padding_mode(base64::engine::DecodePaddingMode::Indifferent),
-    )
-    .decode(s)
-}
-
-/// Encode standard base64 with padding.
-pub fn base64_encode(b: &[u8]) -> String {
-    use base64::Engine;
-    base64::engine::general_purpose::STANDARD.encode(b)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn base64_round_trips() {
-        for n in 0..20u8 {
-            let v: Vec<u8> = (0..n).map(|i| i.wrapping_mul(37)).collect();
-            assert_eq!(base64_decode(&base64_encode(&v)).unwrap(), v);
-        }
-        assert!(base64_decode("ab$c").is_err());
-        assert_eq!(base64_decode("AQI").unwrap(), vec![1, 2]);
-    }
 }

@@ -45,15 +45,7 @@ use super::adapter::LinkAdapter;
 use super::edo_link::report_of;
 use super::store::{GcodeMark, GcodeMarkKind, GcodeMarkWrite};
 
-/// The G-code lines of `text` as streamed: comments and empty lines dropped.
-pub fn streamed_lines(text: &str) -> impl Iterator<Item = &str> {
-    text.lines().filter_map(streamed)
-}
-
-/// A writer's line as streamed: without its comment; `None` if nothing is left.
-fn streamed(line: &str) -> Option<&str> {
-    Some(line.split(';').next().unwrap_or("").trim()).filter(|l| !l.is_empty())
-}
+use crate::gcode_link::writer::streamed;
 
 /// A move (or the prologue, or an `M400`) sent and not yet accepted.
 #[derive(Debug)]
@@ -1560,7 +1552,8 @@ mod tests {
         let mut w = MoveWriter::new(2, &settings).unwrap();
         let mut lines = Vec::new();
         w.preamble(&[], &mut lines);
-        let mut line = 9 + streamed_lines(&lines.join("\n")).count() as u32;
+        let mut line =
+            9 + crate::gcode_link::writer::streamed_lines(&lines.join("\n")).count() as u32;
         let mut last_line_of = Vec::new();
         for mv in &moves[12..] {
             if mv.index == 20 {
@@ -1568,7 +1561,7 @@ mod tests {
             }
             lines.clear();
             w.move_lines(mv, &mut lines);
-            line += streamed_lines(&lines.join("\n")).count() as u32;
+            line += crate::gcode_link::writer::streamed_lines(&lines.join("\n")).count() as u32;
             last_line_of.push((line - 1, mv.index));
         }
         assert!(

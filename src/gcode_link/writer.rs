@@ -19,6 +19,16 @@ use std::fmt::Write;
 /// absolute plunger positions in mm, also what a Marlin multi-axis build reads).
 pub use super::Dialect;
 
+/// The G-code lines of `text` as streamed: comments and empty lines dropped.
+pub fn streamed_lines(text: &str) -> impl Iterator<Item = &str> {
+    text.lines().filter_map(streamed)
+}
+
+/// A writer's line as streamed: without its comment; `None` if nothing is left.
+pub fn streamed(line: &str) -> Option<&str> {
+    Some(line.split(';').next().unwrap_or("").trim()).filter(|l| !l.is_empty())
+}
+
 /// Export settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]

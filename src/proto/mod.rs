@@ -17,6 +17,7 @@
 pub mod envelope;
 pub mod job;
 pub mod machine;
+pub mod mesh_bytes;
 pub mod methods;
 
 pub use envelope::{

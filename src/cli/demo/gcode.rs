@@ -5,16 +5,15 @@
 //! marks send no line, and Marlin's mix goes in `M163`/`M164` lines that move nothing.
 //! So the plan is matched line by line: each planned move becomes the lines edod streams
 //! for it (the offline writer's, [`MoveWriter`], less comments,
-//! [`crate::daemon::gcode_link::streamed_lines`]), and its motion line (`G0`, `G1`,
+//! [`crate::gcode_link::writer::streamed_lines`]), and its motion line (`G0`, `G1`,
 //! `G4`, `G28`) must be the next command the machine ran. The matched records get the
 //! planned move's job, index and layer, so the composition, the previews and the
 //! summary are computed as on the edo link.
 
 use anyhow::Result;
 
-use crate::daemon::gcode_link::streamed_lines;
 use crate::gcode_link::command_word;
-use crate::gcode_link::writer::{Dialect, GcodeSettings, MoveWriter};
+use crate::gcode_link::writer::{streamed_lines, Dialect, GcodeSettings, MoveWriter};
 use crate::machine::record::RecordLine;
 use crate::machine::{Move, MoveKind};
 use crate::pipeline::LayerMoves;

@@ -164,7 +164,7 @@ impl PreviewAsk {
         let mesh = ask
             .mesh_base64
             .as_deref()
-            .map(crate::daemon::api::base64_decode)
+            .map(crate::proto::mesh_bytes::base64_decode)
             .transpose()
             .map_err(|e| {
                 ApiError::new(

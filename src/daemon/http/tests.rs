@@ -869,7 +869,7 @@ async fn a_previewed_overhang_is_drawn_red() {
                nozzle = 0.4\nlayer = 0.2\nthin_regions = \"fill\"\n";
     let body = serde_json::json!({
         "job": job,
-        "mesh_base64": crate::daemon::api::base64_encode(&stl),
+        "mesh_base64": crate::proto::mesh_bytes::base64_encode(&stl),
     })
     .to_string();
     let (s, out) = send(
