@@ -62,7 +62,9 @@ pub use io::{
     MachineReport, MachineState, MoveAt, PlannerOutput, Record, Refusal, RefusalKind, RequestId,
     ResumePoint, StateNote, Underrun,
 };
-pub use job::{time_left_s, Checkpoint, JobInfo, JobState, Progress, SERVICE_JOB_ID};
+pub use job::{
+    time_left_planned_s, time_left_s, Checkpoint, JobInfo, JobState, Progress, SERVICE_JOB_ID,
+};
 pub use options::{Options, ServiceMoves};
 
 use crate::machine::Move;

@@ -1500,6 +1500,21 @@ fn time_left_from_moves_once_known_else_from_layers() {
     assert_eq!(time_left_s(None, Some((10, 12)), 0, 20.0), Some(0.0));
 }
 
+#[test]
+fn time_left_is_the_planned_time_left_at_the_measured_pace() {
+    // Nothing printed yet: the plan's own pace (100 s planned left: 100 s).
+    assert_eq!(time_left_planned_s(100_000_000, 0, 0), 100.0);
+    // 60 s planned done in 120 s of printing (a machine at half the planned speed),
+    // 30 s of the plan's pace blended in: pace (120 + 30) / (60 + 30) = 5/3.
+    let eta = time_left_planned_s(60_000_000, 60_000_000, 120_000_000);
+    assert!((eta - 100.0).abs() < 1e-9, "{eta}");
+    // Long into the job the measured pace is nearly all of it.
+    let eta = time_left_planned_s(10_000_000, 3_600_000_000, 7_200_000_000);
+    assert!((eta - 20.0).abs() < 0.2, "{eta}");
+    // A clock that ran while nothing moved (it does not, but bounded if it did).
+    assert_eq!(time_left_planned_s(1_000_000, 0, u64::MAX / 2), 100.0);
+}
+
 /// The lifecycle knows no wire protocol: no code of it names the link (a G-code link
 /// plugs in below it the way the edo link does, through an adapter in the daemon).
 #[test]
