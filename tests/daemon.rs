@@ -1047,6 +1047,24 @@ fn finished_jobs_are_deleted_on_request_and_beyond_the_newest_kept() {
     let last = lines.last().unwrap()["seq"].as_u64().unwrap();
     let after = c.call("log.recent", json!({"after": last - 1})).unwrap();
     assert_eq!(after.as_array().unwrap().len(), 1, "{after}");
+    // Wrong params are refused, naming what is wrong; edod goes on.
+    for bad in [
+        json!({"after": -1}),
+        json!({"after": "3"}),
+        json!({"since": 3}),
+        json!([1]),
+    ] {
+        let e = c.call("log.recent", bad.clone()).unwrap_err();
+        assert_eq!(e["code"], json!(-32602), "{bad}: {e}");
+    }
+    for bad in [
+        json!({}),
+        json!({"id": "one"}),
+        json!({"id": 1, "extra": 2}),
+    ] {
+        let e = c.call("job.reprint", bad.clone()).unwrap_err();
+        assert_eq!(e["code"], json!(-32602), "{bad}: {e}");
+    }
     // Unfinished jobs (the queued one) are never pruned.
     c.call("job.cancel", json!({"id": q})).unwrap();
     drop(c);

@@ -93,16 +93,6 @@ impl PlannedTimeBuilder {
     }
 }
 
-/// Net volume each of `syringes` syringes gives for `moves` (pushed by extrusions and
-/// primes, less what retracts pull back), nl.
-pub fn used_nl<'a>(moves: impl IntoIterator<Item = &'a Move>, syringes: usize) -> Vec<u64> {
-    let mut used = vec![0; syringes];
-    for mv in moves {
-        add_used_nl(&mut used, &mv.kind);
-    }
-    used
-}
-
 /// Add what `kind` takes from each syringe to `used` (nl; a retract gives back, never
 /// below nothing).
 pub fn add_used_nl(used: &mut Vec<u64>, kind: &MoveKind) {
@@ -227,7 +217,16 @@ mod tests {
             ),
             ex(3, vec![0, 25]),
         ];
-        assert_eq!(used_nl(&moves, 2), vec![100, 75]);
-        assert_eq!(used_nl(&moves, 3), vec![100, 75, 0]);
+        let used_nl = |syringes: usize| {
+            let mut used = vec![0; syringes];
+            for mv in &moves {
+                add_used_nl(&mut used, &mv.kind);
+            }
+            used
+        };
+        assert_eq!(used_nl(2), vec![100, 75]);
+        assert_eq!(used_nl(3), vec![100, 75, 0]);
+        // A record of fewer syringes than the move grows to the move's.
+        assert_eq!(used_nl(0), vec![100, 75]);
     }
 }
