@@ -59,6 +59,7 @@ pub mod pipeline;
 pub mod plan;
 pub mod proto;
 pub mod report;
+pub mod setup;
 pub mod slice;
 pub mod svg;
 pub mod toolpath;

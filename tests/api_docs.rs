@@ -226,7 +226,7 @@ fn check_json_block(b: &Block) -> Result<(), String> {
     match b.heading.as_str() {
         "Job" => round_trip::<Job>(&v),
         #[cfg(feature = "daemon")]
-        "The machine table" => round_trip::<edo::daemon::config::MachineConfig>(&v),
+        "The machine table" => round_trip::<edo::setup::MachineConfig>(&v),
         other => Err(format!(
             "a json example under {other:?}: name its type in tests/api_docs.rs"
         )),
@@ -315,7 +315,7 @@ fn the_tables_list_what_the_types_define() {
 #[cfg(feature = "daemon")]
 #[test]
 fn the_machine_table_lists_every_key_of_the_machine_config() {
-    use edo::daemon::config::MachineConfig;
+    use edo::setup::MachineConfig;
     let full: MachineConfig = serde_json::from_value(serde_json::json!({
         "protocol": "gcode",
         "gcode": {"firmware": "marlin"},

@@ -1194,7 +1194,7 @@ layer = 0.2
     sim.stop().unwrap();
 
     // The same job planned offline, for the machine edod was configured with.
-    let machine = edo::daemon::config::MachineConfig::default();
+    let machine = edo::setup::MachineConfig::default();
     let mut src =
         edo::daemon::planner::JobSource::new(job_toml, Some(&stl), "tube", &machine).unwrap();
     let mut planned = Vec::new();

@@ -295,7 +295,7 @@ layer = 0.2
 
 /// The planned moves of [`JOB`] on edod's default machine.
 fn planned_job() -> Vec<Move> {
-    let machine = edo::daemon::config::MachineConfig::default();
+    let machine = edo::setup::MachineConfig::default();
     let mut src = edo::daemon::planner::JobSource::new(JOB, None, "square", &machine).unwrap();
     let mut planned = Vec::new();
     while let Some(layer) = edo::daemon::planner::LayerSource::next_layer(&mut src) {

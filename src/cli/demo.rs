@@ -395,7 +395,7 @@ fn demo_config(args: &DemoArgs, work: &Path) -> Result<(Config, PathBuf)> {
     // 20 µL chamber of config/edod.toml would hold a quarter of the part.
     cfg.machine.dead_volume_nl = DEMO_DEAD_VOLUME_NL;
     if let Some(model) = &args.mixer.mixer {
-        cfg.machine.mixer = Some(crate::daemon::config::MixerConfig {
+        cfg.machine.mixer = Some(crate::setup::MixerConfig {
             model: model.clone(),
             volume_nl: args.mixer.mixer_volume_nl,
             peclet: args.mixer.mixer_peclet,
@@ -562,9 +562,9 @@ struct Planned {
     placement: crate::job::placement::Placement,
 }
 
-fn plan_offline(job: &Job, machine: &crate::daemon::config::MachineConfig) -> Result<Planned> {
-    let settings = crate::daemon::planner::process_settings(job, machine, &job.name)
-        .map_err(anyhow::Error::msg)?;
+fn plan_offline(job: &Job, machine: &crate::setup::MachineConfig) -> Result<Planned> {
+    let settings =
+        crate::setup::process_settings(job, machine, &job.name).map_err(anyhow::Error::msg)?;
     let bounds = job
         .extruded_bounds()
         .context("the demo job is an extruded polygon")?;

@@ -90,12 +90,8 @@ impl Machine {
         job: &Job,
         job_path: &Path,
     ) -> Result<crate::pipeline::ProcessSettings> {
-        crate::daemon::planner::process_settings(
-            job,
-            &self.config.machine,
-            &job_path.display().to_string(),
-        )
-        .map_err(|e| anyhow::anyhow!("--machine {}: {e}", self.path.display()))
+        crate::setup::process_settings(job, &self.config.machine, &job_path.display().to_string())
+            .map_err(|e| anyhow::anyhow!("--machine {}: {e}", self.path.display()))
     }
 
     /// How edod writes this machine's G-code.

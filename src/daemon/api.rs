@@ -39,7 +39,7 @@ use super::connections::error_line;
 async fn check_part(
     job: &crate::job::Job,
     mesh: Option<Vec<u8>>,
-    machine: &super::config::MachineConfig,
+    machine: &crate::setup::MachineConfig,
     budget: &super::connections::Budget,
 ) -> Result<(Option<Vec<u8>>, Vec<String>), ApiError> {
     let bad = |m: String| ApiError::new(ApiError::INVALID_JOB, m);
@@ -292,7 +292,7 @@ async fn checked_file_job(
         .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e.to_string()))?;
     // What would fail when it starts is refused now: its materials against the
     // machine's syringes, its process settings against the machine's limits.
-    super::planner::process_settings(&job, &shared.config.machine, "submitted job")
+    crate::setup::process_settings(&job, &shared.config.machine, "submitted job")
         .map_err(|e| ApiError::new(ApiError::INVALID_JOB, e))?;
     let (mesh, warnings) = check_part(&job, mesh, &shared.config.machine, &shared.budget).await?;
     Ok((JobSpec::Toml { toml, mesh }, job.name, warnings))

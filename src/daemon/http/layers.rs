@@ -11,9 +11,9 @@
 
 use serde_json::{json, Value};
 
-use crate::daemon::config::MachineConfig;
 use crate::daemon::planner::DesignedRoad;
 use crate::machine::{Move, MoveKind, PositionUm};
+use crate::setup::MachineConfig;
 
 fn mm(um: i32) -> f64 {
     f64::from(um) / 1000.0
@@ -119,7 +119,7 @@ pub fn fits(
     machine: &MachineConfig,
     limits: &crate::mesh::MeshLimits,
 ) -> Result<(), String> {
-    crate::daemon::planner::process_settings(job, machine, "job")?;
+    crate::setup::process_settings(job, machine, "job")?;
     let volume = machine.build_volume()?;
     match (&job.geometry, mesh) {
         (crate::job::Geometry::Mesh { path }, Some(bytes)) => {
