@@ -38,6 +38,7 @@
 //! alone, so the compiler holds the layering: no core module can reach into the shell,
 //! and none of the shell's crates (tokio, SQLite, serial ports, clap) is linked into it.
 
+pub mod adapter;
 #[cfg(feature = "daemon")]
 pub mod cli;
 #[cfg(feature = "daemon")]

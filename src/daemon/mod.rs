@@ -21,12 +21,9 @@
 //!   sans-IO job lifecycle ([`crate::lifecycle::Lifecycle`]) the machine's events, the
 //!   operators' commands, the planner's output, the store's answers and the clock, and
 //!   carries out its actions. Progress is what the machine reports executed.
-//! - [`edo_link`]: the adapter between the lifecycle and the edo link
-//!   ([`crate::link::Host`]): link events to lifecycle events, machine commands to link
-//!   calls.
-//! - [`gcode_link`]: the adapter between the lifecycle and a G-code firmware
-//!   ([`crate::gcode_link::LineHost`]): the offline writer's lines per move, executed
-//!   counted behind the firmware's queue.
+//!   The link under it is one of the core's sans-IO adapters ([`crate::adapter`]: the
+//!   edo link or a G-code firmware); the streamer hands it bytes, the clock, the store's
+//!   marks and its log lines.
 //! - [`log_feed`]: the last lines of edod's log for `log.recent` (the dashboard's
 //!   console).
 //! - [`instance`]: one edod per state directory and socket (locks taken first), the
@@ -34,12 +31,9 @@
 //! - [`supervise`]: signals, systemd notify (READY, STATUS, WATCHDOG), the simulated
 //!   machine child, graceful stop.
 
-pub mod adapter;
 pub mod api;
 pub mod config;
 pub mod connections;
-pub mod edo_link;
-pub mod gcode_link;
 pub mod http;
 pub mod instance;
 pub mod log_feed;

@@ -21,13 +21,13 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_serial::{SerialPortBuilderExt, SerialStream};
 use tracing::{debug, info, warn};
 
-use super::adapter::LinkAdapter;
-use super::edo_link::{link_config, EdoLink};
-use super::gcode_link::GcodeLink;
 use super::planner;
 use super::port_watch::{PortLog, PortWatch, PortWatchOptions};
 use super::store::now_ms;
 use super::{ApiError, Control, EStopTiming, MachineSnapshot, Reply, Shared, StateChange};
+use crate::adapter::GcodeLink;
+use crate::adapter::{link_config, EdoLink};
+use crate::adapter::{log_now, LinkAdapter};
 use crate::lifecycle::{
     Action, Answer, Command, Event, JobState, Level, Lifecycle, MachineCommand, Options, Phase,
     PlannerOutput, Progress, Refusal, RefusalKind, RequestId, ServiceMoves, StateNote, Underrun,
@@ -66,27 +66,6 @@ struct EStopWait {
     asked: Instant,
     written_after_us: Option<u64>,
     reply: Reply<EStopTiming>,
-}
-
-/// For an event logged at most once a period: whether to log the one at `now`, with
-/// how many were not logged since the last (`logged`: when that was and that count);
-/// `period_over(last, now)` says whether a period has passed since the last logged.
-pub(crate) fn log_now<T: Copy>(
-    logged: &mut Option<(T, u64)>,
-    now: T,
-    period_over: impl Fn(T, T) -> bool,
-) -> Option<u64> {
-    match logged {
-        Some((at, since)) if !period_over(*at, now) => {
-            *since += 1;
-            None
-        }
-        _ => {
-            let since = logged.map_or(0, |(_, n)| n);
-            *logged = Some((now, 0));
-            Some(since)
-        }
-    }
 }
 
 /// A period of [`UNDERRUN_LOG_EVERY`] passed between `last` and `now`.
@@ -275,7 +254,7 @@ impl Streamer {
 
     /// After edod's restart over G-code: what tells the interrupted job's moves by line
     /// number ([`GcodeLink::with_resume`]).
-    pub fn with_gcode_resume(mut self, resume: Option<super::gcode_link::ResumeLines>) -> Self {
+    pub fn with_gcode_resume(mut self, resume: Option<crate::adapter::ResumeLines>) -> Self {
         if resume.is_some() {
             self.link = match machine_link_gcode(&self.shared.config) {
                 Some(g) => Box::new(g.with_resume(resume)),
@@ -423,7 +402,20 @@ impl Streamer {
         self.write_out().await;
         self.time_estops();
         self.carry_out();
+        self.log_link_lines();
         self.publish();
+    }
+
+    /// The link adapter's log lines into edod's log.
+    fn log_link_lines(&mut self) {
+        use crate::adapter::LogLevel;
+        while let Some(l) = self.link.poll_log() {
+            match l.level {
+                LogLevel::Debug => tracing::debug!(target: "edo::adapter", "{}", l.text),
+                LogLevel::Info => tracing::info!(target: "edo::adapter", "{}", l.text),
+                LogLevel::Warn => tracing::warn!(target: "edo::adapter", "{}", l.text),
+            }
+        }
     }
 
     /// Moves from the lifecycle to the link while it has room.

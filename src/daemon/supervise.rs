@@ -244,7 +244,7 @@ impl Notifier {
 async fn gcode_resume_lines(
     cfg: &Config,
     opened: &store::Opened,
-) -> Option<super::gcode_link::ResumeLines> {
+) -> Option<crate::adapter::ResumeLines> {
     let g = cfg.gcode_link().ok().flatten()?;
     if g.link.dialect == crate::gcode_link::Dialect::Klipper {
         return klipper_resume_moves(cfg, opened).await;
@@ -260,7 +260,7 @@ async fn gcode_resume_lines(
     let marks = opened.gcode_marks.clone();
     let drives = cfg.machine.syringes.len();
     replay_off_runtime(cfg, opened, job_id, move |moves| {
-        super::gcode_link::ResumeLines::replay(job_id, &marks, moves, drives, &g.settings())
+        crate::adapter::ResumeLines::replay(job_id, &marks, moves, drives, &g.settings())
     })
     .await
 }
@@ -274,10 +274,10 @@ async fn replay_off_runtime(
     job_id: u32,
     replay: impl FnOnce(
             &mut dyn Iterator<Item = Result<crate::machine::Move, String>>,
-        ) -> Result<Option<super::gcode_link::ResumeLines>, String>
+        ) -> Result<Option<crate::adapter::ResumeLines>, String>
         + Send
         + 'static,
-) -> Option<super::gcode_link::ResumeLines> {
+) -> Option<crate::adapter::ResumeLines> {
     let cfg = cfg.clone();
     let reader = opened.stores.reader.clone();
     let replayed = tokio::task::spawn_blocking(move || {
@@ -336,7 +336,7 @@ const KLIPPER_RESUME_SPAN_MOVES: u32 = 2_000;
 async fn klipper_resume_moves(
     cfg: &Config,
     opened: &store::Opened,
-) -> Option<super::gcode_link::ResumeLines> {
+) -> Option<crate::adapter::ResumeLines> {
     let mut started = Vec::new();
     for &id in &opened.interrupted {
         match opened.stores.reader.get(id).await {
@@ -353,7 +353,7 @@ async fn klipper_resume_moves(
     // wider span can only match a move too early (repeated), never skip one.
     let span = KLIPPER_RESUME_SPAN_MOVES;
     replay_off_runtime(cfg, opened, job_id, move |moves| {
-        super::gcode_link::ResumeLines::by_position(job_id, next_index - 1, span, moves).map(Some)
+        crate::adapter::ResumeLines::by_position(job_id, next_index - 1, span, moves).map(Some)
     })
     .await
 }

@@ -18,8 +18,8 @@
 //! planner's output and of the store's writes and reads; actions are commands to the
 //! machine ([`MachineCommand`]: e-stop, feed hold, resume, clear faults, status query),
 //! moves ([`Lifecycle::poll_move`]), records to persist, reads, replies and
-//! notifications. In edod the streamer pumps it, and one adapter (`daemon::edo_link`)
-//! translates the link's events into these and the machine commands into link calls.
+//! notifications. In edod the streamer pumps it, and an adapter (`adapter::EdoLink`,
+//! `adapter::GcodeLink`) translates the link's events into these and the machine commands into link calls.
 //!
 //! Job states (stored, shown to operators): queued → planning → printing ⇄ paused, →
 //! interrupted (reset, lost link or port, e-stop, edod stopped) → printing again on

@@ -17,6 +17,7 @@ use std::time::Duration;
 use rusqlite::{params, Connection, OptionalExtension, Transaction, TransactionBehavior};
 use serde::{Deserialize, Serialize};
 
+pub use crate::adapter::{GcodeMark, GcodeMarkKind, GcodeMarkWrite};
 use crate::lifecycle::{JobInfo, JobUpdate, Record};
 pub use crate::proto::{Checkpoint, JobState};
 
@@ -232,51 +233,6 @@ CREATE TABLE IF NOT EXISTS gcode_marks (
     kind TEXT NOT NULL
 );
 ";
-
-/// Where a G-code connection's line numbers stand in a job's moves, so that after edod's
-/// SIGKILL the firmware's last accepted line can be turned back into a move
-/// (`docs/firmware.md`, "What edod learns after ...").
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct GcodeMark {
-    /// The job.
-    pub job_id: u32,
-    /// The line number.
-    pub line_number: u32,
-    /// The job's move the line comes before.
-    pub move_index: u32,
-    /// What the line is.
-    pub kind: GcodeMarkKind,
-}
-
-/// What a [`GcodeMark`]'s line is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum GcodeMarkKind {
-    /// The first line of a fresh writer (its preamble, then move `move_index` on).
-    Writer,
-    /// An `M400` sent between the job's moves, before move `move_index`.
-    M400,
-}
-
-impl GcodeMarkKind {
-    fn as_str(self) -> &'static str {
-        match self {
-            GcodeMarkKind::Writer => "writer",
-            GcodeMarkKind::M400 => "m400",
-        }
-    }
-}
-
-/// A change to the stored [`GcodeMark`]s.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum GcodeMarkWrite {
-    /// Forget them all: line numbers start again, or the moves after the last mark are
-    /// no longer the job's in order (a flush, a reset, a service move).
-    Clear,
-    /// A fresh writer for a job: replaces every mark.
-    Writer(GcodeMark),
-    /// Add one.
-    Add(GcodeMark),
-}
 
 /// The database file in the state directory.
 pub const DB_FILE: &str = "edod.db";

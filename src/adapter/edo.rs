@@ -3,9 +3,7 @@
 //! protocol-neutral [`Event`]s, and the lifecycle's [`MachineCommand`]s and moves into
 //! link calls. The lifecycle never sees a frame, a priority lane or a session id; the
 //! G-code firmware link is the second adapter of the same shape
-//! ([`super::gcode_link`], both behind [`super::adapter::LinkAdapter`]).
-
-use tracing::{info, warn};
+//! ([`super::GcodeLink`], both behind [`LinkAdapter`]).
 
 use crate::lifecycle::{
     Event, MachineCommand, MachineFault, MachineReport, MachineState as State, MoveAt,
@@ -16,7 +14,7 @@ use crate::link::{
 };
 use crate::machine::Move;
 
-use super::adapter::LinkAdapter;
+use super::{LinkAdapter, LogLine, LogQueue};
 
 /// The edo link under the lifecycle.
 pub struct EdoLink {
@@ -27,6 +25,8 @@ pub struct EdoLink {
     info: Option<MachineInfo>,
     /// Its last status.
     status: Status,
+    /// Lines for the daemon's log.
+    log: LogQueue,
 }
 
 fn state_of(s: MachineState) -> State {
@@ -74,13 +74,17 @@ impl EdoLink {
             seed,
             info: None,
             status: Status::default(),
+            log: LogQueue::default(),
         }
     }
 
     fn translate(&mut self, e: HostEvent, now: Micros) -> Option<Event> {
         Some(match e {
             HostEvent::Connected(i) => {
-                info!(identity = %i.identity, boot_id = i.boot_id, last = ?i.status.last_executed, "machine connected");
+                self.log.info(format!(
+                    "machine connected identity={} boot_id={} last={:?}",
+                    i.identity, i.boot_id, i.status.last_executed
+                ));
                 self.status = i.status.clone();
                 let report = report_of(&i.status);
                 self.info = Some(i);
@@ -92,7 +96,8 @@ impl EdoLink {
                 Event::MachineStatus(report)
             }
             HostEvent::Fault(f) => {
-                warn!(fault = ?f.kind, at = ?f.at, "machine fault");
+                self.log
+                    .warn(format!("machine fault fault={:?} at={:?}", f.kind, f.at));
                 Event::MachineFault(match f.kind {
                     FaultKind::SyringeEmpty(n) => MachineFault::SyringeEmpty(n),
                     FaultKind::EStopPressed => MachineFault::EStopPressed,
@@ -108,16 +113,19 @@ impl EdoLink {
                 }
             }
             HostEvent::LinkLost { silent_us } => {
-                warn!(silent_ms = silent_us / 1000, "link lost");
+                self.log
+                    .warn(format!("link lost silent_ms={}", silent_us / 1000));
                 Event::LinkSilent
             }
             HostEvent::LinkRestored => {
-                info!("link restored");
+                self.log.info("link restored".into());
                 Event::LinkRestored
             }
             HostEvent::PriorityAcked(cmd) => Event::CommandAcked(command_of(cmd)),
             HostEvent::Incompatible { machine_version } => {
-                warn!(machine_version, "machine speaks another protocol version");
+                self.log.warn(format!(
+                    "machine speaks another protocol version machine_version={machine_version}"
+                ));
                 Event::MachineIncompatible
             }
         })
@@ -217,6 +225,10 @@ impl LinkAdapter for EdoLink {
     }
 
     fn port_lost(&mut self) {}
+
+    fn poll_log(&mut self) -> Option<LogLine> {
+        self.log.pop()
+    }
 }
 
 /// The link's settings for a line of `baud`.

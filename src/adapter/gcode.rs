@@ -31,8 +31,6 @@
 
 use std::collections::VecDeque;
 
-use tracing::{debug, info, warn};
-
 use crate::gcode_link::writer::{GcodeSettings, MoveWriter};
 use crate::gcode_link::{
     Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState, NozzleAt,
@@ -41,9 +39,8 @@ use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveAt};
 use crate::link::{LinkStats, MachineState, Micros, MoveRef, Status};
 use crate::machine::{Move, MoveKind};
 
-use super::adapter::LinkAdapter;
-use super::edo_link::report_of;
-use super::store::{GcodeMark, GcodeMarkKind, GcodeMarkWrite};
+use super::edo::report_of;
+use super::{GcodeMark, GcodeMarkKind, GcodeMarkWrite, LinkAdapter, LogLine, LogQueue};
 
 use crate::gcode_link::writer::streamed;
 
@@ -120,6 +117,8 @@ pub struct GcodeLink {
     /// After edod's restart: the interrupted job's moves by line number, to learn from
     /// the firmware's last accepted line which ran.
     resume: Option<ResumeLines>,
+    /// Lines for the daemon's log.
+    log: LogQueue,
 }
 
 /// The store's G-code marks to write, and what the adapter needs to write them.
@@ -348,7 +347,7 @@ const PROTOCOL_LOG_EVERY_US: u64 = 10_000_000;
 impl GcodeLink {
     /// A link to the firmware configured by `cfg` for `drives` syringes holding
     /// `capacity_nl` each.
-    pub fn new(cfg: &super::config::GcodeLink, drives: usize, capacity_nl: u32) -> Self {
+    pub fn new(cfg: &crate::setup::GcodeLink, drives: usize, capacity_nl: u32) -> Self {
         let drives = drives.max(1);
         Self {
             host: LineHost::new(cfg.link.clone()),
@@ -382,6 +381,7 @@ impl GcodeLink {
             silence_noted: false,
             marks: cfg.link.dialect.numbers_lines().then(Marks::default),
             resume: None,
+            log: LogQueue::default(),
         }
     }
 
@@ -426,7 +426,7 @@ impl GcodeLink {
         match MoveWriter::new(self.drives, &self.settings) {
             Ok(mut w) => w.connection_prologue(&mut lines),
             Err(e) => {
-                warn!(error = %e, "G-code prologue");
+                self.log.warn(format!("G-code prologue error={e}"));
                 return;
             }
         }
@@ -443,7 +443,7 @@ impl GcodeLink {
                 to: None,
                 last_tag,
             }),
-            Err(e) => warn!(error = %e, "G-code {what} refused"),
+            Err(e) => self.log.warn(format!("G-code {what} refused error={e}")),
         }
     }
 
@@ -616,9 +616,16 @@ impl GcodeLink {
     fn translate(&mut self, e: LineEvent, now: Micros) {
         match e {
             LineEvent::Connected(i) => {
-                info!(firmware = ?i.firmware_name, identity = ?i.identity, "G-code firmware connected");
+                self.log.info(format!(
+                    "G-code firmware connected firmware={:?} identity={:?}",
+                    i.firmware_name, i.identity
+                ));
                 if i.dialect == Dialect::Marlin && i.capability("EMERGENCY_PARSER") != Some(true) {
-                    warn!("Marlin without EMERGENCY_PARSER: M112 waits behind its queue (docs/firmware.md)");
+                    self.log.warn(
+                        "Marlin without EMERGENCY_PARSER: M112 waits behind its queue \
+                         (docs/firmware.md)"
+                            .into(),
+                    );
                 }
                 self.info = Some(i);
                 self.stop = Stop::None;
@@ -634,21 +641,23 @@ impl GcodeLink {
                 self.drain_accepted();
             }
             LineEvent::MaybeRepeated { tag, line_number } => {
-                warn!(
-                    tag,
-                    line_number,
-                    "no ok in time: line sent again; it runs twice if only its ok was lost"
-                );
+                self.log.warn(format!(
+                    "no ok in time: line sent again; it runs twice if only its ok was lost \
+                     tag={tag} line_number={line_number}"
+                ));
             }
-            LineEvent::Echo { text } => debug!(%text, "firmware"),
-            LineEvent::Action { text } => info!(%text, "firmware host action"),
-            LineEvent::Busy { text } => debug!(%text, "firmware busy"),
-            LineEvent::Error { text } => warn!(%text, "firmware error"),
+            LineEvent::Echo { text } => self.log.debug(format!("firmware text={text}")),
+            LineEvent::Action { text } => {
+                self.log.info(format!("firmware host action text={text}"))
+            }
+            LineEvent::Busy { text } => self.log.debug(format!("firmware busy text={text}")),
+            LineEvent::Error { text } => self.log.warn(format!("firmware error text={text}")),
             LineEvent::ProtocolError { what } => self.log_protocol_error(&what, now),
             LineEvent::Halted { text, .. } => self.on_halted(text),
             LineEvent::Reset { banner, .. } => self.on_reset(&banner, now),
             LineEvent::LinkLost { silent_us, .. } => {
-                warn!(silent_ms = silent_us / 1000, "G-code link lost");
+                self.log
+                    .warn(format!("G-code link lost silent_ms={}", silent_us / 1000));
                 self.events.push_back(Event::LinkSilent);
                 let sent = !self.pending.is_empty() || !self.accepted.is_empty();
                 if self.back_off(sent, now) {
@@ -661,7 +670,8 @@ impl GcodeLink {
                 }
             }
             LineEvent::Stopped { reason, .. } => {
-                warn!(%reason, "G-code link stopped");
+                self.log
+                    .warn(format!("G-code link stopped reason={reason}"));
                 self.events
                     .push_back(Event::MachineFault(MachineFault::Other(reason)));
                 if !self.back_off(false, now) {
@@ -677,9 +687,10 @@ impl GcodeLink {
         self.stop = Stop::Halted;
         self.forget();
         if asked {
-            info!(%text, "firmware halted on the e-stop");
+            self.log
+                .info(format!("firmware halted on the e-stop text={text}"));
         } else {
-            warn!(%text, "firmware halted");
+            self.log.warn(format!("firmware halted text={text}"));
             self.events
                 .push_back(Event::MachineFault(MachineFault::Other(format!(
                     "firmware halted: {text}"
@@ -693,7 +704,9 @@ impl GcodeLink {
         if std::mem::take(&mut self.port_closed) {
             return;
         }
-        warn!(%banner, "firmware restarted: its queue is lost");
+        self.log.warn(format!(
+            "firmware restarted: its queue is lost banner={banner}"
+        ));
         let last_executed = self.status.last_executed.map(|m| MoveAt {
             job_id: m.job_id,
             index: m.index,
@@ -708,10 +721,10 @@ impl GcodeLink {
     /// a firmware spewing them cannot flood the journal (200,000 in a burst were 22 MB).
     fn log_protocol_error(&mut self, what: &str, now: Micros) {
         let period_over = |last: Micros, now: Micros| now.since(last) >= PROTOCOL_LOG_EVERY_US;
-        if let Some(not_logged) =
-            super::streamer::log_now(&mut self.protocol_errors_logged, now, period_over)
+        if let Some(not_logged) = super::log_now(&mut self.protocol_errors_logged, now, period_over)
         {
-            warn!(%what, not_logged, "G-code link");
+            self.log
+                .warn(format!("G-code link what={what} not_logged={not_logged}"));
         }
     }
 
@@ -725,11 +738,12 @@ impl GcodeLink {
             return false;
         }
         let wait_us = (BACK_OFF_FIRST_US << (self.link_failures - 2).min(5)).min(BACK_OFF_MAX_US);
-        warn!(
-            failures = self.link_failures,
-            wait_ms = wait_us / 1000,
-            "G-code link: failed again with no line accepted; waiting before connecting again"
-        );
+        self.log.warn(format!(
+            "G-code link: failed again with no line accepted; waiting before connecting \
+             again failures={} wait_ms={}",
+            self.link_failures,
+            wait_us / 1000
+        ));
         self.recover_after_open = recover && self.recovery_useful();
         self.settle_until = Some(now.plus_us(wait_us));
         true
@@ -769,9 +783,13 @@ impl GcodeLink {
                 }
                 self.events
                     .push_back(Event::MachineStatus(report_of(&self.status)));
-                info!(tag, exact, "G-code link: last accepted line known");
+                self.log.info(format!(
+                    "G-code link: last accepted line known tag={tag} exact={exact}"
+                ));
             }
-            other => warn!(?other, "G-code link: last accepted line not known"),
+            other => self.log.warn(format!(
+                "G-code link: last accepted line not known other={other:?}"
+            )),
         }
         self.connect(now);
     }
@@ -784,13 +802,22 @@ impl GcodeLink {
             let tolerance_um = self.host.config().position_tolerance_um;
             match r.last_move_at(xyz_um, tolerance_um) {
                 Some(index) => {
-                    info!(job = r.job_id(), ran_through = index, ?xyz_um, "G-code link: where Klipper's nozzle stopped tells which of the interrupted job's moves ran");
+                    self.log.info(format!(
+                        "G-code link: where Klipper's nozzle stopped tells which of the \
+                         interrupted job's moves ran job={} ran_through={index} xyz_um={xyz_um:?}",
+                        r.job_id()
+                    ));
                     self.status.last_executed = Some(MoveRef {
                         job_id: r.job_id(),
                         index,
                     });
                 }
-                None => warn!(job = r.job_id(), ?xyz_um, "G-code link: Klipper's nozzle stopped where none of the interrupted job's last moves ends: the job resumes from its checkpoint"),
+                None => self.log.warn(format!(
+                    "G-code link: Klipper's nozzle stopped where none of the interrupted \
+                     job's last moves ends: the job resumes from its checkpoint job={} \
+                     xyz_um={xyz_um:?}",
+                    r.job_id()
+                )),
             }
             return;
         }
@@ -801,7 +828,11 @@ impl GcodeLink {
             ..
         } = *last
         else {
-            warn!(?last, job = r.job_id(), "G-code link: last accepted line not known after edod's restart: the job resumes from its checkpoint");
+            self.log.warn(format!(
+                "G-code link: last accepted line not known after edod's restart: the job \
+                 resumes from its checkpoint last={last:?} job={}",
+                r.job_id()
+            ));
             return;
         };
         let tolerance_um = self.host.config().position_tolerance_um;
@@ -809,13 +840,12 @@ impl GcodeLink {
             .filter(|_| !exact)
             .and_then(|at| r.last_move_by_position(line_number, at, tolerance_um));
         if let Some(ran_through) = by_position {
-            info!(
-                line_number,
-                job = r.job_id(),
-                ?ran_through,
-                ?position_um,
-                "G-code link: the nozzle's position tells which of the interrupted job's moves ran"
-            );
+            self.log.info(format!(
+                "G-code link: the nozzle's position tells which of the interrupted job's \
+                 moves ran line_number={line_number} job={} ran_through={ran_through:?} \
+                 position_um={position_um:?}",
+                r.job_id()
+            ));
             if let Some(index) = ran_through {
                 self.status.last_executed = Some(MoveRef {
                     job_id: r.job_id(),
@@ -830,22 +860,27 @@ impl GcodeLink {
             line_number.checked_sub(1)
         };
         let Some(index) = through.and_then(|l| r.last_move_through(l)) else {
-            info!(
-                line_number,
-                job = r.job_id(),
-                "G-code link: no move of the interrupted job ran in the last connection"
-            );
+            self.log.info(format!(
+                "G-code link: no move of the interrupted job ran in the last connection \
+                 line_number={line_number} job={}",
+                r.job_id()
+            ));
             return;
         };
         if exact {
-            info!(
-                line_number,
-                job = r.job_id(),
-                ran_through = index,
-                "G-code link: the firmware accepted the interrupted job's moves up to this one"
-            );
+            self.log.info(format!(
+                "G-code link: the firmware accepted the interrupted job's moves up to this \
+                 one line_number={line_number} job={} ran_through={index}",
+                r.job_id()
+            ));
         } else {
-            warn!(line_number, job = r.job_id(), ran_through = index, may_run_twice = index.saturating_add(1), "G-code link: RepRapFirmware's last line may be one it dropped: the move after the last known run is sent again and runs twice if it did run");
+            self.log.warn(format!(
+                "G-code link: RepRapFirmware's last line may be one it dropped: the move after \
+                 the last known run is sent again and runs twice if it did run \
+                 line_number={line_number} job={} ran_through={index} may_run_twice={}",
+                r.job_id(),
+                index.saturating_add(1)
+            ));
         }
         self.status.last_executed = Some(MoveRef {
             job_id: r.job_id(),
@@ -903,7 +938,7 @@ impl GcodeLink {
                 let why = "the firmware halted (M112): reset the machine (Marlin: its reset \
                            button; RRF: M999 or reset; Klipper: FIRMWARE_RESTART); edod \
                            reconnects when it restarts";
-                warn!("{why}");
+                self.log.warn(why.into());
                 self.events
                     .push_back(Event::MachineFault(MachineFault::Other(why.into())));
             }
@@ -1001,7 +1036,10 @@ impl LinkAdapter for GcodeLink {
 
     fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
         if self.settle_until.is_some() {
-            debug!(bytes = bytes.len(), "dropped: read before the handshake");
+            self.log.debug(format!(
+                "dropped: read before the handshake bytes={}",
+                bytes.len()
+            ));
             return;
         }
         self.host.handle_bytes(bytes, now);
@@ -1168,6 +1206,10 @@ impl LinkAdapter for GcodeLink {
             ..LinkStats::default()
         }
     }
+
+    fn poll_log(&mut self) -> Option<LogLine> {
+        self.log.pop()
+    }
 }
 
 #[cfg(test)]
@@ -1203,8 +1245,8 @@ mod tests {
 
     /// An adapter for Marlin (two syringes) and the Marlin model it talks to.
     /// A Klipper link's settings: two syringes on axes A and B.
-    fn klipper_config() -> super::super::config::GcodeLink {
-        super::super::config::GcodeLink {
+    fn klipper_config() -> crate::setup::GcodeLink {
+        crate::setup::GcodeLink {
             link: crate::gcode_link::LineLinkConfig::for_dialect(Dialect::Klipper),
             mix: MixWriting::Axes(vec!['A', 'B']),
             barrel_area_mm2: 78.5,
@@ -1214,7 +1256,7 @@ mod tests {
 
     fn marlin_rig() -> (GcodeLink, crate::gcode_link::Firmware) {
         use crate::gcode_link::{Firmware, FirmwareConfig, LineLinkConfig};
-        let cfg = super::super::config::GcodeLink {
+        let cfg = crate::setup::GcodeLink {
             link: LineLinkConfig::for_dialect(Dialect::Marlin),
             mix: MixWriting::MarlinM163,
             barrel_area_mm2: 78.5,
@@ -1329,6 +1371,46 @@ mod tests {
         assert_eq!(link.protocol_errors_logged, Some((Micros(0), 199_999)));
         link.translate(error(), Micros(10_000_000));
         assert_eq!(link.protocol_errors_logged, Some((Micros(10_000_000), 0)));
+        // What reaches edod's log: two lines, the second counting those not logged.
+        let lines: Vec<LogLine> = std::iter::from_fn(|| link.poll_log()).collect();
+        assert_eq!(lines.len(), 2, "{lines:?}");
+        assert!(lines
+            .iter()
+            .all(|l| l.level == crate::adapter::LogLevel::Warn));
+        assert!(lines[0].text.ends_with("not_logged=0"), "{}", lines[0].text);
+        assert!(
+            lines[1].text.ends_with("not_logged=199999"),
+            "{}",
+            lines[1].text
+        );
+    }
+
+    /// A firmware that floods the line with lines for the log while nobody takes them:
+    /// the adapter keeps the newest and says how many it dropped.
+    #[test]
+    fn log_lines_not_taken_are_bounded() {
+        let (mut link, _fw) = marlin_rig();
+        for k in 0..10_000u32 {
+            link.translate(
+                LineEvent::Echo {
+                    text: format!("echo {k}"),
+                },
+                Micros(0),
+            );
+        }
+        let lines: Vec<LogLine> = std::iter::from_fn(|| link.poll_log()).collect();
+        assert_eq!(lines.len(), crate::adapter::LOG_LINES_KEPT + 1);
+        assert_eq!(
+            lines[0].text,
+            format!(
+                "{} link log lines dropped (not taken in time)",
+                10_000 - crate::adapter::LOG_LINES_KEPT
+            )
+        );
+        assert_eq!(
+            lines.last().map(|l| l.text.as_str()),
+            Some("firmware text=echo 9999")
+        );
     }
 
     /// A firmware that refuses every line: after the first lost link, each next one waits
