@@ -1,8 +1,8 @@
 //! G-code streaming on a real pty: dry-run moves through `LineHost`
-//! (`edo::linktest_gcode`, what `edoctl link-test --protocol gcode` runs) to
+//! (`edo::cli::linktest_gcode`, what `edoctl link-test --protocol gcode` runs) to
 //! `hil-sim --gcode marlin|klipper|rrf` in this process, throttled to the baud, at 115200
 //! and 250000 baud, windowed and one line at a time (OctoPrint's way); beside them the
-//! edo protocol (`edo::linktest`) to hil-sim's edo mode on the same pty and baud.
+//! edo protocol (`edo::cli::linktest`) to hil-sim's edo mode on the same pty and baud.
 //! Prints one table (moves/s, windowed / one-at-a-time, share of the line's bytes used).
 //!
 //! `cargo bench --bench gcode_pty` streams 2,000 moves per case (about 2 min in all);
@@ -10,8 +10,8 @@
 
 use std::time::Duration;
 
+use edo::cli::linktest_gcode::{GcodeLinkTestConfig, GcodeLinkTestReport};
 use edo::gcode_link::{Dialect, Window};
-use edo::linktest_gcode::{GcodeLinkTestConfig, GcodeLinkTestReport};
 use hil_sim::{GcodeOptions, SimConfig};
 
 /// Moves executed this many times faster than wall time: the line sets the pace.
@@ -45,7 +45,7 @@ fn gcode_case(
         opts.command_slots = Some(16);
     }
     let sim = sim(baud, Some(opts), delay_ms);
-    let report = edo::linktest_gcode::run(&GcodeLinkTestConfig {
+    let report = edo::cli::linktest_gcode::run(&GcodeLinkTestConfig {
         port: sim.path().to_path_buf(),
         firmware,
         moves,
@@ -59,9 +59,9 @@ fn gcode_case(
     report
 }
 
-fn edo_case(baud: u32, moves: u32) -> edo::linktest::LinkTestReport {
+fn edo_case(baud: u32, moves: u32) -> edo::cli::linktest::LinkTestReport {
     let sim = sim(baud, None, 0);
-    let report = edo::linktest::run(&edo::linktest::LinkTestConfig {
+    let report = edo::cli::linktest::run(&edo::cli::linktest::LinkTestConfig {
         port: sim.path().to_path_buf(),
         moves,
         baud,

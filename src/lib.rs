@@ -30,8 +30,8 @@
 //!   replies and notifications out, of no wire protocol.
 //! - [`proto`]: the typed JSON-RPC API (`docs/api.md`) edod, edoctl and clients share.
 //!
-//! Around the core, behind the cargo feature `daemon` (on by default): `cli` and
-//! `linktest` do the command-line tools' I/O, and `daemon` is edod's tokio shell (socket
+//! Around the core, behind the cargo feature `daemon` (on by default): `cli` does
+//! the command-line tools' I/O, and `daemon` is edod's tokio shell (socket
 //! API, the job store on threads of its own, planner workers, the streamer that pumps
 //! the lifecycle and the link, supervision); only they and the binaries touch files,
 //! sockets and clocks. `cargo build --no-default-features` builds the core
@@ -48,10 +48,6 @@ pub mod geom;
 pub mod job;
 pub mod lifecycle;
 pub mod link;
-#[cfg(feature = "daemon")]
-pub mod linktest;
-#[cfg(feature = "daemon")]
-pub mod linktest_gcode;
 pub mod machine;
 pub mod material;
 pub mod mesh;

@@ -7,7 +7,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 /// Top-level modules of the I/O shell (feature `daemon`): they may use anything.
-const SHELL: [&str; 4] = ["daemon", "cli", "linktest", "linktest_gcode"];
+const SHELL: [&str; 2] = ["daemon", "cli"];
 
 /// Where module `from` names module `to`: file and line.
 type Edges = BTreeMap<String, BTreeMap<String, Vec<String>>>;

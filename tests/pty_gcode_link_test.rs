@@ -4,15 +4,15 @@
 
 use std::time::Duration;
 
+use edo::cli::linktest_gcode::{run, GcodeLinkTestConfig};
 use edo::gcode_link::{Dialect, Window};
-use edo::linktest_gcode::{run, GcodeLinkTestConfig};
 use hil_sim::{Faults, GcodeOptions, SimConfig};
 
 fn test_on(
     firmware: Dialect,
     faults: &str,
     moves: u32,
-) -> edo::linktest_gcode::GcodeLinkTestReport {
+) -> edo::cli::linktest_gcode::GcodeLinkTestReport {
     let sim = hil_sim::spawn(SimConfig {
         speed: 200.0,
         seed: 3,

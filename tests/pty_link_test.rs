@@ -2,7 +2,7 @@
 
 use std::time::Duration;
 
-use edo::linktest::{run, LinkTestConfig};
+use edo::cli::linktest::{run, LinkTestConfig};
 use hil_sim::{Faults, SimConfig};
 
 #[test]

@@ -310,7 +310,7 @@ fn gcode_link_test(
                 .ok_or_else(|| anyhow::anyhow!("--window {n:?}: auto, advanced-ok or 1 to 64"))?,
         ),
     };
-    let report = edo::linktest_gcode::run(&edo::linktest_gcode::GcodeLinkTestConfig {
+    let report = edo::cli::linktest_gcode::run(&edo::cli::linktest_gcode::GcodeLinkTestConfig {
         port,
         firmware,
         moves,
@@ -331,7 +331,7 @@ fn gcode_link_test(
 }
 
 fn link_test(port: PathBuf, moves: u32, baud: u32, json: bool) -> anyhow::Result<ExitCode> {
-    let report = edo::linktest::run(&edo::linktest::LinkTestConfig {
+    let report = edo::cli::linktest::run(&edo::cli::linktest::LinkTestConfig {
         port,
         moves,
         baud,

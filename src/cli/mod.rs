@@ -4,5 +4,7 @@
 pub mod client;
 pub mod demo;
 pub mod gcode;
+pub mod linktest;
+pub mod linktest_gcode;
 pub mod mixer;
 pub mod plan;

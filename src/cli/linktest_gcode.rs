@@ -5,7 +5,7 @@
 //! Dry-run moves are relative (`G91`) `G1 X±0.001 Y0 Z0 E0 F1800`: the head moves a
 //! micrometre back and forth, nothing is extruded, and every line has the size of a real
 //! extrusion move (about 50 bytes with its number and checksum). Positioning goes back
-//! to absolute (`G90`) at the end. I/O is blocking, as in [`crate::linktest`].
+//! to absolute (`G90`) at the end. I/O is blocking, as in [`super::linktest`].
 
 use std::io::{ErrorKind, Read, Write};
 use std::path::PathBuf;
@@ -13,10 +13,10 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
+use super::linktest::LinkTestError;
 use crate::gcode_link::{
     estop_bytes_for, Dialect, LineEvent, LineHost, LineLinkConfig, LinkState, Micros, Window,
 };
-use crate::linktest::LinkTestError;
 
 /// What to test.
 #[derive(Debug, Clone)]
