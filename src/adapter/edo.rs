@@ -27,6 +27,18 @@ pub struct EdoLink {
     status: Status,
     /// Lines for the daemon's log.
     log: LogQueue,
+    /// The stops sent and not acknowledged: a flush, e-stops. The link has one e-stop
+    /// (a flush is one); its acknowledgement answers each of them.
+    stops_unacked: StopsUnacked,
+    /// Events to give before the link's next.
+    events: std::collections::VecDeque<Event>,
+}
+
+/// Stops sent on the priority lane and not acknowledged yet.
+#[derive(Debug, Default, Clone, Copy)]
+struct StopsUnacked {
+    flush: bool,
+    estop: bool,
 }
 
 fn state_of(s: MachineState) -> State {
@@ -75,6 +87,8 @@ impl EdoLink {
             info: None,
             status: Status::default(),
             log: LogQueue::default(),
+            stops_unacked: StopsUnacked::default(),
+            events: std::collections::VecDeque::new(),
         }
     }
 
@@ -121,6 +135,9 @@ impl EdoLink {
                 self.log.info("link restored".into());
                 Event::LinkRestored
             }
+            HostEvent::PriorityAcked(PriorityCmd::EmergencyStop) => {
+                return self.stop_acked();
+            }
             HostEvent::PriorityAcked(cmd) => Event::CommandAcked(command_of(cmd)),
             HostEvent::Incompatible { machine_version } => {
                 self.log.warn(format!(
@@ -129,6 +146,23 @@ impl EdoLink {
                 Event::MachineIncompatible
             }
         })
+    }
+}
+
+impl EdoLink {
+    /// The e-stop's acknowledgement answers every stop sent (a flush and an e-stop sent
+    /// together are one stop of the machine); one with none sent answers an e-stop.
+    fn stop_acked(&mut self) -> Option<Event> {
+        let sent = std::mem::take(&mut self.stops_unacked);
+        if sent.flush {
+            self.events
+                .push_back(Event::CommandAcked(MachineCommand::Flush));
+        }
+        if sent.estop || !sent.flush {
+            self.events
+                .push_back(Event::CommandAcked(MachineCommand::EmergencyStop));
+        }
+        self.events.pop_front()
     }
 }
 
@@ -161,6 +195,9 @@ impl LinkAdapter for EdoLink {
 
     /// The next lifecycle event from the link, if any.
     fn poll_event(&mut self, now: Micros) -> Option<Event> {
+        if let Some(e) = self.events.pop_front() {
+            return Some(e);
+        }
         loop {
             let e = self.host.poll_event()?;
             if let Some(e) = self.translate(e, now) {
@@ -173,9 +210,14 @@ impl LinkAdapter for EdoLink {
     /// queued (the priority lane); clearing faults and a status query are in order with
     /// the moves, and are dropped while the link is not connected (the lifecycle asks
     /// again after a reconnection).
-    fn command(&mut self, c: MachineCommand, _flushing: bool, now: Micros) {
+    fn command(&mut self, c: MachineCommand, now: Micros) {
         match c {
             MachineCommand::EmergencyStop => {
+                self.stops_unacked.estop = true;
+                self.host.priority(PriorityCmd::EmergencyStop, now);
+            }
+            MachineCommand::Flush => {
+                self.stops_unacked.flush = true;
                 self.host.priority(PriorityCmd::EmergencyStop, now);
             }
             MachineCommand::FeedHold => {
@@ -234,4 +276,87 @@ impl LinkAdapter for EdoLink {
 /// The link's settings for a line of `baud`.
 pub fn link_config(baud: u32) -> LinkConfig {
     LinkConfig::default().with_priority_latency(baud, crate::link::PRIORITY_LATENCY_US)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::link::{MachineLink, MachineLinkConfig};
+
+    /// Bytes both ways between the adapter and a machine end over an instant wire,
+    /// until both are quiet; the adapter's events.
+    fn pump(link: &mut EdoLink, machine: &mut MachineLink, now: Micros) -> Vec<Event> {
+        let mut events = Vec::new();
+        for _ in 0..50 {
+            let mut quiet = true;
+            link.handle_timeout(now);
+            while let Some(b) = link.poll_transmit(now) {
+                machine.handle_bytes(&b, now);
+                quiet = false;
+            }
+            machine.handle_timeout(now);
+            while machine.poll_event().is_some() {}
+            while let Some(t) = machine.poll_transmit(now) {
+                link.handle_bytes(&t.bytes, now);
+                quiet = false;
+            }
+            events.extend(std::iter::from_fn(|| link.poll_event(now)));
+            if quiet {
+                break;
+            }
+        }
+        events
+    }
+
+    fn connected() -> (EdoLink, MachineLink) {
+        let mut link = EdoLink::new(LinkConfig::default(), 7, Micros(0));
+        let mut machine = MachineLink::new(MachineLinkConfig::default(), Micros(0));
+        link.reconnect(Micros(0));
+        let events = pump(&mut link, &mut machine, Micros(1_000));
+        assert!(
+            matches!(events.first(), Some(Event::MachineConnected(_))),
+            "{events:?}"
+        );
+        let line = link.poll_log().map(|l| l.text).unwrap_or_default();
+        assert!(
+            line.starts_with("machine connected identity=edo machine"),
+            "{line}"
+        );
+        (link, machine)
+    }
+
+    fn acks(events: &[Event]) -> Vec<MachineCommand> {
+        events
+            .iter()
+            .filter_map(|e| match e {
+                Event::CommandAcked(c) => Some(*c),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// The lifecycle's flush and an operator's e-stop are both the link's e-stop, and
+    /// each is acknowledged as itself: a flush never answers an e-stop.
+    #[test]
+    fn a_flush_and_an_estop_are_each_acknowledged_as_themselves() {
+        let (mut link, mut machine) = connected();
+        link.command(MachineCommand::Flush, Micros(2_000));
+        let events = pump(&mut link, &mut machine, Micros(2_000));
+        assert_eq!(acks(&events), [MachineCommand::Flush]);
+        link.command(MachineCommand::Resume, Micros(3_000));
+        let events = pump(&mut link, &mut machine, Micros(3_000));
+        assert_eq!(acks(&events), [MachineCommand::Resume]);
+        link.command(MachineCommand::EmergencyStop, Micros(4_000));
+        let events = pump(&mut link, &mut machine, Micros(4_000));
+        assert_eq!(acks(&events), [MachineCommand::EmergencyStop]);
+        // Both before the machine answers: its one stop answers both.
+        link.command(MachineCommand::Resume, Micros(5_000));
+        pump(&mut link, &mut machine, Micros(5_000));
+        link.command(MachineCommand::Flush, Micros(6_000));
+        link.command(MachineCommand::EmergencyStop, Micros(6_000));
+        let events = pump(&mut link, &mut machine, Micros(6_000));
+        let got = acks(&events);
+        assert!(got.contains(&MachineCommand::Flush), "{got:?}");
+        assert!(got.contains(&MachineCommand::EmergencyStop), "{got:?}");
+    }
 }

@@ -534,7 +534,9 @@ impl GcodeLink {
         }
         let tag = self.next_tag;
         let line_number = self.host.next_line_number();
-        if self.host.send_line("M400", tag).is_ok() {
+        // Timed: its `ok` is overdue once every move the planner may hold had its time,
+        // so a firmware gone silent under an `M400` is found as soon as under a move.
+        if self.host.send_timed_line("M400", tag, 0).is_ok() {
             self.next_tag += 1;
             if let Some(m) = self.marks.as_mut() {
                 if let Some(last) = m.last_sent {
@@ -573,7 +575,7 @@ impl GcodeLink {
         changed
     }
 
-    /// The flush is done once nothing is in flight: acknowledged as the e-stop.
+    /// The flush is done once nothing is in flight.
     fn check_flushed(&mut self) {
         if self.stop == (Stop::Flushing { acked: false })
             && self.host.in_flight_len() == 0
@@ -584,7 +586,7 @@ impl GcodeLink {
             self.pending.clear();
             self.update_state();
             self.events
-                .push_back(Event::CommandAcked(MachineCommand::EmergencyStop));
+                .push_back(Event::CommandAcked(MachineCommand::Flush));
         }
     }
 
@@ -901,7 +903,7 @@ impl GcodeLink {
         if self.stop == Stop::Halted || self.host.state() != LinkState::Streaming {
             self.forget();
             self.events
-                .push_back(Event::CommandAcked(MachineCommand::EmergencyStop));
+                .push_back(Event::CommandAcked(MachineCommand::Flush));
             if self.stop != Stop::Halted {
                 self.stop = Stop::Flushing { acked: true };
             }
@@ -1096,9 +1098,9 @@ impl LinkAdapter for GcodeLink {
         self.events.pop_front()
     }
 
-    fn command(&mut self, c: MachineCommand, flushing: bool, _now: Micros) {
+    fn command(&mut self, c: MachineCommand, _now: Micros) {
         match c {
-            MachineCommand::EmergencyStop if flushing => self.flush(),
+            MachineCommand::Flush => self.flush(),
             MachineCommand::EmergencyStop => self.emergency_stop(),
             MachineCommand::FeedHold => {
                 self.paused = true;
@@ -1515,15 +1517,15 @@ mod tests {
             assert!(t < 10_000_000, "did not connect: {events:?}");
             pump(&mut link, &mut fw, Micros(t), true, &mut events);
         }
-        link.command(MachineCommand::EmergencyStop, false, Micros(t));
+        link.command(MachineCommand::EmergencyStop, Micros(t));
         for _ in 0..10 {
             t += 1000;
             pump(&mut link, &mut fw, Micros(t), true, &mut events);
         }
         assert!(fw.is_halted());
         events.clear();
-        link.command(MachineCommand::ClearFaults, false, Micros(t));
-        link.command(MachineCommand::Resume, false, Micros(t));
+        link.command(MachineCommand::ClearFaults, Micros(t));
+        link.command(MachineCommand::Resume, Micros(t));
         pump(&mut link, &mut fw, Micros(t + 1000), true, &mut events);
         assert!(
             !events

@@ -102,11 +102,10 @@ pub trait LinkAdapter: Send {
     fn poll_transmit(&mut self, now: Micros) -> Option<Vec<u8>>;
     /// The next lifecycle event from the link, if any.
     fn poll_event(&mut self, now: Micros) -> Option<Event>;
-    /// Carry out a machine command. `flushing`: the lifecycle stops the machine to make
-    /// the active job's checkpoint final before it restarts or parks (its phase is
-    /// `Flushing`), not for an operator's e-stop or a fault; a link whose e-stop cannot
-    /// be undone from the host (G-code's `M112`) flushes without it.
-    fn command(&mut self, c: MachineCommand, flushing: bool, now: Micros);
+    /// Carry out a machine command; its acknowledgement, if it has one, is
+    /// [`Event::CommandAcked`] of the same command ([`MachineCommand::Flush`]'s never
+    /// answers an e-stop, and the other way round).
+    fn command(&mut self, c: MachineCommand, now: Micros);
     /// Whether the link takes another move now (`ahead`: moves it may hold unsent).
     fn has_room(&self, ahead: usize) -> bool;
     /// A job ended (done, cancelled or failed): a link may end the firmware's job state

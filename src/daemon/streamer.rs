@@ -29,7 +29,7 @@ use crate::adapter::GcodeLink;
 use crate::adapter::{link_config, EdoLink};
 use crate::adapter::{log_now, LinkAdapter};
 use crate::lifecycle::{
-    Action, Answer, Command, Event, JobState, Level, Lifecycle, MachineCommand, Options, Phase,
+    Action, Answer, Command, Event, JobState, Level, Lifecycle, MachineCommand, Options,
     PlannerOutput, Progress, Refusal, RefusalKind, RequestId, ServiceMoves, StateNote, Underrun,
 };
 use crate::link::Micros;
@@ -438,8 +438,7 @@ impl Streamer {
             match a {
                 Action::Machine(c) => {
                     let now = self.now();
-                    let flushing = matches!(self.lc.phase(), Some(Phase::Flushing { .. }));
-                    self.link.command(c, flushing, now);
+                    self.link.command(c, now);
                 }
                 Action::StartPlanner {
                     job_id,

@@ -645,8 +645,9 @@ impl LineHost {
     }
 
     /// [`LineHost::send_line`] for a line the caller knows the firmware's time for:
-    /// `runs_us`, a move's time at its feed or a dwell's length (`G4`); other commands
-    /// (not slow ones, `G28`, `M400`, heating: those keep their timeout) answer at once.
+    /// `runs_us`, a move's time at its feed or a dwell's length (`G4`); `M400` waits
+    /// like a dwell of no length (for every move the planner holds); other commands (not
+    /// slow ones, `G28`, heating: those keep their timeout) answer at once.
     /// Its `ok` is then due within what it may wait for (Marlin: the longest of the last
     /// `planner_moves` moves, for a free planner block; a dwell: all of them and itself)
     /// times `ok_overdue_factor`, plus `ok_overdue_floor_us`; past that, with every line
@@ -657,6 +658,7 @@ impl LineHost {
         let runs = match command_word(text).as_deref() {
             Some("G0" | "G1" | "G2" | "G3") => Runs::Move(runs_us),
             Some("G4") => Runs::Dwell(runs_us),
+            Some("M400") => Runs::Dwell(0),
             _ if self.is_slow(text) => Runs::Unknown,
             _ => Runs::Instant,
         };

@@ -1448,6 +1448,13 @@ fn a_timed_lines_lost_ok_is_probed_once_overdue() {
         h.next_timeout(),
         Some(sent_at.plus_us(2 * (220_000 + 5_000_000) + floor))
     );
+    // edod's `M400` (a slow command, 900 s untimed) waits like a dwell of no length: a
+    // firmware gone silent under it is probed as soon as under a move.
+    feed(&mut h, "ok\n", sent_at);
+    h.send_timed_line("M400", 5, 0).unwrap();
+    let m400_at = sent_at.plus_us(1_000);
+    tx(&mut h, m400_at);
+    assert_eq!(h.next_timeout(), Some(m400_at.plus_us(2 * 220_000 + floor)));
     // Untimed lines keep the timeouts.
     let mut h = connected(Dialect::Marlin);
     h.send_line("G1 X1", 0).unwrap();

@@ -49,7 +49,7 @@ impl Lifecycle {
         if phase == Phase::Streaming {
             self.start_planner();
         } else {
-            self.machine(MachineCommand::EmergencyStop);
+            self.machine(MachineCommand::Flush);
         }
         let state = if fresh {
             JobState::Planning
@@ -69,7 +69,7 @@ impl Lifecycle {
         a.phase = Phase::Flushing { acked: false, then };
         // The planner starts again once the flush has made the checkpoint final.
         self.stop_planner();
-        self.machine(MachineCommand::EmergencyStop);
+        self.machine(MachineCommand::Flush);
     }
 
     pub(super) fn start_planner(&mut self) {

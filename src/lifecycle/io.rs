@@ -64,6 +64,12 @@ pub enum MachineFault {
 pub enum MachineCommand {
     /// Stop now and drop the queue (moves arriving until `Resume` are dropped too).
     EmergencyStop,
+    /// Make the active job's checkpoint final before it restarts or parks: the machine
+    /// stops with nothing queued and reports `EStopped` (its last executed move is then
+    /// final) until `Resume`. The edo link e-stops; a G-code firmware, whose `M112` only
+    /// a reset undoes, drops the lines not sent and runs those in flight. Acknowledged
+    /// as itself, never as an operator's e-stop.
+    Flush,
     /// Hold at the next move boundary, keeping the queue.
     FeedHold,
     /// Leave feed hold or emergency stop.
@@ -171,8 +177,8 @@ pub enum Event {
     },
     /// The machine speaks a protocol we do not.
     MachineIncompatible,
-    /// The machine confirmed a command ([`MachineCommand::EmergencyStop`] or
-    /// [`MachineCommand::Resume`] matter).
+    /// The machine confirmed a command ([`MachineCommand::Flush`] and
+    /// [`MachineCommand::Resume`] move a restart on; an e-stop's is the operator's).
     CommandAcked(MachineCommand),
     /// The link would not take a move [`super::Lifecycle::poll_move`] gave.
     MoveRefused {

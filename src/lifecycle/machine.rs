@@ -185,7 +185,7 @@ impl Lifecycle {
             return;
         };
         match (a.phase, cmd) {
-            (Phase::Flushing { acked: false, then }, MachineCommand::EmergencyStop) => {
+            (Phase::Flushing { acked: false, then }, MachineCommand::Flush) => {
                 a.phase = Phase::Flushing { acked: true, then };
                 self.machine(MachineCommand::QueryStatus);
             }

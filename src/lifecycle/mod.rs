@@ -26,8 +26,10 @@
 //! resume, and done, failed or cancelled at the end. Underneath, the active job is in
 //! one [`Phase`]: restarting it from its checkpoint (after a reset, a lost link, an
 //! e-stop, an edod restart, or a syringe refill) is one procedure:
-//! 1. *flush*: e-stop (the machine drops its queue and aborts the current move), wait for
-//!    the acknowledgement and for a status in `EStopped`: its last executed move is final;
+//! 1. *flush* ([`MachineCommand::Flush`]: the edo machine e-stops, dropping its queue
+//!    and aborting the current move; a G-code firmware runs the lines in flight), wait
+//!    for its acknowledgement and for a status in `EStopped`: the last executed move is
+//!    final;
 //! 2. *release*: clear faults, resume, wait for its acknowledgement;
 //! 3. *prelude*: service moves (job id 0): home, prime, travel (lifted) to where the last
 //!    executed move ended, layer mark;
@@ -416,7 +418,7 @@ impl Lifecycle {
     }
 
     fn machine(&mut self, c: MachineCommand) {
-        if c == MachineCommand::EmergencyStop {
+        if matches!(c, MachineCommand::EmergencyStop | MachineCommand::Flush) {
             // Service moves not yet sent are for a state the stop ends.
             self.outbox.clear();
         }

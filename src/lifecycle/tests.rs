@@ -288,7 +288,7 @@ impl Rig {
     fn machine_does(&mut self, c: MachineCommand) {
         let m = &mut self.machine;
         match c {
-            MachineCommand::EmergencyStop => {
+            MachineCommand::EmergencyStop | MachineCommand::Flush => {
                 m.state = MachineState::EStopped;
                 m.queue.clear();
             }
@@ -480,12 +480,12 @@ fn a_job_on_a_machine_not_idle_starts_with_a_flush() {
     rig.machine.faults = 4;
     rig.submit(1);
     rig.connect();
-    // E-stop, ack, query, EStopped status, clear + resume, ack: prelude then the job.
+    // Flush, ack, query, EStopped status, clear + resume, ack: prelude then the job.
     assert_eq!(rig.lc.phase(), Some(Phase::Streaming));
     assert_eq!(
         rig.commands,
         [
-            MachineCommand::EmergencyStop,
+            MachineCommand::Flush,
             MachineCommand::QueryStatus,
             MachineCommand::ClearFaults,
             MachineCommand::Resume
@@ -643,7 +643,7 @@ fn an_estop_during_a_resume_stops_it_there() {
         let r = rig.command(Command::Resume(1));
         assert_eq!(rig.applied(r).state, JobState::Printing);
         if release_first {
-            rig.feed(Event::CommandAcked(MachineCommand::EmergencyStop));
+            rig.feed(Event::CommandAcked(MachineCommand::Flush));
             let report = rig.machine.report();
             rig.feed(Event::MachineStatus(report));
             assert_eq!(
@@ -657,6 +657,7 @@ fn an_estop_during_a_resume_stops_it_there() {
         assert_eq!(rig.reply(e), Some(Ok(Answer::Done)));
         assert_eq!(rig.lc.phase(), Some(Phase::Interrupted));
         // The acknowledgements that come late change nothing.
+        rig.feed(Event::CommandAcked(MachineCommand::Flush));
         rig.feed(Event::CommandAcked(MachineCommand::EmergencyStop));
         rig.feed(Event::CommandAcked(MachineCommand::Resume));
         assert_eq!(rig.lc.phase(), Some(Phase::Interrupted));
@@ -1107,7 +1108,7 @@ fn restarting_rig(then: Command, acks: u8) -> Rig {
     r.machine.answers = false;
     r.command(then);
     if acks >= 1 {
-        r.feed(Event::CommandAcked(MachineCommand::EmergencyStop));
+        r.feed(Event::CommandAcked(MachineCommand::Flush));
     }
     if acks >= 2 {
         let report = r.machine.report();
@@ -1349,6 +1350,7 @@ fn every_event(run: u64) -> Vec<Event> {
     ];
     for c in [
         MachineCommand::EmergencyStop,
+        MachineCommand::Flush,
         MachineCommand::FeedHold,
         MachineCommand::Resume,
         MachineCommand::ClearFaults,
@@ -1698,7 +1700,7 @@ fn on_a_full_disk_a_cancel_of_the_active_job_stops_it_and_says_it_is_not_on_disk
         "{}",
         refusal.message
     );
-    assert!(rig.commands.contains(&MachineCommand::EmergencyStop));
+    assert!(rig.commands.contains(&MachineCommand::Flush));
     rig.run(10);
     rig.write_all();
     rig.auto_store = true;
