@@ -5,16 +5,13 @@
 //! G-code firmware link is the second adapter of the same shape
 //! ([`super::GcodeLink`], both behind [`LinkAdapter`]).
 
-use crate::lifecycle::{
-    Event, MachineCommand, MachineFault, MachineReport, MachineState as State, MoveAt,
-};
+use crate::lifecycle::{Event, MachineCommand, MachineFault};
 use crate::link::{
-    FaultKind, Host, HostEvent, HostState, LinkConfig, LinkStats, MachineInfo, MachineState,
-    Micros, MoveRef, PriorityCmd, Status,
+    FaultKind, Host, HostEvent, HostState, LinkConfig, MachineInfo, Micros, PriorityCmd, Status,
 };
-use crate::machine::Move;
+use crate::machine::{MachineReport, Move};
 
-use super::{LinkAdapter, LogLine, LogQueue};
+use super::{LinkAdapter, LinkCounters, LogLine, LogQueue};
 
 /// The edo link under the lifecycle.
 pub struct EdoLink {
@@ -23,8 +20,8 @@ pub struct EdoLink {
     seed: u64,
     /// The machine, as its handshake said.
     info: Option<MachineInfo>,
-    /// Its last status.
-    status: Status,
+    /// Its last report.
+    report: MachineReport,
     /// Lines for the daemon's log.
     log: LogQueue,
     /// The stops sent and not acknowledged: a flush, e-stops. The link has one e-stop
@@ -41,28 +38,12 @@ struct StopsUnacked {
     estop: bool,
 }
 
-fn state_of(s: MachineState) -> State {
-    match s {
-        MachineState::Idle => State::Idle,
-        MachineState::Running => State::Running,
-        MachineState::Held => State::Held,
-        MachineState::EStopped => State::EStopped,
-        MachineState::Faulted => State::Faulted,
-    }
-}
-
-fn move_at(m: MoveRef) -> MoveAt {
-    MoveAt {
-        job_id: m.job_id,
-        index: m.index,
-    }
-}
-
-/// A status report in the lifecycle's words.
+/// The edo link's status report as the machine's report.
 pub fn report_of(s: &Status) -> MachineReport {
     MachineReport {
-        state: state_of(s.state),
-        last_executed: s.last_executed.map(move_at),
+        state: s.state,
+        last_executed: s.last_executed,
+        executed_total: s.executed_total,
         queued: u32::from(s.queued),
         faults: s.faults,
         position: s.position,
@@ -85,7 +66,7 @@ impl EdoLink {
             host: Host::new(cfg, seed, now),
             seed,
             info: None,
-            status: Status::default(),
+            report: MachineReport::default(),
             log: LogQueue::default(),
             stops_unacked: StopsUnacked::default(),
             events: std::collections::VecDeque::new(),
@@ -99,15 +80,13 @@ impl EdoLink {
                     "machine connected identity={} boot_id={} last={:?}",
                     i.identity, i.boot_id, i.status.last_executed
                 ));
-                self.status = i.status.clone();
-                let report = report_of(&i.status);
+                self.report = report_of(&i.status);
                 self.info = Some(i);
-                Event::MachineConnected(report)
+                Event::MachineConnected(self.report.clone())
             }
             HostEvent::Status(s) => {
-                let report = report_of(&s);
-                self.status = s;
-                Event::MachineStatus(report)
+                self.report = report_of(&s);
+                Event::MachineStatus(self.report.clone())
             }
             HostEvent::Fault(f) => {
                 self.log
@@ -122,9 +101,7 @@ impl EdoLink {
                 // The link never resumes a session silently: a new one starts now.
                 self.seed = self.seed.wrapping_add(1);
                 self.host.reconnect(self.seed, now);
-                Event::MachineReset {
-                    last_executed: last_executed.map(move_at),
-                }
+                Event::MachineReset { last_executed }
             }
             HostEvent::LinkLost { silent_us } => {
                 self.log
@@ -256,14 +233,20 @@ impl LinkAdapter for EdoLink {
         self.info.as_ref().map(|i| i.identity.as_str())
     }
 
-    /// Its last status.
-    fn status(&self) -> &Status {
-        &self.status
+    /// Its last report.
+    fn report(&self) -> &MachineReport {
+        &self.report
     }
 
     /// The link's counters.
-    fn stats(&self) -> LinkStats {
-        self.host.stats()
+    fn counters(&self) -> LinkCounters {
+        let s = self.host.stats();
+        LinkCounters {
+            bytes_sent: s.bytes_sent,
+            bytes_received: s.bytes_received,
+            resent: s.frames_retransmitted,
+            srtt_us: Some(s.srtt_us),
+        }
     }
 
     fn port_lost(&mut self) {}

@@ -35,12 +35,14 @@ use crate::gcode_link::writer::{GcodeSettings, MoveWriter};
 use crate::gcode_link::{
     Dialect, FirmwareInfo, LastAccepted, LineEvent, LineHost, LinkState, NozzleAt,
 };
-use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveAt};
-use crate::link::{LinkStats, MachineState, Micros, MoveRef, Status};
+use crate::lifecycle::{Event, MachineCommand, MachineFault, MoveRef};
+use crate::link::Micros;
+use crate::machine::{MachineReport, MachineState};
 use crate::machine::{Move, MoveKind};
 
-use super::edo::report_of;
-use super::{GcodeMark, GcodeMarkKind, GcodeMarkWrite, LinkAdapter, LogLine, LogQueue};
+use super::{
+    GcodeMark, GcodeMarkKind, GcodeMarkWrite, LinkAdapter, LinkCounters, LogLine, LogQueue,
+};
 
 use crate::gcode_link::writer::streamed;
 
@@ -87,7 +89,9 @@ pub struct GcodeLink {
     accepted: VecDeque<Pending>,
     /// Moves the firmware's queue and planner hold at most.
     held_at_most: usize,
-    status: Status,
+    /// The machine as far as the host can tell (what ran: what the firmware accepted
+    /// behind its queue).
+    status: MachineReport,
     info: Option<FirmwareInfo>,
     events: VecDeque<Event>,
     stop: Stop,
@@ -363,9 +367,9 @@ impl GcodeLink {
                 let f = crate::gcode_link::FirmwareConfig::for_dialect(cfg.link.dialect);
                 f.command_slots + f.planner_blocks
             },
-            status: Status {
+            status: MachineReport {
                 remaining_nl: vec![capacity_nl; drives],
-                ..Status::default()
+                ..MachineReport::default()
             },
             info: None,
             events: VecDeque::new(),
@@ -474,7 +478,7 @@ impl GcodeLink {
         moved |= self.update_state();
         if moved {
             self.events
-                .push_back(Event::MachineStatus(report_of(&self.status)));
+                .push_back(Event::MachineStatus(self.status.clone()));
         }
         self.check_flushed();
         self.release_axes_if_idle();
@@ -568,7 +572,7 @@ impl GcodeLink {
             _ if moves > 0 => MachineState::Running,
             _ => MachineState::Idle,
         };
-        let queued = u16::try_from(moves).unwrap_or(u16::MAX);
+        let queued = u32::try_from(moves).unwrap_or(u32::MAX);
         let changed = state != self.status.state || queued != self.status.queued;
         self.status.state = state;
         self.status.queued = queued;
@@ -635,7 +639,7 @@ impl GcodeLink {
                 self.send_prologue();
                 self.update_state();
                 self.events
-                    .push_back(Event::MachineConnected(report_of(&self.status)));
+                    .push_back(Event::MachineConnected(self.status.clone()));
             }
             LineEvent::Accepted { tag, .. } => {
                 self.link_failures = 0;
@@ -699,7 +703,7 @@ impl GcodeLink {
                 ))));
         }
         self.events
-            .push_back(Event::MachineStatus(report_of(&self.status)));
+            .push_back(Event::MachineStatus(self.status.clone()));
     }
 
     fn on_reset(&mut self, banner: &str, now: Micros) {
@@ -709,10 +713,7 @@ impl GcodeLink {
         self.log.warn(format!(
             "firmware restarted: its queue is lost banner={banner}"
         ));
-        let last_executed = self.status.last_executed.map(|m| MoveAt {
-            job_id: m.job_id,
-            index: m.index,
-        });
+        let last_executed = self.status.last_executed;
         self.events.push_back(Event::MachineReset { last_executed });
         self.stop = Stop::None;
         self.connect(now);
@@ -784,7 +785,7 @@ impl GcodeLink {
                     self.ran(a);
                 }
                 self.events
-                    .push_back(Event::MachineStatus(report_of(&self.status)));
+                    .push_back(Event::MachineStatus(self.status.clone()));
                 self.log.info(format!(
                     "G-code link: last accepted line known tag={tag} exact={exact}"
                 ));
@@ -1114,7 +1115,7 @@ impl LinkAdapter for GcodeLink {
             MachineCommand::QueryStatus => {
                 self.update_state();
                 self.events
-                    .push_back(Event::MachineStatus(report_of(&self.status)));
+                    .push_back(Event::MachineStatus(self.status.clone()));
             }
         }
     }
@@ -1191,7 +1192,7 @@ impl LinkAdapter for GcodeLink {
             }))
     }
 
-    fn status(&self) -> &Status {
+    fn report(&self) -> &MachineReport {
         &self.status
     }
 
@@ -1199,13 +1200,13 @@ impl LinkAdapter for GcodeLink {
         self.marks.as_mut()?.out.pop_front()
     }
 
-    fn stats(&self) -> LinkStats {
+    fn counters(&self) -> LinkCounters {
         let s = self.host.stats();
-        LinkStats {
+        LinkCounters {
             bytes_sent: s.bytes_sent,
             bytes_received: s.bytes_received,
-            frames_retransmitted: s.lines_resent + s.lines_repeated,
-            ..LinkStats::default()
+            resent: s.lines_resent + s.lines_repeated,
+            srtt_us: None,
         }
     }
 
@@ -1468,7 +1469,7 @@ mod tests {
             }
             ran += pump(&mut link, &mut fw, Micros(t), true, &mut events);
         }
-        let counted = link.status().last_executed.map(|m| m.index);
+        let counted = link.report().last_executed.map(|m| m.index);
         assert!(
             counted.is_some_and(|i| i + 1 < 40),
             "before the cable is pulled, the checkpoint trails the firmware: {counted:?}"

@@ -9,8 +9,8 @@
 use std::collections::VecDeque;
 
 use crate::lifecycle::{Event, MachineCommand};
-use crate::link::{LinkStats, Micros, Status};
-use crate::machine::Move;
+use crate::link::Micros;
+use crate::machine::{MachineReport, Move};
 
 mod edo;
 mod gcode;
@@ -19,6 +19,19 @@ mod marks;
 pub use edo::{link_config, report_of, EdoLink};
 pub use gcode::{GcodeLink, ResumeLines};
 pub use marks::{GcodeMark, GcodeMarkKind, GcodeMarkWrite};
+
+/// What a link counts, whatever its protocol.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct LinkCounters {
+    /// Bytes written to the port.
+    pub bytes_sent: u64,
+    /// Bytes read from it.
+    pub bytes_received: u64,
+    /// Frames (edo link) or lines (G-code) sent again.
+    pub resent: u64,
+    /// Smoothed round-trip time, µs, where the link measures one (the edo link).
+    pub srtt_us: Option<u64>,
+}
 
 /// How much a [`LogLine`] matters (the shell logs it at this level).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -117,10 +130,11 @@ pub trait LinkAdapter: Send {
     fn in_link(&self) -> (usize, u64);
     /// The machine's identity, once it answered.
     fn identity(&self) -> Option<&str>;
-    /// Its last status (for the machine snapshot; the lifecycle has its own copy).
-    fn status(&self) -> &Status;
+    /// The machine's last report (for the machine snapshot; the lifecycle has its own
+    /// copy).
+    fn report(&self) -> &MachineReport;
     /// The link's counters.
-    fn stats(&self) -> LinkStats;
+    fn counters(&self) -> LinkCounters;
     /// A change to the store's G-code marks, to hand to the store's writer before the
     /// next bytes go out (`docs/firmware.md`; only the G-code link has any).
     fn poll_store_mark(&mut self) -> Option<GcodeMarkWrite> {

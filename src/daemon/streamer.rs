@@ -477,7 +477,7 @@ impl Streamer {
     /// read from the store on the planner's thread.
     fn start_planner(&mut self, job_id: u32, from_index: u32, run: u64) {
         let shared = Arc::clone(&self.shared);
-        let syringes = self.link.status().remaining_nl.len().max(1);
+        let syringes = self.link.report().remaining_nl.len().max(1);
         let source = move || {
             let (job, mesh) = shared
                 .store
@@ -694,8 +694,8 @@ impl Streamer {
     }
 
     fn publish(&mut self) {
-        let stats = self.link.stats();
-        let s = self.link.status();
+        let counters = self.link.counters();
+        let s = self.link.report();
         let identity = self.link.identity();
         let connected = self.lc.is_connected() && self.port.stream.is_some();
         let snap = MachineSnapshot {
@@ -720,8 +720,8 @@ impl Streamer {
             active_job: self.lc.active_job(),
             link_problem: self.link.link_problem().filter(|_| connected),
             underruns: self.lc.underruns(),
-            frames_retransmitted: stats.frames_retransmitted,
-            srtt_ms: stats.srtt_us as f64 / 1000.0,
+            frames_retransmitted: counters.resent,
+            srtt_ms: counters.srtt_us.unwrap_or(0) as f64 / 1000.0,
         };
         let now = Instant::now();
         if machine_notice_due(&self.machine_notified, &snap, now) {

@@ -3,49 +3,8 @@
 //! actions out on its link, its store and its clients.
 
 use super::job::{Checkpoint, JobInfo, JobState, Progress};
+pub use crate::machine::{MachineReport, MachineState, MoveRef};
 use crate::machine::{Move, PositionUm};
-
-/// A move the machine reported executed: its job and index.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct MoveAt {
-    /// Job id ([`super::SERVICE_JOB_ID`] for service moves).
-    pub job_id: u32,
-    /// Index within the job.
-    pub index: u32,
-}
-
-/// What the machine is doing.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum MachineState {
-    /// Queue empty, nothing moving.
-    #[default]
-    Idle,
-    /// Executing moves.
-    Running,
-    /// Feed hold: queue kept, nothing executes.
-    Held,
-    /// Emergency stop: queue discarded, incoming moves discarded until resumed.
-    EStopped,
-    /// A latched fault stops execution until the faults are cleared.
-    Faulted,
-}
-
-/// A report of the machine's state.
-#[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct MachineReport {
-    /// What it is doing.
-    pub state: MachineState,
-    /// The last move it executed.
-    pub last_executed: Option<MoveAt>,
-    /// Moves waiting in its queue.
-    pub queued: u32,
-    /// Latched faults (0: none).
-    pub faults: u32,
-    /// Nozzle position after the last executed move.
-    pub position: PositionUm,
-    /// Volume left per syringe (nl); its length is the syringe count.
-    pub remaining_nl: Vec<u32>,
-}
 
 /// A fault the machine reported.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -164,7 +123,7 @@ pub enum Event {
     /// The machine reset (rebooted, or lost the session): its queue is gone.
     MachineReset {
         /// The last move it reported executed before.
-        last_executed: Option<MoveAt>,
+        last_executed: Option<MoveRef>,
     },
     /// The machine went silent.
     LinkSilent,

@@ -3,7 +3,7 @@
 
 use super::active::{AfterFlush, Phase};
 use super::io::{
-    Action, Level, MachineCommand, MachineFault, MachineReport, MachineState, MoveAt, Underrun,
+    Action, Level, MachineCommand, MachineFault, MachineReport, MachineState, MoveRef, Underrun,
 };
 use super::job::{JobState, SERVICE_JOB_ID};
 use super::{Lifecycle, Tracked};
@@ -108,7 +108,7 @@ impl Lifecycle {
     }
 
     /// The machine executed move `m`: the active or the tracked job advances.
-    pub(super) fn apply_executed(&mut self, m: MoveAt, remaining_nl: &[u32], now_us: u64) {
+    pub(super) fn apply_executed(&mut self, m: MoveRef, remaining_nl: &[u32], now_us: u64) {
         if let Some(a) = self.active.as_mut().filter(|a| a.id == m.job_id) {
             if a.executed(m.index, remaining_nl) && a.first_move_after_ms.is_none() {
                 let wall_ms = self.opts.wall_ms_at_zero + (now_us / 1000) as i64;
@@ -160,7 +160,7 @@ impl Lifecycle {
         );
     }
 
-    pub(super) fn on_reset(&mut self, last_executed: Option<MoveAt>, now_us: u64) {
+    pub(super) fn on_reset(&mut self, last_executed: Option<MoveRef>, now_us: u64) {
         self.log(
             Level::Warn,
             self.active_job(),

@@ -61,7 +61,7 @@ use std::collections::{BTreeSet, VecDeque};
 pub use active::{AfterFlush, Phase};
 pub use io::{
     Action, Answer, Applied, Command, Event, JobUpdate, Level, MachineCommand, MachineFault,
-    MachineReport, MachineState, MoveAt, PlannerOutput, Record, Refusal, RefusalKind, RequestId,
+    MachineReport, MachineState, MoveRef, PlannerOutput, Record, Refusal, RefusalKind, RequestId,
     ResumePoint, StateNote, Underrun,
 };
 pub use job::{

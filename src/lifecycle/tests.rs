@@ -79,10 +79,11 @@ impl Machine {
         let last = self.executed.last();
         MachineReport {
             state: self.state,
-            last_executed: last.map(|m| MoveAt {
+            last_executed: last.map(|m| MoveRef {
                 job_id: m.job_id,
                 index: m.index,
             }),
+            executed_total: self.executed.len() as u64,
             queued: self.queue.len() as u32,
             faults: self.faults,
             position: PositionUm::default(),
@@ -603,7 +604,7 @@ fn a_reset_during_a_pause_interrupts_and_the_resume_continues_where_it_stopped()
     rig.machine.queue.clear();
     rig.machine.state = MachineState::Idle;
     rig.feed(Event::MachineReset {
-        last_executed: Some(MoveAt {
+        last_executed: Some(MoveRef {
             job_id: 1,
             index: 16,
         }),
@@ -1285,10 +1286,11 @@ fn setups() -> Vec<Setup> {
 fn every_event(run: u64) -> Vec<Event> {
     let report = |state| MachineReport {
         state,
-        last_executed: Some(MoveAt {
+        last_executed: Some(MoveRef {
             job_id: 1,
             index: 3,
         }),
+        executed_total: 4,
         queued: 2,
         faults: 0,
         position: PositionUm::default(),
@@ -1306,7 +1308,7 @@ fn every_event(run: u64) -> Vec<Event> {
         Event::MachineFault(MachineFault::EStopPressed),
         Event::MachineFault(MachineFault::Other("LimitHit(0)".into())),
         Event::MachineReset {
-            last_executed: Some(MoveAt {
+            last_executed: Some(MoveRef {
                 job_id: 1,
                 index: 4,
             }),

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use crate::machine::{MachineState, MoveRef};
 use crate::machine::{Move, PositionUm};
 
 /// Version of the wire protocol; both ends must agree exactly.
@@ -74,31 +75,6 @@ pub struct HelloReply {
     pub max_frame: u16,
     /// Where the machine is now (last executed move etc).
     pub status: Status,
-}
-
-/// Overall machine state.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-pub enum MachineState {
-    /// Queue empty, nothing moving.
-    #[default]
-    Idle,
-    /// Executing moves.
-    Running,
-    /// Feed hold: queue kept, nothing executes.
-    Held,
-    /// Emergency stop: queue discarded, incoming moves discarded until Resume.
-    EStopped,
-    /// A latched fault stops execution until ClearFaults.
-    Faulted,
-}
-
-/// A move address: job id and index within the job.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-pub struct MoveRef {
-    /// Job id.
-    pub job_id: u32,
-    /// Index within the job.
-    pub index: u32,
 }
 
 /// Progress and state snapshot, sent by the machine on change, at most every report

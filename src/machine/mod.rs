@@ -18,7 +18,10 @@
 //! bytes, well inside one link frame (see `docs/protocol.md`).
 
 pub mod record;
+mod report;
 pub mod time;
+
+pub use report::{MachineReport, MachineState, MoveRef};
 
 use serde::{Deserialize, Serialize};
 

@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::job::Progress;
-use crate::link::{MachineState, MoveRef};
+use crate::machine::{MachineState, MoveRef};
 
 /// The machine as last reported (`notify_machine_state`; `machine.status` adds the
 /// progress).
@@ -30,7 +30,7 @@ pub struct MachineSnapshot {
     /// Syringe volumes left (nl).
     pub remaining_nl: Vec<u32>,
     /// Moves in the machine's queue.
-    pub queued: u16,
+    pub queued: u32,
     /// Latched fault bits (`docs/protocol.md`).
     pub faults: u32,
     /// Nozzle position (mm).
