@@ -143,7 +143,7 @@ const PRUNE_AT_MOST: usize = 20;
 const STORE_WAIT: std::time::Duration = std::time::Duration::from_millis(60);
 
 /// Answer one call (`docs/api.md`, Methods).
-async fn dispatch(call: Call, shared: &Arc<Shared>) -> Result<MethodResult, ApiError> {
+pub(crate) async fn dispatch(call: Call, shared: &Arc<Shared>) -> Result<MethodResult, ApiError> {
     Ok(match call {
         Call::ServerInfo => server_info(shared)?.into(),
         Call::Subscribe => Subscribed::all().into(),

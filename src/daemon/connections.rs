@@ -31,15 +31,13 @@ use tokio::time::Instant;
 use tracing::{debug, warn};
 
 use super::{api, ApiError, Shared};
-use crate::proto::{Id, Request, Response};
+use crate::proto::{Call, Id, Request, Response};
 
 /// Lines up to this long are read without taking from the memory budget (at most
 /// `max_clients` of them: 16 MiB with the defaults).
 pub const SMALL_LINE: usize = 64 << 10;
 /// Longest request on a control connection.
 pub const CONTROL_LINE: usize = 4 << 10;
-/// The methods a control connection may ask.
-pub const CONTROL_METHODS: [&str; 2] = ["machine.estop", "machine.status"];
 
 /// What a triangle of a mesh being checked takes: its three corners (3 x 24 bytes)
 /// and its indices (12 bytes), before repair merges the corners.
@@ -596,7 +594,7 @@ pub(crate) fn control_only(shared: &Shared) -> ApiError {
             "edod is serving its most clients (api.max_clients = {}): this connection may \
              only ask {}; try again later",
             shared.config.api.max_clients,
-            CONTROL_METHODS.join(" or ")
+            crate::proto::CONTROL_METHODS.join(" or ")
         ),
     )
 }
@@ -643,7 +641,7 @@ async fn control_answer(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, b
         return (None, false);
     }
     match Request::from_line(line) {
-        Ok(r) if CONTROL_METHODS.contains(&r.method.as_str()) => {
+        Ok(r) if Call::new(&r.method, r.params.clone()).is_ok_and(|c| c.is_control()) => {
             (api::handle(line, shared).await.0, false)
         }
         Ok(r) => (

@@ -333,6 +333,9 @@ pub mod method {
 /// Every method's name, in the order of `docs/api.md`.
 pub const METHODS: &[&str] = method::NAMES;
 
+/// The methods a control connection may ask ([`Call::is_control`]).
+pub const CONTROL_METHODS: &[&str] = &[method::MachineEstop::NAME, method::MachineStatus::NAME];
+
 /// A request a daemon dispatches: the method and its params, read and checked.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Call {
@@ -425,6 +428,12 @@ impl Call {
                 ))
             }
         })
+    }
+
+    /// Whether a control connection may ask it (the place kept for the e-stop when
+    /// edod serves its most clients): [`CONTROL_METHODS`].
+    pub fn is_control(&self) -> bool {
+        matches!(self, Call::MachineEstop | Call::MachineStatus)
     }
 
     /// The method's name.
@@ -623,6 +632,15 @@ mod tests {
             Call::LogRecent(LogParams { after: Some(3) }),
         ];
         assert_eq!(calls.clone().map(|c| c.method()), METHODS);
+        // The control lane is a property of the call, and CONTROL_METHODS names it.
+        let control: Vec<&str> = calls
+            .iter()
+            .filter(|c| c.is_control())
+            .map(|c| c.method())
+            .collect();
+        assert_eq!(control, ["machine.status", "machine.estop"]);
+        assert!(CONTROL_METHODS.iter().all(|m| control.contains(m)));
+        assert_eq!(CONTROL_METHODS.len(), control.len());
         for c in calls {
             assert_eq!(Call::new(c.method(), c.params()), Ok(c));
         }

@@ -28,5 +28,5 @@ pub use machine::{EStopTiming, MachineSnapshot, MachineStatus};
 pub use methods::{
     method, Call, Deleted, Event, JobIdParams, JobSource, LogLine, LogParams, Method, MethodResult,
     NoParams, Refilled, ServerInfo, StartNextParams, StateChange, Submission, SubmitParams,
-    Submitted, Subscribed, API_VERSION, METHODS,
+    Submitted, Subscribed, API_VERSION, CONTROL_METHODS, METHODS,
 };

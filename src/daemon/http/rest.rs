@@ -9,12 +9,12 @@ use axum::extract::{Path, Query, State};
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Extension;
-use serde_json::{json, Value};
+use serde_json::Value;
 
 use super::plans::{self, Find, Key, Miss, Plan, Want};
 use super::{conn, App};
 use crate::daemon::connections::Session;
-use crate::proto::{ApiError, Id, Request};
+use crate::proto::{ApiError, Call, JobIdParams, Request};
 
 /// A JSON body.
 fn json_response(status: StatusCode, body: String) -> Response {
@@ -41,53 +41,47 @@ fn error_response(e: ApiError) -> Response {
     conn::rest_error(status_of(&e), &e, false)
 }
 
-/// Call `method` through the dispatcher; its result as the body, or its error with the
-/// matching status.
-async fn call(app: &App, method: &str, params: Option<Value>) -> Response {
-    let line = match serde_json::to_vec(&Request::new(Some(Id::from(1)), method, params)) {
-        Ok(l) => l,
-        Err(e) => return error_response(ApiError::new(ApiError::INTERNAL, e.to_string())),
-    };
-    let reply = Session::default().request(&line, &app.shared).await;
-    let parsed = reply
-        .as_deref()
-        .and_then(|r| serde_json::from_str::<crate::proto::Response>(r).ok());
-    match parsed.map(crate::proto::Response::into_result) {
-        Some(Ok(v)) => json_response(StatusCode::OK, v.to_string()),
-        Some(Err(e)) => error_response(e),
-        None => error_response(ApiError::new(ApiError::INTERNAL, "no answer")),
+/// Dispatch `call` as the socket does; its result as a JSON value, or its error.
+async fn dispatch(app: &App, call: Call) -> Result<Value, ApiError> {
+    let result = crate::daemon::api::dispatch(call, &app.shared).await?;
+    serde_json::to_value(&result)
+        .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("cannot write the result: {e}")))
+}
+
+/// [`dispatch`]'s result as the body, or its error with the matching status.
+async fn call(app: &App, call: Call) -> Response {
+    match dispatch(app, call).await {
+        Ok(v) => json_response(StatusCode::OK, v.to_string()),
+        Err(e) => error_response(e),
     }
 }
 
 /// `GET /api/server`: `server.info`, and whether calls need a token.
 pub async fn server(State(app): State<Arc<App>>) -> Response {
-    let r = call(&app, "server.info", None).await;
-    if r.status() != StatusCode::OK {
-        return r;
+    match dispatch(&app, Call::ServerInfo).await {
+        Ok(mut v) => {
+            if let Value::Object(m) = &mut v {
+                m.insert("token_required".into(), app.guard.token.is_some().into());
+            }
+            json_response(StatusCode::OK, v.to_string())
+        }
+        Err(e) => error_response(e),
     }
-    let bytes = axum::body::to_bytes(r.into_body(), 1 << 20)
-        .await
-        .unwrap_or_default();
-    let mut v: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
-    if let Value::Object(m) = &mut v {
-        m.insert("token_required".into(), app.guard.token.is_some().into());
-    }
-    json_response(StatusCode::OK, v.to_string())
 }
 
 /// `GET /api/status`: `machine.status`.
 pub async fn status(State(app): State<Arc<App>>) -> Response {
-    call(&app, "machine.status", None).await
+    call(&app, Call::MachineStatus).await
 }
 
 /// `GET /api/jobs`: `job.list`.
 pub async fn jobs(State(app): State<Arc<App>>) -> Response {
-    call(&app, "job.list", None).await
+    call(&app, Call::JobList).await
 }
 
 /// `GET /api/jobs/{id}`: `job.get`.
 pub async fn job(State(app): State<Arc<App>>, Path(id): Path<u32>) -> Response {
-    call(&app, "job.get", Some(json!({ "id": id }))).await
+    call(&app, Call::JobGet(JobIdParams { id })).await
 }
 
 /// A body read as it arrives ([`conn::read_body`]: 413 over `max`, 503 over the
@@ -141,10 +135,11 @@ pub async fn rpc(
     .await
 }
 
-/// Whether `body` asks one of the methods a control connection may ask.
+/// Whether `body` asks one of the methods a control connection may ask
+/// ([`Call::is_control`]).
 fn is_control_request(body: &[u8]) -> bool {
     Request::from_line(body)
-        .is_ok_and(|r| crate::daemon::connections::CONTROL_METHODS.contains(&r.method.as_str()))
+        .is_ok_and(|r| Call::new(&r.method, r.params).is_ok_and(|c| c.is_control()))
 }
 
 /// What a preview is asked for: a job file and its mesh.
