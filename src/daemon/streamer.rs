@@ -188,7 +188,26 @@ struct Port {
     path: PathBuf,
     baud: u32,
     stream: Option<SerialStream>,
+    /// An open under way on a blocking thread (`open(2)` and `tcsetattr` of a USB adapter
+    /// can hang): its result, and when it was started.
+    opening: Option<(oneshot::Receiver<Result<SerialStream, String>>, Instant)>,
     watch: PortWatch,
+}
+
+/// The port being opened, once its blocking open returns (never while none is).
+async fn port_opened(
+    opening: &mut Option<(oneshot::Receiver<Result<SerialStream, String>>, Instant)>,
+) -> (Result<SerialStream, String>, Instant) {
+    match opening.as_mut() {
+        Some((rx, at)) => {
+            let at = *at;
+            let r = rx
+                .await
+                .unwrap_or_else(|_| Err("the port's open was abandoned".to_string()));
+            (r, at)
+        }
+        None => std::future::pending().await,
+    }
 }
 
 /// The streamer task.
@@ -231,6 +250,7 @@ impl Streamer {
                 path: shared.port.clone(),
                 baud,
                 stream: None,
+                opening: None,
                 watch: PortWatch::new(
                     PortWatchOptions::default(),
                     &shared.port.display().to_string(),
@@ -303,6 +323,10 @@ impl Streamer {
                     Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
                     Err(e) => self.port_lost(&e.to_string()),
                 },
+                (r, at) = port_opened(&mut self.port.opening) => {
+                    self.port.opening = None;
+                    self.on_port_opened(r, at);
+                }
                 Some(e) = self.store_events.recv() => self.handle(e),
                 m = recv_planner(&mut self.planner, wants) => self.on_planner(m),
                 _ = tokio::time::sleep(wake) => {}
@@ -334,21 +358,33 @@ impl Streamer {
             );
             return;
         }
-        if !self.port.watch.open_due(at) {
+        if self.port.opening.is_some() || !self.port.watch.open_due(at) {
             return;
         }
+        // Opened on a blocking thread: a hanging device holds that thread, never a
+        // runtime worker, and the streamer goes on answering.
         let path = self.port.path.display().to_string();
-        match open_port(&path, self.port.baud) {
+        let baud = self.port.baud;
+        let (tx, rx) = oneshot::channel();
+        tokio::task::spawn_blocking(move || {
+            let _ = tx.send(open_port(&path, baud).map_err(|e| os_error(&e)));
+        });
+        self.port.opening = Some((rx, at));
+    }
+
+    /// The blocking open started at `at` returned.
+    fn on_port_opened(&mut self, r: Result<SerialStream, String>, at: Instant) {
+        match r {
             Ok(mut p) => {
                 let _ = p.set_exclusive(false);
-                info!(port = %path, "serial port open");
+                info!(port = %self.port.path.display(), "serial port open");
                 log_port(&self.port.path, self.port.watch.opened(at));
                 self.port.stream = Some(p);
                 let now = self.now();
                 self.link.reconnect(now);
             }
             Err(e) => {
-                let log = self.port.watch.open_failed(&os_error(&e), at);
+                let log = self.port.watch.open_failed(&e, at);
                 log_port(&self.port.path, log);
             }
         }
