@@ -306,8 +306,19 @@ fn streaming_at(
     moves: u32,
     past: u64,
 ) -> (hil_sim::SimHandle, PathBuf, Daemon, Client, u64) {
+    streaming_with_limit(dir, (seed, speed), moves, past, 4096)
+}
+
+/// [`streaming_at`] with requests of up to `max_request_bytes`.
+fn streaming_with_limit(
+    dir: &Path,
+    (seed, speed): (u64, f64),
+    moves: u32,
+    past: u64,
+    max_request_bytes: usize,
+) -> (hil_sim::SimHandle, PathBuf, Daemon, Client, u64) {
     let (sim, record) = sim_at(dir, seed, speed);
-    let d = Daemon::start(dir, sim.path());
+    let d = Daemon::start_with_limit(dir, sim.path(), max_request_bytes);
     let mut c = d.client();
     c.wait_connected();
     let a = submit(&mut c, moves);
@@ -488,10 +499,14 @@ const API_ANSWER_LIMIT: Duration = Duration::from_millis(100);
 fn a_store_locked_for_3_s_delays_no_api_call_and_no_move() {
     let dir = tempfile::tempdir().unwrap();
     // 10 ms a move (the machine's queue holds 1.28 s): 2000 moves outlast the lock.
-    let (sim, record, d, mut c, a) = streaming_at(dir.path(), 12, 10.0, 2000, 100);
+    let (sim, record, d, mut c, a) =
+        streaming_with_limit(dir.path(), (12, 10.0), 2000, 100, 64 << 20);
     let db = rusqlite::Connection::open(dir.path().join("state").join("edod.db")).unwrap();
     db.execute_batch("BEGIN EXCLUSIVE").unwrap();
     let locked = Instant::now();
+    // Two submissions of 64 MiB in flight meanwhile: parsed and their meshes decoded off
+    // the runtime's workers, they delay no other call.
+    let big: Vec<_> = (0..2).map(|_| d.client()).map(big_submission).collect();
     let mut worst = Duration::ZERO;
     let w = &mut worst;
     let executed = |c: &mut Client, w: &mut Duration| {
@@ -557,11 +572,47 @@ fn a_store_locked_for_3_s_delays_no_api_call_and_no_move() {
         worst < API_ANSWER_LIMIT,
         "an API call took {worst:?} while the store was locked"
     );
+    for h in big {
+        let e = h.join().unwrap();
+        // Read and decoded whole: refused for what the job is, not for its shape.
+        assert_eq!(e["code"], json!(-32003), "{e}");
+        assert!(
+            e["message"].as_str().unwrap_or("").contains("not a mesh"),
+            "{e}"
+        );
+    }
     drop(c);
     drop(d);
     sim.stop().unwrap();
     assert_exactly_once(&record, a, 2000);
     assert_exactly_once(&record, b, 300);
+}
+
+/// A polygon job edod plans on its default machine.
+const SQUARE_JOB: &str = r#"name = "graded square"
+[geometry]
+polygon = { outer = { rect = { min = [0.0, 0.0], max = [3.0, 3.0] } } }
+height = 0.4
+[materials]
+names = ["A", "B"]
+[gradient]
+pattern = "growth-rings"
+inner = [1.0, 0.0]
+outer = [0.0, 1.0]
+[process]
+r_mach = 0.8
+nozzle = 0.4
+layer = 0.2
+"#;
+
+/// A `job.submit` line of almost 64 MiB (a polygon job with a mesh's base64, which
+/// edod decodes before it refuses the pair), sent on its own thread; its error.
+fn big_submission(mut c: Client) -> std::thread::JoinHandle<Value> {
+    std::thread::spawn(move || {
+        let mesh = "QUJD".repeat((63 << 20) / 4);
+        let params = json!({"job": SQUARE_JOB, "mesh_base64": mesh});
+        c.call("job.submit", params).unwrap_err()
+    })
 }
 
 /// Architecture invariant: no SQLite on a tokio runtime worker. The store's threads are

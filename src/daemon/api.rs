@@ -103,19 +103,56 @@ async fn check_part(
     }
 }
 
+/// A request line read: its id (none for a notification) and its call, or why the
+/// line is no request.
+pub type Parsed = Result<(Option<Id>, Result<Call, ApiError>), Refusal>;
+
+/// Read a request line into its typed call (JSON parse and params: for a large line,
+/// run it on a blocking thread, [`parse_off_runtime`]).
+pub fn parse(line: &[u8]) -> Parsed {
+    let request = Request::from_line(line)?;
+    Ok((request.id, Call::new(&request.method, request.params)))
+}
+
+/// [`parse`] on tokio's blocking pool: a submission of tens of MiB is parsed there, not
+/// on a runtime worker. `keep` (the line's hold on the memory budget) is given back
+/// with the line once it is parsed.
+pub async fn parse_off_runtime<K: Send + 'static>(line: Vec<u8>, keep: K) -> Parsed {
+    tokio::task::spawn_blocking(move || {
+        let parsed = parse(&line);
+        drop((line, keep));
+        parsed
+    })
+    .await
+    .unwrap_or_else(|e| {
+        Err(Refusal {
+            id: Id::Null,
+            error: ApiError::new(
+                ApiError::INTERNAL,
+                format!("reading the request failed: {e}"),
+            ),
+        })
+    })
+}
+
 /// Handle one request line: the reply line (none for a notification) and whether the
 /// client subscribed.
 pub async fn handle(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, bool) {
-    let request = match Request::from_line(line) {
-        Ok(r) => r,
+    answer(parse(line), shared).await
+}
+
+/// Answer a request read by [`parse`].
+pub async fn answer(parsed: Parsed, shared: &Arc<Shared>) -> (Option<String>, bool) {
+    let (id, call) = match parsed {
+        Ok(p) => p,
         Err(Refusal { id, error }) => return (Some(error_line(id, error)), false),
     };
-    let result = match Call::new(&request.method, request.params) {
+    let result = match call {
         Ok(call) => dispatch(call, shared).await,
         Err(e) => Err(e),
     };
     let subscribed = matches!(result, Ok(MethodResult::Subscribed(_)));
-    (request.id.map(|id| response_line(id, result)), subscribed)
+    (id.map(|id| response_line(id, result)), subscribed)
 }
 
 async fn ask<T>(
@@ -193,7 +230,7 @@ async fn job_submit(p: SubmitParams, shared: &Shared) -> Result<Submitted, ApiEr
     let Submission { source, name } = p.submission()?;
     let (spec, name, warnings) = match source {
         JobSource::File { job, mesh_base64 } => {
-            let (spec, job_name, warnings) = file_job(job, mesh_base64.as_deref(), shared).await?;
+            let (spec, job_name, warnings) = file_job(job, mesh_base64, shared).await?;
             (spec, name.unwrap_or(job_name), warnings)
         }
         JobSource::DryRun { moves } => (
@@ -264,20 +301,38 @@ async fn queue_job(
 /// (-32602) and the part checked against the machine ([`check_part`]).
 async fn file_job(
     toml: String,
-    mesh_base64: Option<&str>,
+    mesh_base64: Option<String>,
     shared: &Shared,
 ) -> Result<(JobSpec, String, Vec<String>), ApiError> {
-    let mesh = mesh_base64
-        .map(|b| {
-            crate::proto::mesh_bytes::base64_decode(b).map_err(|e| {
-                ApiError::new(
-                    ApiError::INVALID_PARAMS,
-                    format!("mesh_base64: not base64: {e}"),
-                )
-            })
-        })
-        .transpose()?;
+    let mesh = match mesh_base64 {
+        Some(b) => Some(decode_mesh(b).await?),
+        None => None,
+    };
     checked_file_job(toml, mesh, shared).await
+}
+
+/// A mesh's base64 decoded (-32602 if it is not base64); a large one on tokio's
+/// blocking pool, not on a runtime worker.
+async fn decode_mesh(b64: String) -> Result<Vec<u8>, ApiError> {
+    let small = b64_is_small(&b64);
+    let decode = move || {
+        crate::proto::mesh_bytes::base64_decode(&b64).map_err(|e| {
+            ApiError::new(
+                ApiError::INVALID_PARAMS,
+                format!("mesh_base64: not base64: {e}"),
+            )
+        })
+    };
+    if small {
+        return decode();
+    }
+    tokio::task::spawn_blocking(decode)
+        .await
+        .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("decoding the mesh failed: {e}")))?
+}
+
+fn b64_is_small(b64: &str) -> bool {
+    b64.len() <= super::connections::SMALL_LINE
 }
 
 /// A job file (and its mesh) checked as a submission: the file parsed (-32003), its

@@ -204,6 +204,14 @@ impl<R: AsyncBufRead + Unpin> LineReader<R> {
         self.partial_since
     }
 
+    /// Take the line and its hold on the budget (the reader starts a new buffer).
+    pub fn take_line(&mut self) -> (Vec<u8>, Held) {
+        (
+            std::mem::take(&mut self.line),
+            std::mem::take(&mut self.held),
+        )
+    }
+
     /// Give back the line's buffer and its budget.
     fn drop_line(&mut self) {
         self.line = Vec::new();
@@ -370,8 +378,19 @@ impl Session {
 
     /// Answer one complete request (a line, a WebSocket message): the reply (none for
     /// a JSON-RPC notification); a `subscribe` starts the client's notifications.
-    pub async fn request(&mut self, line: &[u8], shared: &Arc<Shared>) -> Option<String> {
-        let (reply, subscribe) = answer(line, shared).await;
+    pub async fn request(&mut self, line: Vec<u8>, shared: &Arc<Shared>) -> Option<String> {
+        self.request_held(line, Held::default(), shared).await
+    }
+
+    /// [`Session::request`] for a line still holding `held` of the budget, given back
+    /// once it is parsed.
+    pub async fn request_held(
+        &mut self,
+        line: Vec<u8>,
+        held: Held,
+        shared: &Arc<Shared>,
+    ) -> Option<String> {
+        let (reply, subscribe) = answer(line, held, shared).await;
         if subscribe && self.notifications.is_none() {
             self.notifications = Some(shared.notify.subscribe());
         }
@@ -459,9 +478,9 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
                     if !send(error_line(Id::Null, e)) { break; }
                 }
                 Ok(LineEvent::Line) => {
-                    let line = reader.line();
-                    if line.iter().all(u8::is_ascii_whitespace) { continue; }
-                    let reply = session.request(line, &shared).await;
+                    if reader.line().iter().all(u8::is_ascii_whitespace) { continue; }
+                    let (line, held) = reader.take_line();
+                    let reply = session.request_held(line, held, &shared).await;
                     last_request = Instant::now();
                     if let Some(r) = reply {
                         if !send(r) {
@@ -485,17 +504,18 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
 }
 
 /// Answer a complete line, holding twice its length from the budget while it is
-/// decoded and answered (a small line holds nothing).
-async fn answer(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, bool) {
-    let _held = if line.len() > SMALL_LINE {
-        match shared.budget.take(2 * line.len(), "this request").await {
-            Ok(h) => Some(h),
-            Err(e) => return (Some(error_line(Id::Null, e)), false),
-        }
-    } else {
-        None
+/// decoded and answered (a small line holds nothing). A large line is parsed on a
+/// blocking thread, and it (with `line_held`, its own hold) is given back once parsed.
+async fn answer(line: Vec<u8>, line_held: Held, shared: &Arc<Shared>) -> (Option<String>, bool) {
+    if line.len() <= SMALL_LINE {
+        return api::handle(&line, shared).await;
+    }
+    let _held = match shared.budget.take(2 * line.len(), "this request").await {
+        Ok(h) => h,
+        Err(e) => return (Some(error_line(Id::Null, e)), false),
     };
-    api::handle(line, shared).await
+    let parsed = api::parse_off_runtime(line, line_held).await;
+    api::answer(parsed, shared).await
 }
 
 /// The connections beyond `max_clients`, for control requests only.

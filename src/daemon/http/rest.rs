@@ -127,7 +127,7 @@ pub async fn rpc(
         if control && !is_control_request(&body) {
             return conn::control_refusal(&shared);
         }
-        match Session::default().request(&body, &shared).await {
+        match Session::default().request(Vec::from(body), &shared).await {
             Some(r) => json_response(StatusCode::OK, r),
             None => StatusCode::NO_CONTENT.into_response(),
         }

@@ -73,7 +73,7 @@ async fn client(socket: WebSocket, shared: Arc<Shared>, _place: Option<Arc<Conn>
                     Some(Ok(Message::Close(_)) | Err(_)) | None => break,
                 };
                 if bytes.iter().all(u8::is_ascii_whitespace) { continue; }
-                let reply = session.request(&bytes, &shared).await;
+                let reply = session.request(bytes, &shared).await;
                 last_request = Instant::now();
                 if reply.is_some_and(|r| !send(r)) {
                     debug!("dashboard too slow; disconnecting");
