@@ -588,12 +588,11 @@ fn a_store_locked_for_3_s_delays_no_api_call_and_no_move() {
     assert_exactly_once(&record, b, 300);
 }
 
-/// A polygon job edod plans on its default machine.
-const SQUARE_JOB: &str = r#"name = "graded square"
-[geometry]
-polygon = { outer = { rect = { min = [0.0, 0.0], max = [3.0, 3.0] } } }
-height = 0.4
-[materials]
+/// Two materials graded in growth rings, on edod's default machine: the rest of a job
+/// file after its geometry.
+macro_rules! graded_two_materials {
+    () => {
+        r#"[materials]
 names = ["A", "B"]
 [gradient]
 pattern = "growth-rings"
@@ -603,7 +602,17 @@ outer = [0.0, 1.0]
 r_mach = 0.8
 nozzle = 0.4
 layer = 0.2
-"#;
+"#
+    };
+}
+
+/// A polygon job edod plans on its default machine.
+const SQUARE_JOB: &str = concat!(
+    "name = \"graded square\"\n[geometry]\n",
+    "polygon = { outer = { rect = { min = [0.0, 0.0], max = [3.0, 3.0] } } }\n",
+    "height = 0.4\n",
+    graded_two_materials!()
+);
 
 /// A `job.submit` line of almost 64 MiB (a polygon job with a mesh's base64, which
 /// edod decodes before it refuses the pair), sent on its own thread; its error.
@@ -1136,20 +1145,10 @@ fn mesh_job_streams_exactly_the_planned_moves() {
     let dir = tempfile::tempdir().unwrap();
     let stl = stl_of(&edo::mesh::primitives::tube(4.0, 8.0, 0.8, 64));
     std::fs::write(dir.path().join("tube.stl"), &stl).unwrap();
-    let job_toml = r#"name = "graded tube"
-[geometry]
-mesh = "tube.stl"
-[materials]
-names = ["A", "B"]
-[gradient]
-pattern = "growth-rings"
-inner = [1.0, 0.0]
-outer = [0.0, 1.0]
-[process]
-r_mach = 0.8
-nozzle = 0.4
-layer = 0.2
-"#;
+    let job_toml = concat!(
+        "name = \"graded tube\"\n[geometry]\nmesh = \"tube.stl\"\n",
+        graded_two_materials!()
+    );
     let job_path = dir.path().join("tube.toml");
     std::fs::write(&job_path, job_toml).unwrap();
 
