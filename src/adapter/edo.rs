@@ -99,6 +99,7 @@ impl EdoLink {
             }
             HostEvent::MachineReset { last_executed, .. } => {
                 // The link never resumes a session silently: a new one starts now.
+                self.stops_unacked = StopsUnacked::default();
                 self.seed = self.seed.wrapping_add(1);
                 self.host.reconnect(self.seed, now);
                 Event::MachineReset { last_executed }
@@ -147,6 +148,8 @@ impl LinkAdapter for EdoLink {
     /// The port was (re)opened: start a new session.
     fn reconnect(&mut self, now: Micros) {
         self.seed = self.seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        // A new session: the stops of the old one are answered by nothing now.
+        self.stops_unacked = StopsUnacked::default();
         self.host.reconnect(self.seed, now);
     }
 
@@ -341,5 +344,15 @@ mod tests {
         let got = acks(&events);
         assert!(got.contains(&MachineCommand::Flush), "{got:?}");
         assert!(got.contains(&MachineCommand::EmergencyStop), "{got:?}");
+        // A stop of a session that ended is not answered by the next session's.
+        link.command(MachineCommand::Resume, Micros(7_000));
+        pump(&mut link, &mut machine, Micros(7_000));
+        link.command(MachineCommand::EmergencyStop, Micros(8_000));
+        link.reconnect(Micros(8_000));
+        let mut machine = MachineLink::new(MachineLinkConfig::default(), Micros(8_000));
+        pump(&mut link, &mut machine, Micros(9_000));
+        link.command(MachineCommand::Flush, Micros(10_000));
+        let events = pump(&mut link, &mut machine, Micros(10_000));
+        assert_eq!(acks(&events), [MachineCommand::Flush]);
     }
 }
