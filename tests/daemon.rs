@@ -581,6 +581,27 @@ fn a_store_locked_for_3_s_delays_no_api_call_and_no_move() {
             "{e}"
         );
     }
+    // Large lines that are wrong, read on the blocking pool: each answered as a small
+    // one would be, and edod serves on.
+    let mb = "x".repeat(1 << 20);
+    let e = c.send_raw(&format!(
+        "{{\"jsonrpc\":\"2.0\",\"id\":90,\"method\":\"{mb}"
+    ));
+    assert_eq!(e["error"]["code"], json!(-32700), "{e}");
+    let e = c.call("job.frobnicate", json!({"pad": mb})).unwrap_err();
+    assert_eq!(e["code"], json!(-32601), "{e}");
+    let e = c
+        .call(
+            "job.submit",
+            json!({"job": SQUARE_JOB, "mesh_base64": format!("{mb}!")}),
+        )
+        .unwrap_err();
+    assert_eq!(e["code"], json!(-32602), "{e}");
+    assert!(
+        e["message"].as_str().unwrap_or("").contains("not base64"),
+        "{e}"
+    );
+    c.call("machine.status", json!({})).unwrap();
     drop(c);
     drop(d);
     sim.stop().unwrap();

@@ -31,7 +31,7 @@ use tokio::time::Instant;
 use tracing::{debug, warn};
 
 use super::{api, ApiError, Shared};
-use crate::proto::{Call, Id, Request, Response};
+use crate::proto::{Id, Response};
 
 /// Lines up to this long are read without taking from the memory budget (at most
 /// `max_clients` of them: 16 MiB with the defaults).
@@ -660,12 +660,12 @@ async fn control_answer(line: &[u8], shared: &Arc<Shared>) -> (Option<String>, b
     if line.iter().all(u8::is_ascii_whitespace) {
         return (None, false);
     }
-    match Request::from_line(line) {
-        Ok(r) if Call::new(&r.method, r.params.clone()).is_ok_and(|c| c.is_control()) => {
-            (api::handle(line, shared).await.0, false)
+    match api::parse(line) {
+        Ok((id, Ok(call))) if call.is_control() => {
+            (api::answer(Ok((id, Ok(call))), shared).await.0, false)
         }
-        Ok(r) => (
-            Some(error_line(r.id.unwrap_or(Id::Null), control_only(shared))),
+        Ok((id, _)) => (
+            Some(error_line(id.unwrap_or(Id::Null), control_only(shared))),
             true,
         ),
         Err(refusal) => (Some(error_line(refusal.id, refusal.error)), true),
