@@ -39,7 +39,7 @@ struct StopsUnacked {
 }
 
 /// The edo link's status report as the machine's report.
-pub fn report_of(s: &Status) -> MachineReport {
+fn report_of(s: &Status) -> MachineReport {
     MachineReport {
         state: s.state,
         last_executed: s.last_executed,

@@ -16,7 +16,7 @@ mod edo;
 mod gcode;
 mod marks;
 
-pub use edo::{link_config, report_of, EdoLink};
+pub use edo::{link_config, EdoLink};
 pub use gcode::{GcodeLink, ResumeLines};
 pub use marks::{GcodeMark, GcodeMarkKind, GcodeMarkWrite};
 

@@ -14,7 +14,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::link::{Host, HostEvent, HostState, LinkConfig, MachineState, Micros};
+use crate::link::{Host, HostEvent, HostState, MachineState, Micros};
 use crate::machine::{Move, MoveKind, PositionUm};
 
 /// What to test.
@@ -211,8 +211,8 @@ impl<'a> LinkTest<'a> {
             .map_or(0, |d| d.as_nanos() as u64)
             ^ u64::from(std::process::id()) << 32;
         let job_id = (seed % 1_000_000_000) as u32 + 1;
-        let link_cfg =
-            LinkConfig::default().with_priority_latency(cfg.baud, crate::link::PRIORITY_LATENCY_US);
+        // The link edod streams with at this line speed.
+        let link_cfg = crate::adapter::link_config(cfg.baud);
         let host = Host::new(link_cfg, seed, Micros(start.elapsed().as_micros() as u64));
         LinkTest {
             cfg,
