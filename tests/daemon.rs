@@ -147,6 +147,15 @@ impl Daemon {
 
 impl Drop for Daemon {
     fn drop(&mut self) {
+        // A test failing on a closed connection: say whether edod had ended (and how)
+        // or was still running, i.e. closed that connection itself.
+        if std::thread::panicking() {
+            match self.child.try_wait() {
+                Ok(Some(status)) => eprintln!("edod {} had ended: {status}", self.child.id()),
+                Ok(None) => eprintln!("edod {} was still running", self.child.id()),
+                Err(e) => eprintln!("edod {}: {e}", self.child.id()),
+            }
+        }
         let _ = self.child.kill();
         let _ = self.child.wait();
     }

@@ -171,7 +171,8 @@ enum Skip {
 }
 
 /// Reads request lines with bounded memory. `next` is cancel-safe (it awaits only
-/// `fill_buf`), so it can race notifications and timers without losing bytes.
+/// `fill_buf`, and a line begun is kept until it is delivered), so it can race
+/// notifications and timers without losing bytes.
 pub struct LineReader<R> {
     r: R,
     line: Vec<u8>,
@@ -179,6 +180,8 @@ pub struct LineReader<R> {
     max: usize,
     skipping: Option<Skip>,
     partial_since: Option<Instant>,
+    /// The last call delivered `line`: the next one starts a new line.
+    delivered: bool,
 }
 
 impl<R: AsyncBufRead + Unpin> LineReader<R> {
@@ -191,6 +194,7 @@ impl<R: AsyncBufRead + Unpin> LineReader<R> {
             max,
             skipping: None,
             partial_since: None,
+            delivered: false,
         }
     }
 
@@ -231,7 +235,11 @@ impl<R: AsyncBufRead + Unpin> LineReader<R> {
     /// Read up to the next line's end; lines past `max`, or past what `budget` gives,
     /// are skipped without being kept.
     pub async fn next(&mut self, budget: Option<&Budget>) -> std::io::Result<LineEvent> {
-        self.reset();
+        // Only a delivered line is forgotten: a call cancelled mid-line (a notification
+        // or a timer won the race) leaves the bytes it read for the next call.
+        if std::mem::take(&mut self.delivered) {
+            self.reset();
+        }
         loop {
             let buf = self.r.fill_buf().await?;
             if buf.is_empty() {
@@ -275,7 +283,10 @@ impl<R: AsyncBufRead + Unpin> LineReader<R> {
                 (None, Some(_)) => match self.skipping.take() {
                     Some(Skip::TooLong) => return Ok(LineEvent::TooLong),
                     Some(Skip::Quietly) => self.reset(),
-                    None => return Ok(LineEvent::Line),
+                    None => {
+                        self.delivered = true;
+                        return Ok(LineEvent::Line);
+                    }
                 },
                 (None, None) => {}
             }
@@ -460,7 +471,7 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
     let mut session = Session::default();
     let mut last_request = Instant::now();
     let send = |line: String| tx.try_send(Arc::from(line)).is_ok();
-    loop {
+    let closed = loop {
         // A subscriber waits for notifications as long as it likes, not mid-request.
         let idle_since = match (session.subscribed(), reader.partial_since()) {
             (true, since) => since,
@@ -468,14 +479,15 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
         };
         tokio::select! {
             r = reader.next(Some(&shared.budget)) => match r {
-                Ok(LineEvent::Eof) | Err(_) => break,
+                Ok(LineEvent::Eof) => break "the client closed",
+                Err(_) => break "a read error",
                 Ok(LineEvent::TooLong) => {
-                    if !send(too_long(&shared)) { break; }
+                    if !send(too_long(&shared)) { break "its queue is full"; }
                 }
                 Ok(LineEvent::OverBudget(n)) => {
                     let e = shared.budget.refusal(n, "this request");
                     debug!("request refused: over the memory budget");
-                    if !send(error_line(Id::Null, e)) { break; }
+                    if !send(error_line(Id::Null, e)) { break "its queue is full"; }
                 }
                 Ok(LineEvent::Line) => {
                     if reader.line().iter().all(u8::is_ascii_whitespace) { continue; }
@@ -484,21 +496,22 @@ async fn client(stream: UnixStream, shared: Arc<Shared>) {
                     last_request = Instant::now();
                     if let Some(r) = reply {
                         if !send(r) {
-                            debug!("client too slow; disconnecting");
-                            break;
+                            break "its queue is full (a client too slow)";
                         }
                     }
                 }
             },
-            n = session.notification() => if !queue_notification(n, &tx) { break },
+            n = session.notification() => if !queue_notification(n, &tx) {
+                break "it fell behind the notifications";
+            },
             _ = tokio::time::sleep_until(idle_since.unwrap_or_else(Instant::now) + idle),
                 if idle_since.is_some() => {
-                debug!("idle client; disconnecting");
                 let _ = send(error_line(Id::Null, idle_error(&shared)));
-                break;
+                break "idle (api.idle_timeout_s)";
             }
         }
-    }
+    };
+    debug!(why = closed, "client connection closed");
     drop(tx);
     let _ = writer.await;
 }
@@ -707,6 +720,23 @@ mod tests {
         assert_eq!(r.next(None).await.unwrap(), LineEvent::Line);
         assert_eq!(r.line(), b"abc");
         assert_eq!(r.next(None).await.unwrap(), LineEvent::Eof);
+    }
+
+    #[tokio::test]
+    async fn a_read_cancelled_mid_line_loses_none_of_it() {
+        use tokio::io::AsyncWriteExt as _;
+        let (mut client, server) = tokio::io::duplex(64);
+        let mut r = LineReader::new(BufReader::new(server), 1024);
+        client.write_all(b"{\"id\":").await.unwrap();
+        // A notification (here a timer) wins the race while the line is half read.
+        let wait = tokio::time::timeout(Duration::from_millis(20), r.next(None)).await;
+        assert!(wait.is_err(), "no line yet: {wait:?}");
+        assert!(r.partial_since().is_some());
+        client.write_all(b"7}\nnext\n").await.unwrap();
+        assert_eq!(r.next(None).await.unwrap(), LineEvent::Line);
+        assert_eq!(r.line(), b"{\"id\":7}");
+        assert_eq!(r.next(None).await.unwrap(), LineEvent::Line);
+        assert_eq!(r.line(), b"next");
     }
 
     #[tokio::test]
