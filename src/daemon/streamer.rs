@@ -288,8 +288,13 @@ impl Streamer {
         Micros(self.epoch.elapsed().as_micros() as u64)
     }
 
-    /// How long the loop may sleep: until the link's or the lifecycle's next timer.
+    /// How long the loop may sleep: until the link's or the lifecycle's next timer; not
+    /// at all while the lifecycle has actions (an event after the last settle: a port
+    /// lost while writing).
     fn wake(&self) -> Duration {
+        if self.lc.has_actions() {
+            return Duration::ZERO;
+        }
         let now = self.now().0;
         [
             self.link.next_timeout().map(|t| t.0),
@@ -422,24 +427,43 @@ impl Streamer {
 
     // ---- the pump ---------------------------------------------------------------------
 
+    /// One pass of the driver: the link's and the lifecycle's timers, then events in
+    /// and actions out until both are quiet ([`Streamer::settle`]), then the bytes out.
     async fn pump(&mut self) {
         self.try_open();
         let now = self.now();
         self.link.handle_timeout(now);
-        while let Some(e) = self.link.poll_event(now) {
-            if e == Event::CommandAcked(MachineCommand::EmergencyStop) {
-                self.estops_acked();
-            }
-            self.lc.handle(e, now.0);
-        }
+        self.link_events_in(now);
         self.lc.handle_timeout(now.0);
-        self.carry_out();
-        self.feed();
+        self.settle(now);
         self.write_out().await;
         self.time_estops();
-        self.carry_out();
         self.log_link_lines();
         self.publish();
+    }
+
+    /// The link's events into the lifecycle, the lifecycle's actions carried out in the
+    /// order it decided them, and moves fed to the link while it has room, until none of
+    /// the three has more. The order is the point: a command (a hold, a stop, a job's
+    /// end) reaches the link before the next move asks it for room, and what a move
+    /// brings about (its job now printing) is carried out before the next move.
+    fn settle(&mut self, now: Micros) {
+        let ahead = self.shared.config.planner.moves_ahead;
+        loop {
+            self.link_events_in(now);
+            while let Some(a) = self.lc.poll_action() {
+                self.carry_out(a);
+            }
+            if !self.link.has_room(ahead) {
+                return;
+            }
+            let Some(mv) = self.lc.poll_move() else {
+                return;
+            };
+            if let Err(reason) = self.link.send_move(mv.clone()) {
+                self.handle(Event::MoveRefused { mv, reason });
+            }
+        }
     }
 
     /// The link adapter's log lines into edod's log.
@@ -454,58 +478,53 @@ impl Streamer {
         }
     }
 
-    /// Moves from the lifecycle to the link while it has room.
-    fn feed(&mut self) {
-        let ahead = self.shared.config.planner.moves_ahead;
-        while self.link.has_room(ahead) {
-            let Some(mv) = self.lc.poll_move() else {
-                break;
-            };
-            if let Err(reason) = self.link.send_move(mv.clone()) {
-                self.handle(Event::MoveRefused { mv, reason });
+    /// The link's events into the lifecycle (an acknowledged e-stop answers the
+    /// operators waiting for it).
+    fn link_events_in(&mut self, now: Micros) {
+        while let Some(e) = self.link.poll_event(now) {
+            if e == Event::CommandAcked(MachineCommand::EmergencyStop) {
+                self.estops_acked();
             }
+            self.lc.handle(e, now.0);
         }
-        self.carry_out();
     }
 
-    /// Carry out every action the lifecycle has.
-    fn carry_out(&mut self) {
-        while let Some(a) = self.lc.poll_action() {
-            match a {
-                Action::Machine(c) => {
-                    let now = self.now();
-                    self.link.command(c, now);
-                }
-                Action::StartPlanner {
-                    job_id,
-                    from_index,
-                    run,
-                } => self.start_planner(job_id, from_index, run),
-                Action::StopPlanner => self.planner = None,
-                Action::Persist { seq, record } => self.shared.store.writer.persist(seq, record),
-                Action::LookUpJob(id) => self.shared.store.reader.look_up(id),
-                Action::ListQueued => self.shared.store.reader.queued(),
-                Action::Reply { request, result } => self.reply(request, result),
-                Action::JobState(note) => {
-                    if matches!(
-                        note.state,
-                        JobState::Done | JobState::Cancelled | JobState::Failed
-                    ) {
-                        self.link.job_ended(note.job_id);
-                    }
-                    self.notify_state(note)
-                }
-                Action::Progress(p) => self.progress(p),
-                Action::Underrun(u) => self.log_underrun(&u),
-                Action::Log {
-                    level,
-                    job,
-                    message,
-                } => match level {
-                    Level::Info => info!(job = ?job, "{message}"),
-                    Level::Warn => warn!(job = ?job, "{message}"),
-                },
+    /// Carry out one of the lifecycle's actions.
+    fn carry_out(&mut self, a: Action) {
+        match a {
+            Action::Machine(c) => {
+                let now = self.now();
+                self.link.command(c, now);
             }
+            Action::StartPlanner {
+                job_id,
+                from_index,
+                run,
+            } => self.start_planner(job_id, from_index, run),
+            Action::StopPlanner => self.planner = None,
+            Action::Persist { seq, record } => self.shared.store.writer.persist(seq, record),
+            Action::LookUpJob(id) => self.shared.store.reader.look_up(id),
+            Action::ListQueued => self.shared.store.reader.queued(),
+            Action::Reply { request, result } => self.reply(request, result),
+            Action::JobState(note) => {
+                if matches!(
+                    note.state,
+                    JobState::Done | JobState::Cancelled | JobState::Failed
+                ) {
+                    self.link.job_ended(note.job_id);
+                }
+                self.notify_state(note)
+            }
+            Action::Progress(p) => self.progress(p),
+            Action::Underrun(u) => self.log_underrun(&u),
+            Action::Log {
+                level,
+                job,
+                message,
+            } => match level {
+                Level::Info => info!(job = ?job, "{message}"),
+                Level::Warn => warn!(job = ?job, "{message}"),
+            },
         }
     }
 

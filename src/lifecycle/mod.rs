@@ -283,6 +283,11 @@ impl Lifecycle {
         self.actions.pop_front()
     }
 
+    /// Whether actions wait to be polled.
+    pub fn has_actions(&self) -> bool {
+        !self.actions.is_empty()
+    }
+
     /// The next move to send, while the link has room: service moves first, then the
     /// active job's while it streams. `None` while the machine is not connected, and
     /// for a job that has not started moving while the store cannot write.
