@@ -4,9 +4,11 @@
 # Usage: systemd/build-deb.sh [PROFILE [--no-build]]   (default release)
 # CI packs `dev --no-build`: the binaries its `cargo test --workspace` built (a
 # `cargo build` of the bins alone resolves features without the dev-dependencies and
-# compiles much of the tree again), which cargo-deb 3.8 takes with a warning.
-# hil-sim is a package of its own: it is built together with edo's binaries (one build,
-# edo's library compiled once), then `cargo deb --no-build` packs them.
+# compiles much of the tree again), which cargo-deb 3.8 takes with a warning. Those
+# binaries have edo's `sim` feature on (the test build unifies it), unused by them.
+# hil-sim is a package of its own, built after edo's binaries and apart from them: built
+# together, cargo would unify its `edo/sim` feature (the firmware models and test kits)
+# into edod and edoctl, which must leave them out. Then `cargo deb --no-build` packs them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 profile="${1:-release}"
@@ -21,7 +23,8 @@ if [ "$build" = "--no-build" ]; then
     [ -x "$dir/$bin" ] || { echo "build-deb.sh --no-build: $dir/$bin is not built" >&2; exit 1; }
   done
 else
-  cargo build --locked --profile "$profile" -p edo -p hil-sim --bins >&2
+  cargo build --locked --profile "$profile" -p edo --bins >&2
+  cargo build --locked --profile "$profile" -p hil-sim --bins >&2
 fi
 # --strip: the release profile keeps line tables for backtraces (debug = 1); a host
 # needs the binaries only (about 60 MB each with them, a few MB without).

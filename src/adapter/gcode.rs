@@ -363,10 +363,7 @@ impl GcodeLink {
             accepted_upto: None,
             pending: VecDeque::new(),
             accepted: VecDeque::new(),
-            held_at_most: {
-                let f = crate::gcode_link::FirmwareConfig::for_dialect(cfg.link.dialect);
-                f.command_slots + f.planner_blocks
-            },
+            held_at_most: cfg.link.dialect.queues().held_at_most(),
             status: MachineReport {
                 remaining_nl: vec![capacity_nl; drives],
                 ..MachineReport::default()

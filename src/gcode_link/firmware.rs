@@ -56,10 +56,9 @@ pub struct FirmwareConfig {
     pub rx_buffer_bytes: usize,
     /// What a full receive buffer does.
     pub rx_overflow: RxOverflow,
-    /// Command queue (Marlin `BUFSIZE`; RRF 1: one command at a time; Klipper: lines
-    /// pending before it stops reading, 20).
+    /// Command queue (default [`Dialect::queues`]).
     pub command_slots: usize,
-    /// Planner blocks (Marlin `BLOCK_BUFFER_SIZE`, RRF's DDA ring, Klipper's lookahead).
+    /// Planner blocks (default [`Dialect::queues`]).
     pub planner_blocks: usize,
     /// Marlin `ADVANCED_OK`.
     pub advanced_ok: bool,
@@ -91,8 +90,8 @@ impl FirmwareConfig {
                 dialect,
                 rx_buffer_bytes: 128,
                 rx_overflow: RxOverflow::DropBytes,
-                command_slots: 4,
-                planner_blocks: 16,
+                command_slots: dialect.queues().command_slots,
+                planner_blocks: dialect.queues().planner_blocks,
                 advanced_ok: false,
                 emergency_parser: false,
                 keepalive_interval_us: Some(2_000_000),
@@ -107,8 +106,8 @@ impl FirmwareConfig {
                 dialect,
                 rx_buffer_bytes: 256,
                 rx_overflow: RxOverflow::Backpressure,
-                command_slots: 1,
-                planner_blocks: 40,
+                command_slots: dialect.queues().command_slots,
+                planner_blocks: dialect.queues().planner_blocks,
                 advanced_ok: false,
                 emergency_parser: true,
                 keepalive_interval_us: None,
@@ -123,8 +122,8 @@ impl FirmwareConfig {
                 dialect,
                 rx_buffer_bytes: 4096,
                 rx_overflow: RxOverflow::Backpressure,
-                command_slots: 20,
-                planner_blocks: 32,
+                command_slots: dialect.queues().command_slots,
+                planner_blocks: dialect.queues().planner_blocks,
                 advanced_ok: false,
                 emergency_parser: true,
                 keepalive_interval_us: None,

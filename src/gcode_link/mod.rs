@@ -19,9 +19,13 @@
 //! - [`LineHost`]: the host end. Numbers and checksums lines, keeps a history for
 //!   resends, windows lines by the firmware's receive buffer, handles `ok`, `Resend:`,
 //!   `busy:`, errors, banners, timeouts, the e-stop lane and the last-accepted query.
-//! - [`Firmware`]: sans-IO models of the three firmwares' serial front ends (bytes in →
-//!   lines into a command queue, replies out), for tests, benches and `hil-sim`.
-//! - [`testkit`]: a seeded fault wire in simulated time and a host–firmware harness.
+//! - `Firmware`: sans-IO models of the three firmwares' serial front ends (bytes in →
+//!   lines into a command queue, replies out), for tests, benches and `hil-sim`
+//!   (feature `sim`).
+//! - `testkit`: a seeded fault wire in simulated time and a host–firmware harness
+//!   (feature `sim`).
+//! - [`Dialect::queues`]: what each firmware holds by default (its command queue and
+//!   planner), which the G-code adapter counts against.
 //!
 //! Per-firmware decisions (the reasons are in `docs/firmware.md`):
 //!
@@ -39,13 +43,16 @@
 //! first line would run after the second once resent: edod keeps one line in flight on
 //! RRF, whatever the configured window, and recovers the silent drop by the ok timeout.
 
+#[cfg(any(test, feature = "sim"))]
 mod firmware;
 mod host;
 mod position;
 mod reply;
+#[cfg(any(test, feature = "sim"))]
 pub mod testkit;
 pub mod writer;
 
+#[cfg(any(test, feature = "sim"))]
 pub use firmware::{
     Firmware, FirmwareConfig, FirmwareStats, ProcessedLine, RxOverflow, CHECKSUM_ERROR,
     LINE_NUMBER_ERROR, NO_CHECKSUM_ERROR,
@@ -112,6 +119,45 @@ impl Dialect {
     /// Whether lines go out as `N<n> <text>*<checksum>` (else plain `<text>`).
     pub fn numbers_lines(self) -> bool {
         !matches!(self, Dialect::Klipper)
+    }
+
+    /// What the firmware holds in its stock build: lines it has acknowledged may wait
+    /// there before they run.
+    pub fn queues(self) -> FirmwareQueues {
+        match self {
+            // Marlin's AVR upstream configuration: BUFSIZE 4, BLOCK_BUFFER_SIZE 16.
+            Dialect::Marlin => FirmwareQueues {
+                command_slots: 4,
+                planner_blocks: 16,
+            },
+            // RRF reads one command at a time into a DDA ring of 40.
+            Dialect::Rrf => FirmwareQueues {
+                command_slots: 1,
+                planner_blocks: 40,
+            },
+            // Klipper stops reading at 20 pending lines; its lookahead holds 32 moves.
+            Dialect::Klipper => FirmwareQueues {
+                command_slots: 20,
+                planner_blocks: 32,
+            },
+        }
+    }
+}
+
+/// A firmware's queues ([`Dialect::queues`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FirmwareQueues {
+    /// Command queue (Marlin `BUFSIZE`; RRF 1: one command at a time; Klipper: lines
+    /// pending before it stops reading, 20).
+    pub command_slots: usize,
+    /// Planner blocks (Marlin `BLOCK_BUFFER_SIZE`, RRF's DDA ring, Klipper's lookahead).
+    pub planner_blocks: usize,
+}
+
+impl FirmwareQueues {
+    /// The most lines the firmware holds acknowledged and not yet run.
+    pub fn held_at_most(self) -> usize {
+        self.command_slots + self.planner_blocks
     }
 }
 

@@ -20,7 +20,8 @@
 //! - [`MachineLink`]: the machine end (move queue with exactly-once delivery, credits,
 //!   reports), used by `hil-sim` and meant to be ported to firmware.
 //! - [`sim_faults`]: the faults hil-sim injects (`--faults`), named for edod's config too.
-//! - [`testkit`]: a seeded, simulated-time lossy wire for tests and benchmarks.
+//! - `testkit`: a seeded, simulated-time lossy wire for tests and benchmarks (feature
+//!   `sim`).
 
 pub mod frame;
 mod host;
@@ -28,6 +29,7 @@ mod machine_end;
 pub mod msg;
 pub mod sim_faults;
 mod stream;
+#[cfg(any(test, feature = "sim"))]
 pub mod testkit;
 
 pub use frame::{Decoder, Frame, FrameError, FrameKind, MAX_FRAME};
