@@ -22,7 +22,9 @@ use edo::machine::Move;
 use crate::faults::Faults;
 use crate::gcode_machine::GcodeMachine;
 use crate::inject::{Injector, Lines};
-use crate::sim::{Booted, Executing, FaultOutcome, ProtocolEnd, Rebooted, SimConfig, Summary};
+use crate::sim::{
+    after_ms, Booted, Executing, FaultOutcome, ProtocolEnd, Rebooted, SimConfig, Summary,
+};
 
 /// Line credit the G-code simulator banks: about one tick of line time at 250 000 baud,
 /// so a line that follows a pause still takes its bytes' time, as on a UART, and one
@@ -86,7 +88,7 @@ impl GcodeOptions {
             .keepalive_interval_ms
             .filter(|_| c.keepalive_interval_us.is_some())
         {
-            c.keepalive_interval_us = Some(ms.max(1) * 1000);
+            c.keepalive_interval_us = Some(ms.max(1).saturating_mul(1000));
         }
         c
     }
@@ -223,7 +225,7 @@ impl ProtocolEnd for GcodeEnd {
             // A busy period: the handler blocks (a long command, the user's pause);
             // Marlin sends `busy: processing` keepalives meanwhile.
             sum.busy_periods += 1;
-            let until = now_us + f.busy_for_ms * 1000;
+            let until = after_ms(now_us, f.busy_for_ms);
             self.firmware.stall(Micros(until), Micros(now_us));
         }
     }

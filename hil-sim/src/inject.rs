@@ -11,7 +11,7 @@ use std::collections::VecDeque;
 use edo::link::testkit::SimRng;
 
 use crate::faults::Faults;
-use crate::sim::Summary;
+use crate::sim::{after_ms, Summary};
 
 /// A unit longer than this is passed on as it is (no terminator came).
 const MAX_UNIT_BYTES: usize = 4096;
@@ -177,11 +177,13 @@ impl Unit for Frames {
 
     fn due_at(&mut self, rng: &mut SimRng, now_us: u64, last_at: u64, f: &Faults) -> u64 {
         let jitter = if f.jitter_ms > 0 {
-            rng.next_u64() % (f.jitter_ms * 1000)
+            rng.next_u64() % f.jitter_ms.saturating_mul(1000)
         } else {
             0
         };
-        (now_us + f.delay_ms * 1000 + jitter).max(last_at)
+        after_ms(now_us, f.delay_ms)
+            .saturating_add(jitter)
+            .max(last_at)
     }
 }
 
@@ -226,7 +228,7 @@ impl Unit for Lines {
     }
 
     fn due_at(&mut self, _rng: &mut SimRng, now_us: u64, _last_at: u64, f: &Faults) -> u64 {
-        now_us + f.delay_ms * 1000
+        after_ms(now_us, f.delay_ms)
     }
 }
 

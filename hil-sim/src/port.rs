@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 
-use crate::sim::Summary;
+use crate::sim::{after_ms, Summary};
 
 /// The machine's end of the cable: a pty (behind the `--link` symlink when one is
 /// asked for) throttled to the baud rate both ways, which can be unplugged (closed: the
@@ -58,7 +58,7 @@ impl PtyPort {
             return false;
         }
         self.remove_link();
-        self.replug_at = Some(now_us + for_ms * 1000);
+        self.replug_at = Some(after_ms(now_us, for_ms));
         true
     }
 

@@ -416,7 +416,7 @@ impl<'a, E: ProtocolEnd> Runtime<'a, E> {
                 }
                 Command::Reset => self.ask_reset(now_us),
                 Command::Unplug => self.ask_unplug(now_us),
-                Command::Stall(ms) => self.stall_until = now_us + ms * 1000,
+                Command::Stall(ms) => self.stall_until = after_ms(now_us, ms),
                 Command::EStop => {
                     self.machine_fault(FaultKind::EStopPressed, now_us);
                 }
@@ -469,7 +469,7 @@ impl<'a, E: ProtocolEnd> Runtime<'a, E> {
             }
             self.timed_done[k] = true;
             match k {
-                0 => self.stall_until = now_us + self.faults.stall_for_ms * 1000,
+                0 => self.stall_until = after_ms(now_us, self.faults.stall_for_ms),
                 1 => self.ask_reset(now_us),
                 _ => self.ask_unplug(now_us),
             }
@@ -669,6 +669,12 @@ impl<'a, E: ProtocolEnd> Runtime<'a, E> {
         self.port.remove_link();
         Ok(self.sum)
     }
+}
+
+/// `ms` milliseconds after `now_us`, in µs (saturating: a fault's duration comes from
+/// the command line or stdin, unchecked).
+pub(crate) fn after_ms(now_us: u64, ms: u64) -> u64 {
+    now_us.saturating_add(ms.saturating_mul(1000))
 }
 
 /// The `clear` command: the rate faults of both protocols off (each protocol reads only
