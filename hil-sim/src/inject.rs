@@ -250,3 +250,109 @@ fn corrupt_one_byte(rng: &mut SimRng, line: &mut [u8]) -> bool {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` chunks of a seeded byte stream, most ending a unit with `end`.
+    fn stream(seed: u64, n: usize, end: u8) -> Vec<Vec<u8>> {
+        let mut r = SimRng::new(seed);
+        let mut chunks = Vec::new();
+        for _ in 0..n {
+            let len = (r.next_u64() % 200) as usize;
+            let mut v: Vec<u8> = (0..len).map(|_| (r.next_u64() % 250) as u8 + 1).collect();
+            if r.chance(0.8) {
+                v.push(end);
+            }
+            if r.chance(0.3) {
+                v.extend_from_slice(b"ok 12\n");
+            }
+            chunks.push(v);
+        }
+        chunks
+    }
+
+    /// Every unit out of `inj` for `chunks` (one ms apart), and the summary.
+    fn run<U: Unit>(mut inj: Injector<U>, chunks: &[Vec<u8>], f: &Faults) -> (Vec<u8>, Summary) {
+        let mut sum = Summary::default();
+        let mut out = Vec::new();
+        for (i, chunk) in chunks.iter().enumerate() {
+            let now = i as u64 * 1000;
+            inj.push(chunk, now, f, &mut sum);
+            while let Some(u) = inj.pop_due(now) {
+                out.extend(u);
+            }
+        }
+        while let Some(u) = inj.pop_due(u64::MAX) {
+            out.extend(u);
+        }
+        (out, sum)
+    }
+
+    fn digest(bytes: &[u8]) -> u64 {
+        bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+        })
+    }
+
+    fn faults() -> Faults {
+        Faults {
+            drop: 0.1,
+            dup: 0.2,
+            corrupt: 1e-3,
+            corrupt_line: 0.05,
+            corrupt_reply: 0.05,
+            drop_ok: 0.1,
+            delay_ms: 2,
+            jitter_ms: 3,
+            ..Faults::default()
+        }
+    }
+
+    /// A seed gives the same frame faults as it always did (tests count them).
+    #[test]
+    fn frame_faults_of_a_seed_stay_the_same() {
+        let (out, sum) = run(
+            Injector::new(7, Frames::new()),
+            &stream(1, 300, 0),
+            &faults(),
+        );
+        let counts = (sum.frames_dropped, sum.frames_duplicated, sum.bits_flipped);
+        assert_eq!(counts, (35, 41, 284));
+        assert_eq!((out.len(), digest(&out)), (32027, 0x4b82_0b9a_c90e_db5e));
+    }
+
+    /// A seed gives the same line faults as it always did, each way.
+    #[test]
+    fn line_faults_of_a_seed_stay_the_same() {
+        for (unit, want) in [
+            (
+                Lines::to_firmware(),
+                ((41, 77, 15), 32342, 0x2488_4b38_1b81_0abf),
+            ),
+            (
+                Lines::to_host(),
+                ((39, 69, 19), 33027, 0xa48d_4478_0afe_2020),
+            ),
+        ] {
+            let (out, sum) = run(Injector::new(7, unit), &stream(2, 300, b'\n'), &faults());
+            let counts = (sum.frames_dropped, sum.frames_duplicated, sum.bits_flipped);
+            assert_eq!((counts, out.len(), digest(&out)), want);
+        }
+    }
+
+    /// A corrupted line keeps its framing: one line in, one line out.
+    #[test]
+    fn a_corrupted_line_keeps_its_end() {
+        let mut rng = SimRng::new(3);
+        for _ in 0..1000 {
+            let mut line = b"N12 G1 X10 Y20*87\n".to_vec();
+            assert!(corrupt_one_byte(&mut rng, &mut line));
+            assert_eq!(line.iter().filter(|&&b| b == b'\n').count(), 1);
+            assert_eq!(line.last(), Some(&b'\n'));
+            assert_eq!(line.first(), Some(&b'N'));
+            assert!(!line.contains(&b';') && !line.contains(&b'\r'));
+        }
+    }
+}
