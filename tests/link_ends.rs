@@ -5,7 +5,8 @@ use edo::link::frame::{encode_frame, Decoder, Frame, FrameKind};
 use edo::link::msg::Hello;
 use edo::link::testkit::test_move;
 use edo::link::{
-    HostMsg, MachineLink, MachineLinkConfig, MachineState, Micros, PriorityCmd, PROTOCOL_VERSION,
+    HostMsg, MachineDescription, MachineLink, MachineLinkConfig, MachineState, Micros, PriorityCmd,
+    PROTOCOL_VERSION,
 };
 
 fn wire(kind: FrameKind, seq: u16, body: Vec<u8>) -> Vec<u8> {
@@ -147,7 +148,10 @@ fn emergency_stop_always_acts_and_stale_resume_is_ignored() {
 fn credits_are_the_free_queue_slots() {
     let now = Micros(0);
     let cfg = MachineLinkConfig {
-        queue_depth: 8,
+        machine: MachineDescription {
+            queue_depth: 8,
+            ..MachineDescription::default()
+        },
         ..MachineLinkConfig::default()
     };
     let mut m = MachineLink::new(cfg, now);

@@ -3,7 +3,7 @@
 //! `EDO_LINK_MOVES` sets the move count of the big stream test (default 1,000,000).
 
 use edo::link::testkit::{test_move, Harness, HarnessConfig, LineFaults};
-use edo::link::{HostEvent, LinkConfig, MachineLinkConfig};
+use edo::link::{HostEvent, LinkConfig, MachineDescription, MachineLinkConfig};
 use proptest::prelude::*;
 
 /// The channel: 1e-4 bit-error rate, 1 % dropped, 0.1 % duplicated frames.
@@ -124,7 +124,7 @@ fn emergency_stop_overtakes_queued_moves() {
         exec_us_per_move: 10_000,
         ..HarnessConfig::default()
     };
-    cfg.machine.queue_depth = 64;
+    cfg.machine.machine.queue_depth = 64;
     let mut h = Harness::new(cfg);
     let _ = h.stream(1, 200, 2_000_000, test_move);
     let now = h.now;
@@ -145,8 +145,11 @@ fn small_machine_limits_are_respected() {
         ..LinkConfig::default()
     };
     cfg.machine = MachineLinkConfig {
-        queue_depth: 4,
-        rx_buffer_bytes: 200,
+        machine: MachineDescription {
+            queue_depth: 4,
+            rx_buffer_bytes: 200,
+            ..MachineDescription::default()
+        },
         ..MachineLinkConfig::default()
     };
     cfg.exec_us_per_move = 2_000;

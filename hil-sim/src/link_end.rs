@@ -3,7 +3,10 @@
 //! [`Frames`].
 
 use edo::link::testkit::SimRng;
-use edo::link::{FaultKind, MachineEvent, MachineLink, MachineLinkConfig, Micros, PriorityCmd};
+use edo::link::{
+    FaultKind, MachineDescription, MachineEvent, MachineLink, MachineLinkConfig, Micros,
+    PriorityCmd,
+};
 use edo::machine::Move;
 
 use crate::faults::Faults;
@@ -26,10 +29,8 @@ impl LinkEnd {
     /// The link booted from `seeds` (the boot id, then the injectors' seeds).
     pub(crate) fn boot(cfg: &SimConfig, mut seeds: SimRng) -> Booted<Self> {
         let config = link_config(cfg);
-        let boot = MachineLinkConfig {
-            boot_id: seeds.next_u64(),
-            ..config.clone()
-        };
+        let mut boot = config.clone();
+        boot.machine.boot_id = seeds.next_u64();
         let link = MachineLink::new(boot, Micros(0));
         let to_machine = Injector::new(seeds.next_u64(), Frames::new());
         let to_host = Injector::new(seeds.next_u64(), Frames::new());
@@ -99,10 +100,8 @@ impl ProtocolEnd for LinkEnd {
 
     /// A new boot of the link, its boot banner on the line.
     fn reset(&mut self, now_us: u64) -> Rebooted {
-        let boot = MachineLinkConfig {
-            boot_id: self.rng.next_u64(),
-            ..self.config.clone()
-        };
+        let mut boot = self.config.clone();
+        boot.machine.boot_id = self.rng.next_u64();
         self.link = MachineLink::new(boot, Micros(now_us));
         Rebooted {
             banner: b"\r\nhil-sim boot\r\n\xff\xfe",
@@ -124,12 +123,14 @@ impl ProtocolEnd for LinkEnd {
 /// The link's settings for the simulated machine (boot id 0).
 fn link_config(cfg: &SimConfig) -> MachineLinkConfig {
     MachineLinkConfig {
-        identity: format!("hil-sim {}", env!("CARGO_PKG_VERSION")),
-        boot_id: 0,
-        barrel_area_um2: vec![cfg.barrel_area_um2; cfg.syringes],
-        capacity_nl: vec![cfg.capacity_nl; cfg.syringes],
-        queue_depth: cfg.queue.max(1),
-        rx_buffer_bytes: cfg.rx_buffer_bytes,
+        machine: MachineDescription {
+            identity: format!("hil-sim {}", env!("CARGO_PKG_VERSION")),
+            boot_id: 0,
+            barrel_area_um2: vec![cfg.barrel_area_um2; cfg.syringes],
+            capacity_nl: vec![cfg.capacity_nl; cfg.syringes],
+            queue_depth: cfg.queue.max(1),
+            rx_buffer_bytes: cfg.rx_buffer_bytes,
+        },
         ..MachineLinkConfig::default()
     }
 }

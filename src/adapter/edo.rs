@@ -78,7 +78,7 @@ impl EdoLink {
             HostEvent::Connected(i) => {
                 self.log.info(format!(
                     "machine connected identity={} boot_id={} last={:?}",
-                    i.identity, i.boot_id, i.status.last_executed
+                    i.machine.identity, i.machine.boot_id, i.status.last_executed
                 ));
                 self.report = report_of(&i.status);
                 self.info = Some(i);
@@ -233,7 +233,7 @@ impl LinkAdapter for EdoLink {
 
     /// The machine's identity, once it answered.
     fn identity(&self) -> Option<&str> {
-        self.info.as_ref().map(|i| i.identity.as_str())
+        self.info.as_ref().map(|i| i.machine.identity.as_str())
     }
 
     /// Its last report.

@@ -245,8 +245,8 @@ impl<'a> LinkTest<'a> {
         let report = &mut self.report;
         match e {
             HostEvent::Connected(info) => {
-                self.syringes = info.barrel_area_um2.len();
-                report.machine = info.identity.clone();
+                self.syringes = info.machine.barrel_area_um2.len();
+                report.machine = info.machine.identity.clone();
                 self.baseline = Some((
                     info.status.executed_total,
                     info.status.duplicates,

@@ -4,8 +4,8 @@ use std::collections::VecDeque;
 
 use super::frame::{encode_frame, Decoder, Frame, FrameKind};
 use super::msg::{
-    FaultReport, Hello, HelloReply, HostMsg, MachineMsg, MoveRef, PriorityCmd, Status,
-    PROTOCOL_VERSION,
+    FaultReport, Hello, HelloReply, HostMsg, MachineDescription, MachineMsg, MoveRef, PriorityCmd,
+    Status, PROTOCOL_VERSION,
 };
 use super::stream::{decode_body, extend_seq, Arrival, RecvStream, SendStream};
 use super::{LinkConfig, LinkStats, Micros, Transmit};
@@ -16,18 +16,8 @@ use crate::machine::{Move, MoveError};
 pub struct MachineInfo {
     /// Machine's protocol version.
     pub protocol_version: u16,
-    /// Make / model / firmware.
-    pub identity: String,
-    /// Boot id (changes on every machine reset).
-    pub boot_id: u64,
-    /// Barrel cross-section per syringe (µm²).
-    pub barrel_area_um2: Vec<u32>,
-    /// Capacity per syringe (nl).
-    pub capacity_nl: Vec<u32>,
-    /// Move queue depth.
-    pub queue_depth: u16,
-    /// Receive buffer (bytes).
-    pub rx_buffer_bytes: u32,
+    /// The machine, as its handshake described it.
+    pub machine: MachineDescription,
     /// Largest frame the machine accepts.
     pub max_frame: u16,
     /// Status at handshake: the last executed move tells a restarted host where it is.
@@ -233,7 +223,7 @@ impl Host {
             return Err(HostError::NotConnected(self.state));
         }
         if let Some(info) = &self.info {
-            mv.validate(info.barrel_area_um2.len())?;
+            mv.validate(info.machine.barrel_area_um2.len())?;
         }
         let (job_id, index) = (mv.job_id, mv.index);
         let bytes = postcard::to_allocvec(&HostMsg::Move(mv)).map_err(|e| HostError::Encode {
@@ -356,7 +346,7 @@ impl Host {
     }
 
     fn machine_reset(&mut self, boot_id: u64) {
-        let previous_boot_id = self.info.as_ref().map_or(0, |i| i.boot_id);
+        let previous_boot_id = self.info.as_ref().map_or(0, |i| i.machine.boot_id);
         let in_flight = self.send.slots_in_flight();
         let (pending, _) = self.send.clear();
         self.state = HostState::Reset;
@@ -379,7 +369,7 @@ impl Host {
             FrameKind::HelloReply => self.on_hello_reply(&f, now),
             FrameKind::Unsynced | FrameKind::Heartbeat => {
                 let boot_id = read_u64(&f.body);
-                let known = self.info.as_ref().map(|i| i.boot_id);
+                let known = self.info.as_ref().map(|i| i.machine.boot_id);
                 match (self.state, f.kind) {
                     (HostState::Connected, FrameKind::Unsynced) => {
                         self.machine_reset(boot_id.unwrap_or(0));
@@ -470,8 +460,8 @@ impl Host {
         }
         if self.state == HostState::Connected {
             // A duplicate reply; a changed boot id means a reset.
-            if self.info.as_ref().map(|i| i.boot_id) != Some(reply.boot_id) {
-                self.machine_reset(reply.boot_id);
+            if self.info.as_ref().map(|i| i.machine.boot_id) != Some(reply.machine.boot_id) {
+                self.machine_reset(reply.machine.boot_id);
             }
             return;
         }
@@ -486,7 +476,7 @@ impl Host {
             return;
         }
         self.send.set_peer_limits(
-            reply.rx_buffer_bytes as usize,
+            reply.machine.rx_buffer_bytes as usize,
             usize::from(reply.max_frame).min(super::MAX_FRAME),
         );
         self.send
@@ -494,12 +484,7 @@ impl Host {
         self.last_executed = reply.status.last_executed;
         let info = MachineInfo {
             protocol_version: reply.protocol_version,
-            identity: reply.identity,
-            boot_id: reply.boot_id,
-            barrel_area_um2: reply.barrel_area_um2,
-            capacity_nl: reply.capacity_nl,
-            queue_depth: reply.queue_depth,
-            rx_buffer_bytes: reply.rx_buffer_bytes,
+            machine: reply.machine,
             max_frame: reply.max_frame,
             status: reply.status,
         };

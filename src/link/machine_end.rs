@@ -5,8 +5,8 @@ use std::collections::VecDeque;
 
 use super::frame::{encode_frame, Decoder, Frame, FrameKind};
 use super::msg::{
-    FaultKind, FaultReport, Hello, HelloReply, HostMsg, MachineMsg, MachineState, MoveRef,
-    PriorityCmd, Status, PROTOCOL_VERSION,
+    FaultKind, FaultReport, Hello, HelloReply, HostMsg, MachineDescription, MachineMsg,
+    MachineState, MoveRef, PriorityCmd, Status, PROTOCOL_VERSION,
 };
 use super::stream::{decode_body, extend_seq, Arrival, RecvStream, SendStream};
 use super::{LinkConfig, LinkStats, Micros, Transmit};
@@ -17,18 +17,8 @@ use crate::machine::{Move, MoveKind, PositionUm};
 pub struct MachineLinkConfig {
     /// Timers and windows.
     pub link: LinkConfig,
-    /// Make / model / firmware (at most 64 bytes are sent).
-    pub identity: String,
-    /// Random per boot.
-    pub boot_id: u64,
-    /// Barrel cross-section per syringe (µm²); its length is the syringe count.
-    pub barrel_area_um2: Vec<u32>,
-    /// Capacity per syringe (nl).
-    pub capacity_nl: Vec<u32>,
-    /// Move queue depth.
-    pub queue_depth: u16,
-    /// Receive buffer advertised to the host (bytes).
-    pub rx_buffer_bytes: u32,
+    /// The machine, as its handshake describes it (the boot id drawn at every boot).
+    pub machine: MachineDescription,
     /// Send a status report at most this often while executing (µs).
     pub report_interval_us: u64,
 }
@@ -37,12 +27,7 @@ impl Default for MachineLinkConfig {
     fn default() -> Self {
         Self {
             link: LinkConfig::default(),
-            identity: "edo machine".into(),
-            boot_id: 1,
-            barrel_area_um2: vec![78_539_816; 2], // 10 mm bore
-            capacity_nl: vec![10_000_000; 2],     // 10 ml
-            queue_depth: 128,
-            rx_buffer_bytes: 2048,
+            machine: MachineDescription::default(),
             report_interval_us: 50_000,
         }
     }
@@ -104,7 +89,7 @@ impl MachineLink {
     /// idle host learns of the reset at once.
     pub fn new(cfg: MachineLinkConfig, now: Micros) -> Self {
         let status = Status {
-            remaining_nl: cfg.capacity_nl.clone(),
+            remaining_nl: cfg.machine.capacity_nl.clone(),
             ..Status::default()
         };
         let send = SendStream::new(&cfg.link);
@@ -113,7 +98,7 @@ impl MachineLink {
             session: None,
             decoder: Decoder::new(),
             recv: RecvStream::default(),
-            queue: VecDeque::with_capacity(usize::from(cfg.queue_depth)),
+            queue: VecDeque::with_capacity(usize::from(cfg.machine.queue_depth)),
             status,
             events: VecDeque::new(),
             stats: LinkStats::default(),
@@ -165,6 +150,7 @@ impl MachineLink {
     /// Free queue slots (the credits the host gets).
     pub fn queue_free(&self) -> u16 {
         self.cfg
+            .machine
             .queue_depth
             .saturating_sub(self.queue.len().min(u16::MAX as usize) as u16)
     }
@@ -196,7 +182,7 @@ impl MachineLink {
             self.set_state(MachineState::Running);
         }
         let free = self.queue_free();
-        let step = (self.cfg.queue_depth / 4).max(1);
+        let step = (self.cfg.machine.queue_depth / 4).max(1);
         if self.advertised_credits == 0 || free >= self.advertised_credits.saturating_add(step) {
             self.ack_needed = true;
         }
@@ -457,9 +443,9 @@ impl MachineLink {
             HostMsg::Move(mv) => {
                 if self.status.state == MachineState::EStopped {
                     self.moves_discarded += 1;
-                } else if mv.validate(self.cfg.barrel_area_um2.len()).is_err() {
+                } else if mv.validate(self.cfg.machine.barrel_area_um2.len()).is_err() {
                     self.fault(FaultKind::BadMove);
-                } else if self.queue.len() >= usize::from(self.cfg.queue_depth) {
+                } else if self.queue.len() >= usize::from(self.cfg.machine.queue_depth) {
                     self.fault(FaultKind::QueueOverflow);
                 } else {
                     self.queue.push_back(mv);
@@ -499,21 +485,16 @@ impl MachineLink {
     }
 
     fn hello_reply(&self) -> HelloReply {
-        let mut identity = self.cfg.identity.clone();
-        while identity.len() > 64 {
-            identity.pop();
+        let mut machine = self.cfg.machine.clone();
+        while machine.identity.len() > 64 {
+            machine.identity.pop();
         }
         let mut status = self.status.clone();
         status.queued = self.queue.len().min(u16::MAX as usize) as u16;
         HelloReply {
             protocol_version: PROTOCOL_VERSION,
             session_id: self.session.unwrap_or(0),
-            identity,
-            boot_id: self.cfg.boot_id,
-            barrel_area_um2: self.cfg.barrel_area_um2.clone(),
-            capacity_nl: self.cfg.capacity_nl.clone(),
-            queue_depth: self.cfg.queue_depth,
-            rx_buffer_bytes: self.cfg.rx_buffer_bytes,
+            machine,
             max_frame: self.cfg.link.max_frame.min(super::MAX_FRAME) as u16,
             status,
         }
@@ -534,7 +515,7 @@ impl MachineLink {
         if self.session.is_none() {
             if self.unsynced_needed {
                 self.unsynced_needed = false;
-                let body = self.cfg.boot_id.to_le_bytes().to_vec();
+                let body = self.cfg.machine.boot_id.to_le_bytes().to_vec();
                 return Some(self.frame(FrameKind::Unsynced, 0, body, now));
             }
             return None;
@@ -566,7 +547,7 @@ impl MachineLink {
             return Some(self.frame(FrameKind::Ack, seq, Vec::new(), now));
         }
         if now.since(self.last_tx) >= self.cfg.link.heartbeat_interval_us {
-            let body = self.cfg.boot_id.to_le_bytes().to_vec();
+            let body = self.cfg.machine.boot_id.to_le_bytes().to_vec();
             return Some(self.frame(FrameKind::Heartbeat, 0, body, now));
         }
         None

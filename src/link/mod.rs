@@ -36,8 +36,8 @@ pub use frame::{Decoder, Frame, FrameError, FrameKind, MAX_FRAME};
 pub use host::{Host, HostEvent, HostState, MachineInfo};
 pub use machine_end::{MachineEvent, MachineLink, MachineLinkConfig};
 pub use msg::{
-    FaultKind, FaultReport, HostMsg, MachineMsg, MachineState, MoveRef, PriorityCmd, Status,
-    PROTOCOL_VERSION,
+    FaultKind, FaultReport, HostMsg, MachineDescription, MachineMsg, MachineState, MoveRef,
+    PriorityCmd, Status, PROTOCOL_VERSION,
 };
 
 /// A point in time in microseconds since an arbitrary epoch chosen by the caller. The core

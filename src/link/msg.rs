@@ -52,14 +52,14 @@ pub struct Hello {
     pub max_frame: u16,
 }
 
-/// Machine handshake reply (HelloReply frame body).
+/// What a machine is, as it says in its handshake: the one description the machine end
+/// is built from ([`super::MachineLinkConfig`]), sends ([`HelloReply`]) and the host
+/// keeps ([`super::MachineInfo`]). Nested in the reply, its fields go on the wire in
+/// this order, where they always were (postcard writes a nested struct's fields in
+/// place).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct HelloReply {
-    /// [`PROTOCOL_VERSION`] of the machine.
-    pub protocol_version: u16,
-    /// Echo of [`Hello::session_id`].
-    pub session_id: u64,
-    /// Free text: make, model, firmware version (at most 64 bytes).
+pub struct MachineDescription {
+    /// Free text: make, model, firmware version (at most 64 bytes are sent).
     pub identity: String,
     /// Random id drawn at every boot: a change means the machine reset.
     pub boot_id: u64,
@@ -71,6 +71,31 @@ pub struct HelloReply {
     pub queue_depth: u16,
     /// Receive buffer in bytes: the host keeps at most this many unacked bytes in flight.
     pub rx_buffer_bytes: u32,
+}
+
+impl Default for MachineDescription {
+    /// Two 10 ml syringes of 10 mm bore, a queue of 128 moves, 2 KiB of receive buffer.
+    fn default() -> Self {
+        Self {
+            identity: "edo machine".into(),
+            boot_id: 1,
+            barrel_area_um2: vec![78_539_816; 2],
+            capacity_nl: vec![10_000_000; 2],
+            queue_depth: 128,
+            rx_buffer_bytes: 2048,
+        }
+    }
+}
+
+/// Machine handshake reply (HelloReply frame body).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct HelloReply {
+    /// [`PROTOCOL_VERSION`] of the machine.
+    pub protocol_version: u16,
+    /// Echo of [`Hello::session_id`].
+    pub session_id: u64,
+    /// The machine.
+    pub machine: MachineDescription,
     /// Largest frame the machine accepts (decoded bytes, at most [`super::MAX_FRAME`]).
     pub max_frame: u16,
     /// Where the machine is now (last executed move etc).
@@ -140,4 +165,53 @@ pub struct FaultReport {
     pub kind: FaultKind,
     /// Last executed move when it happened.
     pub at: Option<MoveRef>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The machine's description nested in the reply leaves its bytes on the wire as
+    /// they were with the fields flat in the reply (protocol version 1 unchanged).
+    #[test]
+    fn the_hello_reply_s_bytes_are_its_fields_in_order() {
+        let status = Status {
+            state: MachineState::Idle,
+            last_executed: Some(MoveRef {
+                job_id: 3,
+                index: 41,
+            }),
+            remaining_nl: vec![9, 8],
+            ..Status::default()
+        };
+        let reply = HelloReply {
+            protocol_version: PROTOCOL_VERSION,
+            session_id: 0xfeed,
+            machine: MachineDescription {
+                identity: "hil-sim 0.1".into(),
+                boot_id: 77,
+                barrel_area_um2: vec![5, 6],
+                capacity_nl: vec![1_000, 2_000],
+                queue_depth: 128,
+                rx_buffer_bytes: 2048,
+            },
+            max_frame: 512,
+            status: status.clone(),
+        };
+        let flat = (
+            PROTOCOL_VERSION,
+            0xfeed_u64,
+            "hil-sim 0.1",
+            77_u64,
+            vec![5_u32, 6],
+            vec![1_000_u32, 2_000],
+            128_u16,
+            2048_u32,
+            512_u16,
+            status,
+        );
+        let bytes = postcard::to_allocvec(&reply).expect("encode");
+        assert_eq!(bytes, postcard::to_allocvec(&flat).expect("encode"));
+        assert_eq!(postcard::from_bytes::<HelloReply>(&bytes), Ok(reply));
+    }
 }

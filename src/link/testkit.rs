@@ -310,7 +310,7 @@ impl Harness {
         let mut rng = SimRng::new(cfg.seed);
         let host = Host::new(cfg.host.clone(), rng.next_u64(), Micros(0));
         let mut mcfg = cfg.machine.clone();
-        mcfg.boot_id = rng.next_u64();
+        mcfg.machine.boot_id = rng.next_u64();
         let machine = MachineLink::new(mcfg, Micros(0));
         let to_machine = Line::new(cfg.baud, cfg.to_machine, rng.next_u64());
         let to_host = Line::new(cfg.baud, cfg.to_host, rng.next_u64());
@@ -332,7 +332,7 @@ impl Harness {
 
     fn reset_machine(&mut self) {
         let mut mcfg = self.cfg.machine.clone();
-        mcfg.boot_id = self.rng.next_u64();
+        mcfg.machine.boot_id = self.rng.next_u64();
         self.machine = MachineLink::new(mcfg, self.now);
         self.to_host.cut();
         self.to_machine.cut();
