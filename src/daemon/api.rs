@@ -246,12 +246,12 @@ async fn job_submit(p: SubmitParams, shared: &Shared) -> Result<Submitted, ApiEr
 /// mesh stored with it, checked as a submission is (the machine may have changed).
 async fn job_reprint(id: u32, shared: &Shared) -> Result<Submitted, ApiError> {
     let (job, mesh) = shared.store.reader.source(id).await.map_err(api_error)?;
-    if !job.state.is_final() {
+    if !job.job.state.is_final() {
         return Err(ApiError::new(
             ApiError::BAD_STATE,
             format!(
                 "job {id} is {}: only a done, failed or cancelled job is printed again",
-                job.state.as_str()
+                job.job.state.as_str()
             ),
         ));
     }
@@ -269,7 +269,7 @@ async fn job_reprint(id: u32, shared: &Shared) -> Result<Submitted, ApiError> {
         dry_run @ JobSpec::DryRun { .. } => (dry_run, Vec::new()),
     };
     info!(job = id, "job printed again");
-    queue_job(shared, job.name, spec, warnings).await
+    queue_job(shared, job.job.name, spec, warnings).await
 }
 
 /// Store an accepted job (on disk before the reply), tell subscribers and the streamer.
@@ -392,19 +392,9 @@ async fn delete_stored(shared: &Shared, id: u32) -> Result<Result<(), JobState>,
 
 /// A stored job as the API shows it, with `live` progress if it is the active job.
 fn job_view(j: JobRecord, live: Option<&Progress>) -> Job {
-    Job {
-        progress: live.filter(|p| p.job_id == j.id).cloned(),
-        id: j.id,
-        name: j.name,
-        state: j.state,
-        reason: j.reason,
-        total_moves: j.total_moves,
-        checkpoint: j.checkpoint,
-        submitted_ms: j.submitted_ms,
-        started_ms: j.started_ms,
-        ended_ms: j.ended_ms,
-        updated_ms: j.updated_ms,
-    }
+    let mut job = j.job;
+    job.progress = live.filter(|p| p.job_id == job.id).cloned();
+    job
 }
 
 async fn job_list(shared: &Shared) -> Result<Vec<Job>, ApiError> {

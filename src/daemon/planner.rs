@@ -245,7 +245,7 @@ pub fn source_of(
             (config.machine.build_volume_mm[2] * 1000.0).round() as i32,
         ))),
         super::store::JobSpec::Toml { toml, .. } => {
-            JobSource::new(toml, mesh, &format!("job {}", job.id), &config.machine)
+            JobSource::new(toml, mesh, &format!("job {}", job.job.id), &config.machine)
                 .map(|s| Box::new(s) as Box<dyn LayerSource>)
         }
     }

@@ -340,7 +340,9 @@ async fn klipper_resume_moves(
     let mut started = Vec::new();
     for &id in &opened.interrupted {
         match opened.stores.reader.get(id).await {
-            Ok(r) if r.checkpoint.next_index > 0 => started.push((id, r.checkpoint.next_index)),
+            Ok(r) if r.job.checkpoint.next_index > 0 => {
+                started.push((id, r.job.checkpoint.next_index))
+            }
             Ok(_) => {}
             Err(e) => warn!(job = id, "interrupted job not read: {e}"),
         }

@@ -97,8 +97,8 @@ impl Recipe {
             Recipe::Stored { job, mesh } => {
                 let drives = config.machine.syringes.len();
                 crate::daemon::planner::source_of(job, mesh.as_deref(), drives, config)
-                    .map(|s| (Some(job.name.clone()), s))
-                    .map_err(|e| (Some(job.name.clone()), e))
+                    .map(|s| (Some(job.job.name.clone()), s))
+                    .map_err(|e| (Some(job.job.name.clone()), e))
             }
         };
         match started {

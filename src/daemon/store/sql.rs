@@ -41,35 +41,17 @@ pub enum JobSpec {
     },
 }
 
-/// A job as stored.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+/// A job as stored: what the API shows of it ([`crate::proto::Job`], without live
+/// progress, which is not stored), how its moves are produced, and what of its row
+/// could not be read.
+#[derive(Debug, Clone, PartialEq)]
 pub struct JobRecord {
-    /// Job id (also the wire job id of its moves).
-    pub id: u32,
-    /// Name.
-    pub name: String,
-    /// State.
-    pub state: JobState,
-    /// Why it is paused, interrupted or failed.
-    pub reason: Option<String>,
-    /// Moves planned in total, once planning has finished.
-    pub total_moves: Option<u32>,
-    /// Where to continue.
-    pub checkpoint: Checkpoint,
-    /// Submission time (ms since the Unix epoch).
-    pub submitted_ms: i64,
-    /// When it first printed (ms since the Unix epoch).
-    pub started_ms: Option<i64>,
-    /// When it was done, failed or cancelled (ms since the Unix epoch).
-    pub ended_ms: Option<i64>,
-    /// Last change (ms since the Unix epoch).
-    pub updated_ms: i64,
-    /// How its moves are produced (not serialised in listings).
-    #[serde(skip)]
+    /// The job as `job.get` and `job.list` show it (`progress` always `None` here).
+    pub job: crate::proto::Job,
+    /// How its moves are produced.
     pub spec: JobSpec,
     /// What of its row could not be read (the job is then shown `failed` with the
     /// reason "stored job unreadable: …" and never planned).
-    #[serde(skip)]
     pub unreadable: Option<String>,
 }
 
@@ -175,12 +157,13 @@ impl StoreError {
 impl JobRecord {
     /// What the lifecycle needs of the job.
     pub fn info(&self) -> JobInfo {
+        let j = &self.job;
         JobInfo {
-            id: self.id,
-            state: self.state,
-            checkpoint: self.checkpoint.clone(),
-            total_moves: self.total_moves,
-            submitted_ms: self.submitted_ms,
+            id: j.id,
+            state: j.state,
+            checkpoint: j.checkpoint.clone(),
+            total_moves: j.total_moves,
+            submitted_ms: j.submitted_ms,
         }
     }
 }
@@ -487,7 +470,7 @@ impl Store {
         let used_nl = column::<String>(r, "used_nl", &mut bad)
             .and_then(|v| json(&v, "used_nl", &mut bad))
             .unwrap_or_default();
-        let mut j = JobRecord {
+        let job = crate::proto::Job {
             id,
             name: column(r, "name", &mut bad).unwrap_or_default(),
             state: state.unwrap_or(JobState::Failed),
@@ -504,6 +487,10 @@ impl Store {
             started_ms: column(r, "started_ms", &mut bad).flatten(),
             ended_ms: column(r, "ended_ms", &mut bad).flatten(),
             updated_ms: column(r, "updated_ms", &mut bad).unwrap_or(0),
+            progress: None,
+        };
+        let mut j = JobRecord {
+            job,
             spec,
             unreadable: None,
         };
@@ -514,13 +501,14 @@ impl Store {
             let what = bad.join("; ");
             // Quarantined earlier: the reason then written stays.
             let quarantined = state == Some(JobState::Failed)
-                && j.reason
+                && j.job
+                    .reason
                     .as_deref()
                     .is_some_and(|r| r.starts_with(UNREADABLE));
             if !quarantined {
-                j.reason = Some(format!("{UNREADABLE} {what}"));
+                j.job.reason = Some(format!("{UNREADABLE} {what}"));
             }
-            j.state = JobState::Failed;
+            j.job.state = JobState::Failed;
             j.unreadable = Some(what);
         }
         Ok(j)
@@ -539,10 +527,10 @@ impl Store {
             let n = tx.execute(
                 "UPDATE jobs SET state = 'failed', reason = ?2, updated_ms = ?3
                  WHERE id = ?1 AND (state IS NOT 'failed' OR reason IS NOT ?2)",
-                params![j.id, j.reason, now_ms()],
+                params![j.job.id, j.job.reason, now_ms()],
             )?;
             if n > 0 {
-                marked.push((j.id, what));
+                marked.push((j.job.id, what));
             }
         }
         tx.commit()?;
@@ -775,7 +763,7 @@ impl Store {
     /// (`AUTOINCREMENT`), so a machine's report of a deleted job's moves names no other.
     pub fn delete_finished(&self, id: u32) -> Result<Result<(), JobState>, StoreError> {
         let tx = write_tx(self.conn()?)?;
-        let state = self.get(id)?.state;
+        let state = self.get(id)?.job.state;
         if !state.is_final() {
             return Ok(Err(state));
         }
@@ -883,10 +871,14 @@ fn check_row(j: &JobRecord, bad: &mut Vec<String>) {
     if matches!(j.spec, JobSpec::DryRun { moves: 0 }) {
         bad.push("spec: a dry run of 0 moves (the API takes 1 or more)".into());
     }
-    if let Some(total) = j.total_moves.filter(|t| j.checkpoint.next_index > *t) {
+    if let Some(total) = j
+        .job
+        .total_moves
+        .filter(|t| j.job.checkpoint.next_index > *t)
+    {
         bad.push(format!(
             "next_index: {} is past the job's {total} moves",
-            j.checkpoint.next_index
+            j.job.checkpoint.next_index
         ));
     }
 }
@@ -960,7 +952,7 @@ mod tests {
         assert!(s.list().unwrap().is_empty());
         other.execute_batch("COMMIT").unwrap();
         let id = s.insert("j", &JobSpec::DryRun { moves: 3 }).unwrap();
-        assert_eq!(s.get(id).unwrap().name, "j");
+        assert_eq!(s.get(id).unwrap().job.name, "j");
     }
 
     #[test]
@@ -1001,7 +993,7 @@ mod tests {
         // Finished now: 1, 4, 5. Keep the newest two.
         assert_eq!(s.prune_finished(2, 10).unwrap(), vec![1]);
         assert_eq!(s.prune_finished(2, 10).unwrap(), Vec::<u32>::new());
-        let left: Vec<u32> = s.list().unwrap().iter().map(|j| j.id).collect();
+        let left: Vec<u32> = s.list().unwrap().iter().map(|j| j.job.id).collect();
         assert_eq!(left, vec![2, 4, 5, 6]);
         // The meshes went with their jobs, and ids are not reused.
         let meshes: i64 = s
@@ -1054,9 +1046,9 @@ mod tests {
         let s = Store::open(dir.path()).unwrap();
         assert_eq!(s.interrupt_unfinished("restart").unwrap(), vec![1]);
         let a = s.get(1).unwrap();
-        assert_eq!(a.state, JobState::Interrupted);
-        assert_eq!(a.checkpoint.next_index, 7);
-        assert_eq!(a.checkpoint.composition, Some(vec![0.25, 0.75]));
+        assert_eq!(a.job.state, JobState::Interrupted);
+        assert_eq!(a.job.checkpoint.next_index, 7);
+        assert_eq!(a.job.checkpoint.composition, Some(vec![0.25, 0.75]));
         let b = s.get(2).unwrap();
         // Records come without their mesh; the planner asks for it.
         assert_eq!(
@@ -1069,7 +1061,7 @@ mod tests {
         assert_eq!(s.mesh(2).unwrap(), Some(vec![0, 1, 2, 255]));
         assert_eq!(s.mesh(1).unwrap(), None);
         assert!(matches!(s.mesh(9), Err(StoreError::NotFound(9))));
-        let queued: Vec<u32> = s.queued().unwrap().iter().map(|j| j.id).collect();
+        let queued: Vec<u32> = s.queued().unwrap().iter().map(|j| j.job.id).collect();
         assert_eq!(queued, [2]);
         assert_eq!(s.reserve_service_indices(100).unwrap(), (150, 250));
         assert!(matches!(s.get(9), Err(StoreError::NotFound(9))));
@@ -1110,10 +1102,10 @@ mod tests {
             .unwrap();
         assert_eq!(missing, [99]);
         let j = s.get(a).unwrap();
-        assert_eq!(j.state, JobState::Paused);
-        assert_eq!(j.reason.as_deref(), Some("paused by an operator"));
-        assert_eq!(j.checkpoint.next_index, 7);
-        assert_eq!(j.total_moves, Some(10));
+        assert_eq!(j.job.state, JobState::Paused);
+        assert_eq!(j.job.reason.as_deref(), Some("paused by an operator"));
+        assert_eq!(j.job.checkpoint.next_index, 7);
+        assert_eq!(j.job.total_moves, Some(10));
     }
 
     #[test]
@@ -1324,7 +1316,7 @@ mod tests {
             assert_eq!(s.conn.execute(sql, []).unwrap(), 1, "job {id}");
         }
         let list = s.list().unwrap();
-        let reason = |k: usize| list[k].reason.clone().unwrap_or_default();
+        let reason = |k: usize| list[k].job.reason.clone().unwrap_or_default();
         assert!(
             reason(0).contains("spec: a dry run of 0 moves"),
             "{}",
@@ -1335,8 +1327,8 @@ mod tests {
             "{}",
             reason(1)
         );
-        assert!(list[..2].iter().all(|j| j.state == JobState::Failed));
-        assert_eq!(list[2].state, JobState::Queued);
+        assert!(list[..2].iter().all(|j| j.job.state == JobState::Failed));
+        assert_eq!(list[2].job.state, JobState::Queued);
         let marked = quarantined(&s);
         assert_eq!(marked, [1, 2]);
     }
@@ -1365,7 +1357,13 @@ mod tests {
         let list = s.list().unwrap();
         let view: Vec<(u32, JobState, String)> = list
             .iter()
-            .map(|j| (j.id, j.state, j.reason.clone().unwrap_or_default()))
+            .map(|j| {
+                (
+                    j.job.id,
+                    j.job.state,
+                    j.job.reason.clone().unwrap_or_default(),
+                )
+            })
             .collect();
         assert_eq!(view[4], (5, JobState::Queued, String::new()));
         for (id, _, reason) in &view[..4] {
@@ -1387,7 +1385,7 @@ mod tests {
             view[3].2
         );
         assert!(view[3].2.contains("remaining_nl: "), "{}", view[3].2);
-        assert!(list[..4].iter().all(|j| j.state == JobState::Failed));
+        assert!(list[..4].iter().all(|j| j.job.state == JobState::Failed));
         // Marked failed on disk at start, once; the queued list leaves them out.
         let marked = quarantined(&s);
         assert_eq!(marked, [1, 2, 3, 4]);
@@ -1396,9 +1394,13 @@ mod tests {
             s.interrupt_unfinished("restart").unwrap(),
             Vec::<u32>::new()
         );
-        let queued: Vec<u32> = s.queued().unwrap().iter().map(|j| j.id).collect();
+        let queued: Vec<u32> = s.queued().unwrap().iter().map(|j| j.job.id).collect();
         assert_eq!(queued, [5]);
-        assert_eq!(s.get(3).unwrap().reason, list[2].reason, "the reason stays");
+        assert_eq!(
+            s.get(3).unwrap().job.reason,
+            list[2].job.reason,
+            "the reason stays"
+        );
         assert!(s.get(1).unwrap().unreadable.is_some());
         // A quarantined job can be deleted.
         assert_eq!(s.delete_finished(1).unwrap(), Ok(()));

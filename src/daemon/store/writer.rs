@@ -406,15 +406,22 @@ mod tests {
             asked.elapsed()
         );
         // Readers go on meanwhile (WAL) and see the last records committed.
-        assert_eq!(main.get(id).unwrap().checkpoint.next_index, 1);
+        assert_eq!(main.get(id).unwrap().job.checkpoint.next_index, 1);
         other.execute_batch("COMMIT").unwrap();
         assert_eq!(
             stored(&mut rx, Duration::from_secs(5)),
             Some(Event::Stored { upto: 51 })
         );
         let j = main.get(id).unwrap();
-        assert_eq!(j.checkpoint.next_index, 50, "the latest checkpoint wins");
-        assert_eq!(j.state, JobState::Paused, "and the state written with it");
+        assert_eq!(
+            j.job.checkpoint.next_index, 50,
+            "the latest checkpoint wins"
+        );
+        assert_eq!(
+            j.job.state,
+            JobState::Paused,
+            "and the state written with it"
+        );
         assert_eq!(
             main.list().unwrap().len(),
             1,
@@ -469,7 +476,7 @@ mod tests {
                 "every try is reported"
             );
         }
-        assert_eq!(main.get(id).unwrap().state, JobState::Queued);
+        assert_eq!(main.get(id).unwrap().job.state, JobState::Queued);
         // Room again.
         other.execute_batch("DELETE FROM pad").unwrap();
         assert_eq!(
@@ -477,6 +484,9 @@ mod tests {
             Some(Event::Stored { upto: 1 })
         );
         let j = main.get(id).unwrap();
-        assert_eq!((j.state, j.reason), (JobState::Paused, Some(reason)));
+        assert_eq!(
+            (j.job.state, j.job.reason),
+            (JobState::Paused, Some(reason))
+        );
     }
 }
