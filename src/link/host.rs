@@ -7,7 +7,7 @@ use super::msg::{
     FaultReport, Hello, HelloReply, HostMsg, MachineDescription, MachineMsg, MoveRef, PriorityCmd,
     Status, PROTOCOL_VERSION,
 };
-use super::stream::{decode_body, extend_seq, Arrival, RecvStream, SendStream};
+use super::stream::{decode_body, extend_seq, Receiver, SendStream};
 use super::{LinkConfig, LinkStats, Micros, Transmit};
 use crate::machine::{Move, MoveError};
 
@@ -111,7 +111,7 @@ pub struct Host {
     state: HostState,
     decoder: Decoder,
     send: SendStream,
-    recv: RecvStream,
+    recv: Receiver,
     events: VecDeque<HostEvent>,
     stats: LinkStats,
     info: Option<MachineInfo>,
@@ -120,11 +120,7 @@ pub struct Host {
     last_tx: Micros,
     link_lost: bool,
     next_hello: Micros,
-    ack_needed: bool,
-    nak_needed: bool,
-    nak_trigger: Option<u16>,
     /// Sequence of the data frame that triggered the pending ack (Ack frame `seq`).
-    ack_trigger: u16,
     prio: VecDeque<PriorityOut>,
     prio_next: u64,
     /// Reports we are willing to buffer (our credits to the machine).
@@ -142,7 +138,7 @@ impl Host {
             state: HostState::Connecting,
             decoder: Decoder::new(),
             send,
-            recv: RecvStream::default(),
+            recv: Receiver::default(),
             events: VecDeque::new(),
             stats: LinkStats::default(),
             info: None,
@@ -151,10 +147,6 @@ impl Host {
             last_tx: now,
             link_lost: false,
             next_hello: now,
-            ack_needed: false,
-            nak_needed: false,
-            nak_trigger: None,
-            ack_trigger: 0,
             prio: VecDeque::new(),
             prio_next: 1,
             report_credits: 1024,
@@ -336,9 +328,8 @@ impl Host {
                     self.stats.frames_invalid += 1;
                     self.stats.bytes_invalid += frame_bytes;
                     frame_bytes = 0;
-                    if self.state == HostState::Connected && self.recv.on_corrupt() {
-                        self.nak_trigger = None;
-                        self.nak_needed = true;
+                    if self.state == HostState::Connected {
+                        self.recv.on_corrupt();
                     }
                 }
             }
@@ -409,39 +400,14 @@ impl Host {
             FrameKind::Data if self.state == HostState::Connected => {
                 self.send
                     .on_ack(f.ack, f.credits, None, now, &mut self.stats);
-                match self.recv.on_data(f.seq, f.body) {
-                    Arrival::Deliver(bodies) => {
-                        self.ack_needed = true;
-                        self.ack_trigger = f.seq;
-                        if let Some(t) = self.recv.hole_trigger() {
-                            self.nak_trigger = Some(t);
-                            self.nak_needed = true;
-                        }
-                        for body in bodies {
-                            match decode_body::<MachineMsg>(&body) {
-                                Ok(msgs) => {
-                                    for m in msgs {
-                                        self.on_machine_msg(m);
-                                    }
-                                }
-                                Err(_) => self.stats.frames_invalid += 1,
+                for body in self.recv.on_data(f.seq, f.body, &mut self.stats) {
+                    match decode_body::<MachineMsg>(&body) {
+                        Ok(msgs) => {
+                            for m in msgs {
+                                self.on_machine_msg(m);
                             }
                         }
-                    }
-                    Arrival::Duplicate => {
-                        self.stats.frames_duplicate += 1;
-                        self.ack_trigger = f.seq;
-                        self.ack_needed = true;
-                    }
-                    Arrival::Gap { send_nak } => {
-                        self.stats.frames_out_of_order += 1;
-                        self.ack_trigger = f.seq;
-                        if send_nak {
-                            self.nak_trigger = Some(f.seq);
-                            self.nak_needed = true;
-                        } else {
-                            self.ack_needed = true; // a duplicate ack
-                        }
+                        Err(_) => self.stats.frames_invalid += 1,
                     }
                 }
             }
@@ -521,7 +487,7 @@ impl Host {
         self.stats.bytes_sent += bytes.len() as u64;
         self.stats.frames_sent += 1;
         self.last_tx = now;
-        self.ack_needed = false;
+        self.recv.sent();
         Transmit { bytes, kind }
     }
 
@@ -551,18 +517,13 @@ impl Host {
                 None
             }
             HostState::Connected => {
-                if self.nak_needed {
-                    self.nak_needed = false;
-                    self.stats.naks_sent += 1;
-                    // seq = the frame after the gap, or = ack when the nak is for a bad frame.
-                    let seq = self.nak_trigger.take().unwrap_or(self.recv.expected_wire());
+                if let Some(seq) = self.recv.take_nak(&mut self.stats) {
                     return Some(self.frame(FrameKind::Nak, seq, Vec::new(), now));
                 }
                 if let Some(out) = self.send.poll(now, &mut self.stats) {
                     return Some(self.frame(FrameKind::Data, out.seq, out.body, now));
                 }
-                if self.ack_needed {
-                    let seq = self.ack_trigger;
+                if let Some(seq) = self.recv.ack_owed() {
                     return Some(self.frame(FrameKind::Ack, seq, Vec::new(), now));
                 }
                 if now.since(self.last_tx) >= self.cfg.heartbeat_interval_us {

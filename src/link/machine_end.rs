@@ -8,7 +8,7 @@ use super::msg::{
     FaultKind, FaultReport, Hello, HelloReply, HostMsg, MachineDescription, MachineMsg,
     MachineState, MoveRef, PriorityCmd, Status, PROTOCOL_VERSION,
 };
-use super::stream::{decode_body, extend_seq, Arrival, RecvStream, SendStream};
+use super::stream::{decode_body, extend_seq, Receiver, SendStream};
 use super::{LinkConfig, LinkStats, Micros, Transmit};
 use crate::machine::{Move, MoveKind, PositionUm};
 
@@ -59,7 +59,7 @@ pub struct MachineLink {
     session: Option<u64>,
     decoder: Decoder,
     send: SendStream,
-    recv: RecvStream,
+    recv: Receiver,
     queue: VecDeque<Move>,
     status: Status,
     events: VecDeque<MachineEvent>,
@@ -67,11 +67,7 @@ pub struct MachineLink {
     last_rx: Micros,
     last_tx: Micros,
     host_lost: bool,
-    ack_needed: bool,
-    nak_needed: bool,
-    nak_trigger: Option<u16>,
     /// Sequence of the data frame that triggered the pending ack (Ack frame `seq`).
-    ack_trigger: u16,
     hello_reply_needed: bool,
     unsynced_needed: bool,
     prio_last: u64,
@@ -97,7 +93,7 @@ impl MachineLink {
             send,
             session: None,
             decoder: Decoder::new(),
-            recv: RecvStream::default(),
+            recv: Receiver::default(),
             queue: VecDeque::with_capacity(usize::from(cfg.machine.queue_depth)),
             status,
             events: VecDeque::new(),
@@ -105,10 +101,6 @@ impl MachineLink {
             last_rx: now,
             last_tx: now,
             host_lost: false,
-            ack_needed: false,
-            nak_needed: false,
-            nak_trigger: None,
-            ack_trigger: 0,
             hello_reply_needed: false,
             unsynced_needed: true,
             prio_last: 0,
@@ -184,7 +176,7 @@ impl MachineLink {
         let free = self.queue_free();
         let step = (self.cfg.machine.queue_depth / 4).max(1);
         if self.advertised_credits == 0 || free >= self.advertised_credits.saturating_add(step) {
-            self.ack_needed = true;
+            self.recv.owe_ack();
         }
         Some(m)
     }
@@ -293,9 +285,8 @@ impl MachineLink {
                     self.stats.frames_invalid += 1;
                     self.stats.bytes_invalid += frame_bytes;
                     frame_bytes = 0;
-                    if self.session.is_some() && self.recv.on_corrupt() {
-                        self.nak_trigger = None;
-                        self.nak_needed = true;
+                    if self.session.is_some() {
+                        self.recv.on_corrupt();
                     }
                 }
             }
@@ -333,7 +324,7 @@ impl MachineLink {
                     // New session: fresh sequence spaces, the queue is kept.
                     self.session = Some(hello.session_id);
                     self.send = SendStream::new(&self.cfg.link);
-                    self.recv = RecvStream::default();
+                    self.recv.restart();
                     self.prio_last = 0;
                     self.host_max_frame = usize::from(hello.max_frame).min(super::MAX_FRAME);
                     self.send
@@ -366,39 +357,14 @@ impl MachineLink {
             FrameKind::Data => {
                 self.send
                     .on_ack(f.ack, f.credits, None, now, &mut self.stats);
-                match self.recv.on_data(f.seq, f.body) {
-                    Arrival::Deliver(bodies) => {
-                        self.ack_needed = true;
-                        self.ack_trigger = f.seq;
-                        if let Some(t) = self.recv.hole_trigger() {
-                            self.nak_trigger = Some(t);
-                            self.nak_needed = true;
-                        }
-                        for body in bodies {
-                            match decode_body::<HostMsg>(&body) {
-                                Ok(msgs) => {
-                                    for m in msgs {
-                                        self.on_host_msg(m);
-                                    }
-                                }
-                                Err(_) => self.fault(FaultKind::BadMessage),
+                for body in self.recv.on_data(f.seq, f.body, &mut self.stats) {
+                    match decode_body::<HostMsg>(&body) {
+                        Ok(msgs) => {
+                            for m in msgs {
+                                self.on_host_msg(m);
                             }
                         }
-                    }
-                    Arrival::Duplicate => {
-                        self.stats.frames_duplicate += 1;
-                        self.ack_trigger = f.seq;
-                        self.ack_needed = true;
-                    }
-                    Arrival::Gap { send_nak } => {
-                        self.stats.frames_out_of_order += 1;
-                        self.ack_trigger = f.seq;
-                        if send_nak {
-                            self.nak_trigger = Some(f.seq);
-                            self.nak_needed = true;
-                        } else {
-                            self.ack_needed = true; // a duplicate ack
-                        }
+                        Err(_) => self.fault(FaultKind::BadMessage),
                     }
                 }
             }
@@ -412,7 +378,7 @@ impl MachineLink {
             PriorityCmd::EmergencyStop => {
                 self.queue.clear();
                 self.set_state(MachineState::EStopped);
-                self.ack_needed = true;
+                self.recv.owe_ack();
             }
             PriorityCmd::FeedHold => {
                 if matches!(
@@ -480,7 +446,7 @@ impl MachineLink {
         self.stats.frames_sent += 1;
         self.last_tx = now;
         self.advertised_credits = credits;
-        self.ack_needed = false;
+        self.recv.sent();
         Transmit { bytes, kind }
     }
 
@@ -520,11 +486,7 @@ impl MachineLink {
             }
             return None;
         }
-        if self.nak_needed {
-            self.nak_needed = false;
-            self.stats.naks_sent += 1;
-            // seq = the frame after the gap, or = ack when the nak is for a bad frame.
-            let seq = self.nak_trigger.take().unwrap_or(self.recv.expected_wire());
+        if let Some(seq) = self.recv.take_nak(&mut self.stats) {
             return Some(self.frame(FrameKind::Nak, seq, Vec::new(), now));
         }
         if self.report_dirty
@@ -542,8 +504,7 @@ impl MachineLink {
         if let Some(out) = self.send.poll(now, &mut self.stats) {
             return Some(self.frame(FrameKind::Data, out.seq, out.body, now));
         }
-        if self.ack_needed {
-            let seq = self.ack_trigger;
+        if let Some(seq) = self.recv.ack_owed() {
             return Some(self.frame(FrameKind::Ack, seq, Vec::new(), now));
         }
         if now.since(self.last_tx) >= self.cfg.link.heartbeat_interval_us {

@@ -583,6 +583,102 @@ impl RecvStream {
     }
 }
 
+/// What one end of the link received and owes for it, the same for both ends: the
+/// in-order stream, and the ack and nak it has to send. Each end keeps one and asks it
+/// for the frames it owes when it transmits.
+#[derive(Debug, Default)]
+pub(crate) struct Receiver {
+    stream: RecvStream,
+    ack_owed: bool,
+    /// The sequence the owed ack names: the last data frame received.
+    ack_trigger: u16,
+    nak_owed: bool,
+    /// The sequence the owed nak names: the frame after a gap; none for a bad frame
+    /// (the nak then names the expected sequence).
+    nak_trigger: Option<u16>,
+}
+
+impl Receiver {
+    /// The next sequence expected, on the wire (every frame's `ack`).
+    pub(crate) fn expected_wire(&self) -> u16 {
+        self.stream.expected_wire()
+    }
+
+    /// A new session: fresh sequence space (what is owed stays owed, as it always did).
+    pub(crate) fn restart(&mut self) {
+        self.stream = RecvStream::default();
+    }
+
+    /// A frame failed to decode while a session is up: a nak, once per expected frame.
+    pub(crate) fn on_corrupt(&mut self) {
+        if self.stream.on_corrupt() {
+            self.nak_trigger = None;
+            self.nak_owed = true;
+        }
+    }
+
+    /// A data frame: the bodies it brings into order (none for a duplicate or a frame
+    /// after a gap), the ack and nak it calls for owed.
+    pub(crate) fn on_data(
+        &mut self,
+        seq: u16,
+        body: Vec<u8>,
+        stats: &mut LinkStats,
+    ) -> Vec<Vec<u8>> {
+        self.ack_trigger = seq;
+        match self.stream.on_data(seq, body) {
+            Arrival::Deliver(bodies) => {
+                self.ack_owed = true;
+                if let Some(t) = self.stream.hole_trigger() {
+                    self.nak_trigger = Some(t);
+                    self.nak_owed = true;
+                }
+                bodies
+            }
+            Arrival::Duplicate => {
+                stats.frames_duplicate += 1;
+                self.ack_owed = true;
+                Vec::new()
+            }
+            Arrival::Gap { send_nak } => {
+                stats.frames_out_of_order += 1;
+                if send_nak {
+                    self.nak_trigger = Some(seq);
+                    self.nak_owed = true;
+                } else {
+                    self.ack_owed = true; // a duplicate ack
+                }
+                Vec::new()
+            }
+        }
+    }
+
+    /// Owe an ack for something other than data (credits freed, a priority command).
+    pub(crate) fn owe_ack(&mut self) {
+        self.ack_owed = true;
+    }
+
+    /// The nak owed, taken: its sequence (the frame after the gap, or the expected one
+    /// when the nak is for a bad frame).
+    pub(crate) fn take_nak(&mut self, stats: &mut LinkStats) -> Option<u16> {
+        if !std::mem::take(&mut self.nak_owed) {
+            return None;
+        }
+        stats.naks_sent += 1;
+        Some(self.nak_trigger.take().unwrap_or(self.expected_wire()))
+    }
+
+    /// The ack owed: its sequence. Any frame sent carries the ack ([`Receiver::sent`]).
+    pub(crate) fn ack_owed(&self) -> Option<u16> {
+        self.ack_owed.then_some(self.ack_trigger)
+    }
+
+    /// A frame went out: it carried the ack.
+    pub(crate) fn sent(&mut self) {
+        self.ack_owed = false;
+    }
+}
+
 pub(crate) fn varint_len(mut v: u64) -> usize {
     let mut n = 1;
     while v >= 0x80 {
