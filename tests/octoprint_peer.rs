@@ -131,14 +131,25 @@ fn octoprint_virtual_printer_runs_the_offline_gcode_once_in_order() {
     let want: Vec<u64> = (0..lines.len() as u64).collect();
     assert_eq!(accepted, want, "every line acknowledged once, in order");
     assert!(stats.resend_requests >= 10, "its faults were on: {stats:?}");
-    // Let it finish writing, then compare what it ran with the file.
-    std::thread::sleep(Duration::from_millis(300));
-    let received = std::fs::read_to_string(dir.path().join("received.log")).unwrap();
-    let ran: Vec<&str> = received
-        .lines()
-        // Less the handshake's M115 and the empty lines the e-stop newline and the
-        // probe's leading newline make.
-        .filter(|l| !matches!(*l, "M115" | "M105" | ""))
-        .collect();
+    // What it ran, once its log has as many commands as the file (it writes the log as
+    // it runs them, after the acknowledgements came).
+    let ran = |received: &str| -> Vec<String> {
+        received
+            .lines()
+            // Less the handshake's M115 and the empty lines the e-stop newline and the
+            // probe's leading newline make.
+            .filter(|l| !matches!(*l, "M115" | "M105" | ""))
+            .map(str::to_owned)
+            .collect()
+    };
+    let log = dir.path().join("received.log");
+    let t = std::time::Instant::now();
+    let ran = loop {
+        let ran = ran(&std::fs::read_to_string(&log).unwrap_or_default());
+        if ran.len() >= lines.len() || t.elapsed() > Duration::from_secs(10) {
+            break ran;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
     assert_eq!(ran, lines, "the printer ran the file's commands, each once");
 }
