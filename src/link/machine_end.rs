@@ -8,7 +8,7 @@ use super::msg::{
     FaultKind, FaultReport, Hello, HelloReply, HostMsg, MachineDescription, MachineMsg,
     MachineState, MoveRef, PriorityCmd, Status, PROTOCOL_VERSION,
 };
-use super::stream::{decode_body, extend_seq, Receiver, SendStream};
+use super::stream::{decode_body, extend_seq, read_frames, Receiver, SendStream};
 use super::{LinkConfig, LinkStats, Micros, Transmit};
 use crate::machine::{Move, MoveKind, PositionUm};
 
@@ -270,25 +270,11 @@ impl MachineLink {
 
     /// Feed bytes from the port.
     pub fn handle_bytes(&mut self, bytes: &[u8], now: Micros) {
-        self.stats.bytes_received += bytes.len() as u64;
-        let mut frame_bytes = 0u64;
-        for &b in bytes {
-            frame_bytes += 1;
-            match self.decoder.push(b) {
+        for frame in read_frames(&mut self.decoder, bytes, &mut self.stats) {
+            match frame {
+                Some(f) => self.on_frame(f, now),
+                None if self.session.is_some() => self.recv.on_corrupt(),
                 None => {}
-                Some(Ok(f)) => {
-                    frame_bytes = 0;
-                    self.stats.frames_received += 1;
-                    self.on_frame(f, now);
-                }
-                Some(Err(_)) => {
-                    self.stats.frames_invalid += 1;
-                    self.stats.bytes_invalid += frame_bytes;
-                    frame_bytes = 0;
-                    if self.session.is_some() {
-                        self.recv.on_corrupt();
-                    }
-                }
             }
         }
     }

@@ -4,7 +4,7 @@
 
 use std::collections::VecDeque;
 
-use super::frame::{wire_len, CRC_LEN, HEADER_LEN};
+use super::frame::{wire_len, Decoder, Frame, CRC_LEN, HEADER_LEN};
 use super::{LinkConfig, LinkStats, Micros};
 
 /// Extend a 16-bit wire sequence number to the 64-bit one nearest `reference`.
@@ -581,6 +581,35 @@ impl RecvStream {
         self.nak_sent_for = Some(self.expected);
         send
     }
+}
+
+/// Bytes read from the port into frames, the same for both ends: each frame they
+/// complete, in order, or `None` for one that failed to decode; counted in `stats`.
+pub(crate) fn read_frames(
+    decoder: &mut Decoder,
+    bytes: &[u8],
+    stats: &mut LinkStats,
+) -> Vec<Option<Frame>> {
+    stats.bytes_received += bytes.len() as u64;
+    let mut frames = Vec::new();
+    let mut frame_bytes = 0u64;
+    for &b in bytes {
+        frame_bytes += 1;
+        match decoder.push(b) {
+            None => continue,
+            Some(Ok(f)) => {
+                stats.frames_received += 1;
+                frames.push(Some(f));
+            }
+            Some(Err(_)) => {
+                stats.frames_invalid += 1;
+                stats.bytes_invalid += frame_bytes;
+                frames.push(None);
+            }
+        }
+        frame_bytes = 0;
+    }
+    frames
 }
 
 /// What one end of the link received and owes for it, the same for both ends: the
