@@ -2304,11 +2304,19 @@ fn raise_own_open_files() -> u64 {
 /// `POST /api/rpc` of `method` on a new connection to `addr`: the answer, and how long
 /// it took.
 fn post_rpc(addr: std::net::SocketAddr, method: &str) -> (String, Duration) {
+    post_body(
+        addr,
+        &format!(r#"{{"jsonrpc":"2.0","id":1,"method":"{method}"}}"#),
+    )
+}
+
+/// `POST /api/rpc` of `body` on a new connection to `addr`: the answer, and how long
+/// it took.
+fn post_body(addr: std::net::SocketAddr, body: &str) -> (String, Duration) {
     use std::io::Read;
     let t = Instant::now();
     let mut s = std::net::TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    let body = format!(r#"{{"jsonrpc":"2.0","id":1,"method":"{method}"}}"#);
     write!(
         s,
         "POST /api/rpc HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
@@ -2360,6 +2368,20 @@ fn a_thousand_idle_dashboard_connections_do_not_lock_out_the_estop() {
     assert!(!status.is_empty() && !estop.is_empty());
     assert!(posted.starts_with("HTTP/1.1 200"), "{posted}");
     assert!(posted.contains("written_after_us"), "{posted}");
+    // On a control place anything but a control call is refused, read once: another
+    // method, a body that is no JSON, a control method with wrong params.
+    for body in [
+        r#"{"jsonrpc":"2.0","id":1,"method":"job.list"}"#,
+        "not json",
+        r#"{"jsonrpc":"2.0","id":1,"method":"machine.status","params":{"x":1}}"#,
+    ] {
+        let (refused, _) = post_body(addr, body);
+        assert!(refused.starts_with("HTTP/1.1 503"), "{body}: {refused}");
+        assert!(refused.contains("may only ask"), "{body}: {refused}");
+    }
+    let (status_posted, _) = post_rpc(addr, "machine.status");
+    assert!(status_posted.starts_with("HTTP/1.1 200"), "{status_posted}");
+    assert!(status_posted.contains("connected"), "{status_posted}");
     assert!(fds < 400, "edod holds {fds} descriptors");
     assert!(estop_took < Duration::from_secs(2) && post_took < Duration::from_secs(2));
     // edod raised its soft limit to the hard one.

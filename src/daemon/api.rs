@@ -314,7 +314,7 @@ async fn file_job(
 /// A mesh's base64 decoded (-32602 if it is not base64); a large one on tokio's
 /// blocking pool, not on a runtime worker.
 async fn decode_mesh(b64: String) -> Result<Vec<u8>, ApiError> {
-    let small = b64_is_small(&b64);
+    let small = b64.len() <= super::connections::SMALL_LINE;
     let decode = move || {
         crate::proto::mesh_bytes::base64_decode(&b64).map_err(|e| {
             ApiError::new(
@@ -329,10 +329,6 @@ async fn decode_mesh(b64: String) -> Result<Vec<u8>, ApiError> {
     tokio::task::spawn_blocking(decode)
         .await
         .map_err(|e| ApiError::new(ApiError::INTERNAL, format!("decoding the mesh failed: {e}")))?
-}
-
-fn b64_is_small(b64: &str) -> bool {
-    b64.len() <= super::connections::SMALL_LINE
 }
 
 /// A job file (and its mesh) checked as a submission: the file parsed (-32003), its

@@ -14,7 +14,7 @@ use serde_json::Value;
 use super::plans::{self, Find, Key, Miss, Plan, Want};
 use super::{conn, App};
 use crate::daemon::connections::Session;
-use crate::proto::{ApiError, Call, JobIdParams, Request};
+use crate::proto::{ApiError, Call, JobIdParams};
 
 /// A JSON body.
 fn json_response(status: StatusCode, body: String) -> Response {
@@ -124,22 +124,26 @@ pub async fn rpc(
         shared.config.api.max_request_bytes
     };
     with_budget(&app, body, max, |body| async move {
-        if control && !is_control_request(&body) {
-            return conn::control_refusal(&shared);
-        }
-        match Session::default().request(Vec::from(body), &shared).await {
+        let reply = if control {
+            // Read once: a control call is answered from what was read, anything else
+            // refused ([`Call::is_control`]).
+            match crate::daemon::api::parse(&body) {
+                Ok((id, Ok(call))) if call.is_control() => {
+                    crate::daemon::api::answer(Ok((id, Ok(call))), &shared)
+                        .await
+                        .0
+                }
+                _ => return conn::control_refusal(&shared),
+            }
+        } else {
+            Session::default().request(Vec::from(body), &shared).await
+        };
+        match reply {
             Some(r) => json_response(StatusCode::OK, r),
             None => StatusCode::NO_CONTENT.into_response(),
         }
     })
     .await
-}
-
-/// Whether `body` asks one of the methods a control connection may ask
-/// ([`Call::is_control`]).
-fn is_control_request(body: &[u8]) -> bool {
-    Request::from_line(body)
-        .is_ok_and(|r| Call::new(&r.method, r.params).is_ok_and(|c| c.is_control()))
 }
 
 /// What a preview is asked for: a job file and its mesh.
