@@ -2349,8 +2349,16 @@ fn a_thousand_idle_dashboard_connections_do_not_lock_out_the_estop() {
     let idle: Vec<std::net::TcpStream> = (0..1100)
         .map(|_| std::net::TcpStream::connect(addr).unwrap())
         .collect();
-    // Let edod accept them all (the refused ones are answered and closed).
-    std::thread::sleep(Duration::from_millis(500));
+    // Wait until edod has accepted them all (the refused ones are answered and closed).
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while accept_queue_len(addr) != Some(0) {
+        assert!(
+            Instant::now() < deadline,
+            "edod left connections unaccepted for 10 s: {:?} waiting",
+            accept_queue_len(addr)
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
     let fds = std::fs::read_dir(format!("/proc/{}/fd", d.child.id()))
         .unwrap()
         .count();
@@ -2395,6 +2403,49 @@ fn a_thousand_idle_dashboard_connections_do_not_lock_out_the_estop() {
     drop(c);
     drop(d);
     sim.stop().unwrap();
+}
+
+/// Connections waiting in the accept queue of the socket listening on `addr` (the
+/// `rx_queue` of its LISTEN row in /proc/net/tcp); `None` when no such socket listens.
+fn accept_queue_len(addr: std::net::SocketAddr) -> Option<u32> {
+    let std::net::SocketAddr::V4(v4) = addr else {
+        return None;
+    };
+    // /proc/net/tcp writes the address as the u32 in host order, in hex, then the port.
+    let local = format!(
+        "{:08X}:{:04X}",
+        u32::from_ne_bytes(v4.ip().octets()),
+        v4.port()
+    );
+    let table = std::fs::read_to_string("/proc/net/tcp").ok()?;
+    table.lines().skip(1).find_map(|row| {
+        let f: Vec<&str> = row.split_whitespace().collect();
+        let listening = f.get(1) == Some(&local.as_str()) && f.get(3) == Some(&"0A");
+        let queues = f.get(4)?.split_once(':')?;
+        listening
+            .then(|| u32::from_str_radix(queues.1, 16).ok())
+            .flatten()
+    })
+}
+
+/// The accept queue read above counts connections not yet accepted.
+#[test]
+fn the_accept_queue_counts_connections_not_yet_accepted() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    assert_eq!(accept_queue_len(addr), Some(0));
+    let _waiting: Vec<_> = (0..3)
+        .map(|_| std::net::TcpStream::connect(addr).unwrap())
+        .collect();
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while accept_queue_len(addr) != Some(3) {
+        assert!(Instant::now() < deadline, "{:?}", accept_queue_len(addr));
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let _accepted = listener.accept().unwrap();
+    assert_eq!(accept_queue_len(addr), Some(2));
+    drop(listener);
+    assert_eq!(accept_queue_len(addr), None);
 }
 
 /// With a hard limit of open files below what its connection places need, edod refuses

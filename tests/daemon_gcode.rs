@@ -790,9 +790,15 @@ fn sigkill_mid_job_interrupts_and_resumes(
     let dir = tempfile::tempdir().unwrap();
     let (sim, record, mut d, c, id) = job_streaming(dir.path(), firmware, seed);
     drop(c);
+    let streaming = sim.status().expect("the simulator answers");
+    assert_eq!(streaming["idle"], false, "{firmware} mid-job: {streaming}");
     d.sigkill();
     // The firmware runs what it accepted.
-    std::thread::sleep(Duration::from_millis(500));
+    assert!(
+        sim.wait_idle(Duration::from_secs(10)),
+        "{firmware}: the machine still runs 10 s after edod was killed: {:?}",
+        sim.status()
+    );
     let before = ran(&record).len();
     let d = Daemon::spawn(dir.path().join("edod.sock"), &dir.path().join("edod.toml"));
     let mut c = d.client();

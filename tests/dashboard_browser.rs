@@ -170,7 +170,29 @@ async fn docs_screenshots(c: &Client, base: &str) {
                 .await
                 .unwrap();
             c.goto(&format!("{base}{at}")).await.unwrap();
-            tokio::time::sleep(Duration::from_millis(600)).await;
+            wait_for("the page drawn for its screenshot", 20, || async {
+                c.execute(
+                    "const stack = document.getElementById('stack'); \
+                     const layer = document.getElementById('layer-view'); \
+                     return document.readyState === 'complete' \
+                       && document.getElementById('job-1') !== null \
+                       && !!stack && (stack.dataset.layersDrawn || '') !== '' \
+                       && !!layer && (layer.dataset.drawn || '') !== '';",
+                    vec![],
+                )
+                .await
+                .ok()
+                    == Some(serde_json::Value::Bool(true))
+            })
+            .await;
+            // Two animation frames: what the last one drew is painted.
+            c.execute_async(
+                "const done = arguments[0]; \
+                 requestAnimationFrame(() => requestAnimationFrame(() => done(true)));",
+                vec![],
+            )
+            .await
+            .unwrap();
             screenshot(c, &format!("dashboard-{w}x{h}-{theme}.png")).await;
         }
     }

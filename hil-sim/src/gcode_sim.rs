@@ -262,6 +262,13 @@ impl ProtocolEnd for GcodeEnd {
         self.firmware.poll_transmit()
     }
 
+    fn holds_work(&self) -> bool {
+        !self.waiting.is_empty()
+            || self.firmware.rx_len() > 0
+            || self.firmware.queue_len() > 0
+            || self.firmware.planner_len() > 0
+    }
+
     fn status(&self) -> serde_json::Map<String, serde_json::Value> {
         let status = serde_json::json!({
             "firmware": format!("{:?}", self.opts.firmware),

@@ -115,6 +115,11 @@ impl<U: Unit> Injector<U> {
         }
     }
 
+    /// Whether no byte is held: no unit being read, none waiting to be due.
+    pub(crate) fn is_empty(&self) -> bool {
+        self.cur.is_empty() && self.queue.is_empty()
+    }
+
     /// Lose what is on the line (a reset, an unplug).
     pub(crate) fn clear(&mut self) {
         self.queue.clear();

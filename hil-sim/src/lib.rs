@@ -30,4 +30,4 @@ pub mod sim;
 
 pub use faults::{Faults, FAULTS_HELP};
 pub use gcode_sim::GcodeOptions;
-pub use sim::{run, spawn, Command, SimConfig, SimHandle, Summary};
+pub use sim::{run, spawn, Command, SimConfig, SimHandle, StatusReply, Summary};

@@ -113,6 +113,10 @@ impl ProtocolEnd for LinkEnd {
         self.link.poll_transmit(Micros(now_us)).map(|t| t.bytes)
     }
 
+    fn holds_work(&self) -> bool {
+        self.link.queue_len() > 0
+    }
+
     fn status(&self) -> serde_json::Map<String, serde_json::Value> {
         let mut m = serde_json::Map::new();
         m.insert("status".into(), format!("{:?}", self.link.status()).into());

@@ -128,6 +128,19 @@ pub enum Command {
     Clear,
     /// Print the status on stderr.
     Status,
+    /// Send the status to whoever asked ([`SimHandle::status`]).
+    Report(StatusReply),
+}
+
+/// Where a [`Command::Report`] sends the status. Two are never equal (each is one
+/// asker's channel), so a `Command` holding one equals no other.
+#[derive(Debug, Clone)]
+pub struct StatusReply(std::sync::mpsc::Sender<serde_json::Value>);
+
+impl PartialEq for StatusReply {
+    fn eq(&self, _: &Self) -> bool {
+        false
+    }
 }
 
 impl Command {
@@ -283,6 +296,9 @@ pub(crate) trait ProtocolEnd {
     fn poll_transmit(&mut self, now_us: u64) -> Option<Vec<u8>>;
     /// The `status` command's fields (the summary is added).
     fn status(&self) -> serde_json::Map<String, serde_json::Value>;
+    /// Whether anything received is not yet handed to the machine model: bytes of a
+    /// line or frame, commands queued, moves planned.
+    fn holds_work(&self) -> bool;
 }
 
 /// Run a simulator with the protocol end `boot` makes from the seeds (with its
@@ -423,13 +439,22 @@ impl<'a, E: ProtocolEnd> Runtime<'a, E> {
                 Command::Empty(n) => self.command_fault(FaultKind::SyringeEmpty(n), now_us),
                 Command::Limit(a) => self.command_fault(FaultKind::LimitHit(a), now_us),
                 Command::Clear => clear_rate_faults(&mut self.faults),
-                Command::Status => {
-                    let mut status = self.end.status();
-                    status.insert("summary".into(), serde_json::json!(self.sum));
-                    eprintln!("{}", serde_json::Value::Object(status));
+                Command::Status => eprintln!("{}", self.status()),
+                Command::Report(StatusReply(to)) => {
+                    let _ = to.send(self.status());
                 }
             }
         }
+    }
+
+    /// The protocol end's status, the run's summary and whether the machine is idle:
+    /// no move running, none waiting in the protocol end, no bytes held by the injector.
+    fn status(&self) -> serde_json::Value {
+        let mut status = self.end.status();
+        status.insert("summary".into(), serde_json::json!(self.sum));
+        let idle = self.executing.is_none() && !self.end.holds_work() && self.to_machine.is_empty();
+        status.insert("idle".into(), idle.into());
+        serde_json::Value::Object(status)
     }
 
     /// A machine fault asked for on the command line.
@@ -729,6 +754,29 @@ impl SimHandle {
     /// Send a run-time command.
     pub fn command(&self, c: Command) {
         let _ = self.commands.send(c);
+    }
+
+    /// The simulator's status (`status` on the binary's stdin), read at the start of its
+    /// next turn; `None` when it has stopped or does not answer within 10 s.
+    pub fn status(&self) -> Option<serde_json::Value> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        self.commands.send(Command::Report(StatusReply(tx))).ok()?;
+        rx.recv_timeout(Duration::from_secs(10)).ok()
+    }
+
+    /// Wait until the machine is idle in two turns in a row (every byte the host sent
+    /// before has been read and run); false after `timeout`.
+    pub fn wait_idle(&self, timeout: Duration) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut idle_turns = 0;
+        while std::time::Instant::now() < deadline {
+            let idle = self.status().is_some_and(|s| s["idle"] == true);
+            idle_turns = if idle { idle_turns + 1 } else { 0 };
+            if idle_turns == 2 {
+                return true;
+            }
+        }
+        false
     }
 
     /// Stop the simulator and return its summary.
