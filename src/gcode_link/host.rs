@@ -931,15 +931,22 @@ impl LineHost {
                 self.swallow_oks += 1;
             }
             Reply::Resend(_) => {
-                // A line of this attempt was refused: its `ok` follows; start again, as
-                // an attempt of its own (a firmware that refuses every line must not
-                // draw handshakes at line speed).
+                // Its `ok` follows. Either a line of this attempt was refused, or a
+                // line sent before the firmware restarted was (after a reset Marlin
+                // refuses each line still on the wire, `Last Line: 0`, `Resend: 1`,
+                // the same words as a corrupted handshake line gets). Not sent again
+                // at once: an `M110 N0` sent again while the first one's `ok` is still
+                // to come is taken as answered by it, and runs behind `M115`, setting
+                // the firmware's line number back under the stream. The line's own
+                // `ok` comes within the ok timeout (or the handshake's, the shorter)
+                // if it was not the one refused; if not, the handshake starts again, an attempt of its own
+                // (a firmware that refuses every line draws no handshakes at line
+                // speed).
                 self.swallow_oks += 1;
-                self.handshake.attempts += 1;
-                if self.handshake.attempts >= self.cfg.handshake_attempts {
-                    return self.link_lost(now);
+                let due = now.plus_us(self.cfg.ok_timeout_us);
+                if due < self.handshake.deadline {
+                    self.handshake.deadline = due;
                 }
-                self.restart_handshake(false, now);
             }
             Reply::Error {
                 last_line: Some(_), ..
