@@ -67,6 +67,6 @@ pub use offset::{offset, offset_indexed};
 pub use path::Path;
 pub use region::{bounds_of, Region, RegionError};
 pub use segment_index::{NearSegments, SegmentIndex};
-pub use shapes::{area, boundary_index, circle, contains, from_loops, loops, Shapes};
+pub use shapes::{area, boundary_index, circle, clip_to_box, contains, from_loops, loops, Shapes};
 pub use simplify::{dedup_loop, remove_spikes, simplify_loop, simplify_loop_greedy};
 pub use tolerances::Tolerances;

@@ -6,7 +6,8 @@
 //!
 //! 1. **Gaps**: cells no bead covers, on a raster of half the narrowest gap-fill road
 //!    ([`Raster`], shared with the coverage measure), grouped into clusters; in a window
-//!    around each cluster, the part (the layer's islands) minus the beads that reach it
+//!    around each cluster, the part (the layer's islands, clipped to the window without
+//!    an overlay, [`crate::geom::clip_to_box`]) minus the beads that reach it
 //!    (each edge as a trapezoid of its two vertices' widths, each joint that turns and
 //!    each end as a disc), by i_overlay; then opened by half the narrowest gap-fill road
 //!    (shrunk and grown back), so slivers no road could build vanish.
@@ -157,9 +158,13 @@ fn gaps(islands: &[Region], paths: &[ToolPath], s: &GapFillSettings) -> Shapes {
     if windows.is_empty() {
         return Vec::new();
     }
-    let part: Shapes = islands
+    let part: Vec<(DVec2, DVec2, &[DVec2])> = islands
         .iter()
-        .map(|r| r.loops().cloned().collect())
+        .flat_map(|r| r.loops())
+        .map(|l| {
+            let (lo, hi) = shapes::loop_bounds(l);
+            (lo, hi, l.as_slice())
+        })
         .collect();
     let edges = bead_boxes(paths, w);
     let mut out = Vec::new();
@@ -252,23 +257,29 @@ fn bead_boxes(paths: &[ToolPath], w: f64) -> Vec<(usize, usize, DVec2, DVec2)> {
 /// whose boxes reach it), opened by half the narrowest road.
 fn gap_in_window(
     (lo, hi): (DVec2, DVec2),
-    part: &Shapes,
+    part: &[(DVec2, DVec2, &[DVec2])],
     paths: &[ToolPath],
     edges: &[(usize, usize, DVec2, DVec2)],
     s: &GapFillSettings,
 ) -> Shapes {
     let w = s.road_width_mm;
-    let r_open = 0.5 * s.min_width_mm;
+    let r_open = 0.5 * s.min_width_mm - WIDTH_SLACK_MM;
     let chord = 0.05 * w;
-    let rect = vec![vec![lo, DVec2::new(hi.x, lo.y), hi, DVec2::new(lo.x, hi.y)]];
-    let local_part = shapes::intersection(part, &vec![rect]);
+    // The part in the window, clipped without an overlay (the difference below
+    // resolves the clip's seams); with no bead to take away, by the overlay.
+    let local_part = shapes::clip_to_box(part, lo, hi);
     let mut beads: Shapes = Vec::new();
     for &(pi, k, a, b) in edges {
         if a.x <= hi.x && b.x >= lo.x && a.y <= hi.y && b.y >= lo.y {
             edge_bead(&paths[pi], k, w, &mut beads);
         }
     }
-    let bare = shapes::difference(&local_part, &beads);
+    let bare = if beads.is_empty() {
+        let rect = vec![vec![lo, DVec2::new(hi.x, lo.y), hi, DVec2::new(lo.x, hi.y)]];
+        shapes::intersection(&local_part, &vec![rect])
+    } else {
+        shapes::difference(&local_part, &beads)
+    };
     if bare.is_empty() {
         return Vec::new();
     }
@@ -276,6 +287,11 @@ fn gap_in_window(
     // Grown back, the opening may reach past the bare area at its corners.
     shapes::intersection(&opened, &bare)
 }
+
+/// A gap exactly the narrowest road wide (common: offsets are equally spaced) is one:
+/// the opening and the width checks allow this much, more than the overlay's rounding
+/// (under 1e-6 mm), so rounding does not decide whether it is filled.
+const WIDTH_SLACK_MM: f64 = 1e-5;
 
 /// Gaps of fewer raster cells (of half the narrowest road) than this are left.
 const MIN_GAP_CELLS: usize = 4;
@@ -376,7 +392,7 @@ fn centrelines(
         // widths inside a gap the opening made at least `min_width` wide: skipped.
         let axis: Vec<DVec2> = line
             .iter()
-            .filter(|&&k| width[k] >= s.min_width_mm)
+            .filter(|&&k| width[k] >= s.min_width_mm - 2.0 * WIDTH_SLACK_MM)
             .map(|&k| nodes[k])
             .collect();
         if axis.len() < 2 || crate::geom::polyline_length(&axis) < s.min_width_mm {
@@ -481,7 +497,7 @@ fn recentre(
             (Some(l), Some(r)) if across != DVec2::ZERO => (p + across * (0.5 * (l - r)), l + r),
             _ => (p, 2.0 * boundary.distance(p)),
         };
-        if wd >= s.min_width_mm {
+        if wd >= s.min_width_mm - 2.0 * WIDTH_SLACK_MM {
             points.push(centre);
             widths.push(wd.min(s.max_width_mm));
         }
