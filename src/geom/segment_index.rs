@@ -156,9 +156,54 @@ pub struct SegmentIndex {
     items: Vec<u32>,
 }
 
-/// Sphere-tracing steps of [`SegmentIndex::ray_hit`] and the distance that counts as a hit.
-const RAY_STEPS: usize = 32;
+/// How near [`SegmentIndex::ray_hit`]'s ray must come to a segment to hit it.
 const RAY_HIT_MM: f64 = 1e-4;
+
+/// The first `t` in `0..=limit` where `origin + t·dir` (`dir` a unit vector) lies
+/// within `r` of the segment `a`–`b`: where the ray enters the segment's capsule (the
+/// discs round its ends, the strip along it), or none.
+fn capsule_entry(origin: DVec2, dir: DVec2, a: DVec2, b: DVec2, r: f64, limit: f64) -> Option<f64> {
+    let mut first = f64::INFINITY;
+    // The discs: |origin + t·dir − e|² <= r², t² + 2t·k + c <= 0.
+    for e in [a, b] {
+        let (k, c) = (dir.dot(origin - e), origin.distance_squared(e) - r * r);
+        let disc = k * k - c;
+        if disc >= 0.0 {
+            let root = disc.sqrt();
+            let (t0, t1) = (-k - root, -k + root);
+            if t1 >= 0.0 {
+                first = first.min(t0.max(0.0));
+            }
+        }
+    }
+    // The strip: |s0 + t·s1| <= r where the point projects inside the segment.
+    let len = a.distance(b);
+    if len > 0.0 {
+        let along = (b - a) / len;
+        let across = along.perp();
+        let (s0, s1) = (across.dot(origin - a), across.dot(dir));
+        let (t0, t1) = (along.dot(origin - a), along.dot(dir));
+        let (mut lo, mut hi) = (0.0f64, f64::INFINITY);
+        if s1.abs() > 1e-12 {
+            let (x, y) = ((-r - s0) / s1, (r - s0) / s1);
+            lo = lo.max(x.min(y));
+            hi = hi.min(x.max(y));
+        } else if s0.abs() > r {
+            hi = f64::NEG_INFINITY;
+        }
+        if t1.abs() > 1e-12 {
+            let (x, y) = (-t0 / t1, (len - t0) / t1);
+            lo = lo.max(x.min(y));
+            hi = hi.min(x.max(y));
+        } else if !(0.0..=len).contains(&t0) {
+            hi = f64::NEG_INFINITY;
+        }
+        if lo <= hi {
+            first = first.min(lo);
+        }
+    }
+    (first <= limit).then_some(first)
+}
 
 impl SegmentIndex {
     /// Index the edges of closed `loops` and open `polylines`.
@@ -420,30 +465,23 @@ impl SegmentIndex {
     }
 
     /// How far along the ray from `origin` in direction `dir` (unit) the nearest indexed
-    /// segment is, up to `limit` (sphere tracing: step by the distance to the nearest
-    /// segment until within 0.1 µm); none beyond the limit or when empty.
+    /// segment is, up to `limit`: where the ray first comes within 0.1 µm of one (solved
+    /// per segment near the ray, [`capsule_entry`]); none beyond the limit or when empty.
     pub fn ray_hit(&self, origin: DVec2, dir: DVec2, limit: f64) -> Option<f64> {
-        if self.segments.is_empty() {
+        if self.segments.is_empty() || limit.is_nan() || limit < 0.0 {
             return None;
         }
-        let mut t = 0.0;
-        for _ in 0..RAY_STEPS {
-            let p = origin + dir * t;
-            // Nothing within what is left of the reach: no hit (a bounded look, where
-            // the nearest-segment search would widen its rings until it found one).
-            if !self.within(p, limit - t) {
-                return None;
+        let end = origin + dir * limit;
+        let mut first: Option<f64> = None;
+        self.near_candidates(origin.min(end), origin.max(end), RAY_HIT_MM, |_, a, b| {
+            if let Some(t) = capsule_entry(origin, dir, a, b, RAY_HIT_MM, limit) {
+                if first.is_none_or(|f| t < f) {
+                    first = Some(t);
+                }
             }
-            let d = self.distance(p);
-            if d <= RAY_HIT_MM {
-                return Some(t);
-            }
-            t += d;
-            if t > limit {
-                return None;
-            }
-        }
-        None
+            false
+        });
+        first
     }
 
     /// Distance from `p` to the nearest indexed segment (infinity when empty).
@@ -601,6 +639,66 @@ impl Grid {
 mod tests {
     use super::*;
     use crate::geom::{point_in_loop, point_loop_distance};
+
+    /// A ray hits where it first comes within 0.1 µm of a segment: square-on, at a
+    /// slant, past a corner, from on the boundary, running beside a side, and missing
+    /// (beyond the limit, or passing clear); each against stepping along the ray.
+    #[test]
+    fn a_ray_hits_where_it_first_comes_near_a_segment() {
+        let square = [
+            DVec2::new(0.0, 0.0),
+            DVec2::new(4.0, 0.0),
+            DVec2::new(4.0, 4.0),
+            DVec2::new(0.0, 4.0),
+        ];
+        let index = SegmentIndex::new(&[&square], &[]);
+        let h = RAY_HIT_MM;
+        let cases: [(DVec2, DVec2, f64, Option<f64>); 7] = [
+            (DVec2::new(1.0, 1.0), DVec2::X, 5.0, Some(3.0 - h)),
+            (DVec2::new(1.0, 1.0), DVec2::X, 2.0, None),
+            (
+                DVec2::new(2.0, 2.0),
+                DVec2::new(0.6, 0.8),
+                5.0,
+                Some((2.0 - h) / 0.8),
+            ),
+            (DVec2::new(2.0, 0.0), DVec2::Y, 5.0, Some(0.0)),
+            // Beside the bottom side, 0.05 µm off: within reach from the start.
+            (DVec2::new(1.0, 0.5 * h), DVec2::X, 1.0, Some(0.0)),
+            // Beside it 1 µm off, clear of it, to the right side.
+            (DVec2::new(1.0, 1e-3), DVec2::X, 5.0, Some(3.0 - h)),
+            // Outside, passing the corner (4, 4) 0.14 mm off.
+            (
+                DVec2::new(5.0, 3.2),
+                DVec2::new(-1.0, 1.0).normalize(),
+                3.0,
+                None,
+            ),
+        ];
+        for (origin, dir, limit, want) in cases {
+            let got = index.ray_hit(origin, dir, limit);
+            match (got, want) {
+                (Some(g), Some(w)) => assert!((g - w).abs() < 1e-9, "{origin} {dir}: {g} vs {w}"),
+                _ => assert_eq!(got, want, "{origin} {dir}"),
+            }
+            // Stepping along the ray finds nothing nearer before the hit, and the hit
+            // is within reach.
+            let end = got.unwrap_or(limit);
+            let steps = 2000;
+            for k in 0..steps {
+                let t = end * k as f64 / steps as f64;
+                if got.is_none() || t < end - 1e-9 {
+                    assert!(
+                        index.distance(origin + dir * t) > h - 1e-12,
+                        "{origin} {dir} at {t}"
+                    );
+                }
+            }
+            if let Some(t) = got {
+                assert!(index.distance(origin + dir * t) <= h + 1e-12);
+            }
+        }
+    }
 
     #[test]
     fn the_index_tells_inside_as_point_in_loop_does() {
