@@ -542,16 +542,43 @@ impl SegmentIndex {
             // A cell not yet visited lies more than `ring` columns or more than `ring`
             // rows from p's cell: at least `ring` cells beyond p along that axis (on
             // top of p's distance outside the box along it), and at least p's distance
-            // outside the box along the other.
+            // outside the box along the other; and, on each side where such cells are
+            // left, beyond the visited block's edge there.
             let beyond = ring as f64 * self.cell_mm;
-            let unvisited = DVec2::new(outside.x + beyond, outside.y)
+            let rough = DVec2::new(outside.x + beyond, outside.y)
                 .length()
                 .min(DVec2::new(outside.x, outside.y + beyond).length());
+            let unvisited = rough.max(self.to_unvisited(p, pc, pr, r));
             if best <= unvisited {
                 break;
             }
         }
         best_k.map(|k| (best, k))
+    }
+}
+
+impl SegmentIndex {
+    /// How far `p` is from every cell outside the block of `ring` cells round cell
+    /// (`pc`, `pr`) (its columns `pc - ring ..= pc + ring`, its rows likewise): from the
+    /// block's edge on each side where the grid has cells beyond it; infinite when it
+    /// has none.
+    fn to_unvisited(&self, p: DVec2, pc: isize, pr: isize, ring: isize) -> f64 {
+        let (o, cell) = (self.origin, self.cell_mm);
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        let mut d = f64::INFINITY;
+        if pc - ring > 0 {
+            d = d.min(p.x - (o.x + (pc - ring) as f64 * cell));
+        }
+        if pc + ring + 1 < nx {
+            d = d.min(o.x + (pc + ring + 1) as f64 * cell - p.x);
+        }
+        if pr - ring > 0 {
+            d = d.min(p.y - (o.y + (pr - ring) as f64 * cell));
+        }
+        if pr + ring + 1 < ny {
+            d = d.min(o.y + (pr + ring + 1) as f64 * cell - p.y);
+        }
+        d.max(0.0)
     }
 }
 
@@ -777,6 +804,51 @@ mod tests {
             worst = worst.max((index.distance(p) - brute).abs());
         }
         assert!(worst < 1e-12, "largest difference {worst}");
+    }
+
+    /// Among many short segments (many cells), the search that stops at the visited
+    /// block's edges finds what brute force finds, the segment too, with some skipped.
+    #[test]
+    fn nearest_among_many_cells_is_the_brute_force_one() {
+        let rings: Vec<Vec<DVec2>> = (1..12)
+            .map(|k| {
+                let r = 0.4 * k as f64;
+                (0..(40 * k))
+                    .map(|j| {
+                        DVec2::from_angle(std::f64::consts::TAU * j as f64 / (40 * k) as f64) * r
+                    })
+                    .collect()
+            })
+            .collect();
+        let refs: Vec<&[DVec2]> = rings.iter().map(|l| l.as_slice()).collect();
+        let index = SegmentIndex::new(&refs, &[]);
+        let segments = &index.segments;
+        let skip = |k: u32| k % 7 == 3;
+        for k in 0..2000 {
+            let p = DVec2::new(
+                (k as f64 * 0.377).sin() * 5.0,
+                (k as f64 * 0.911).cos() * 5.0,
+            );
+            let mut brute = (f64::INFINITY, u32::MAX);
+            for (id, &(a, b)) in segments.iter().enumerate() {
+                let d = point_segment_distance(p, a, b);
+                if !skip(id as u32) && d < brute.0 {
+                    brute = (d, id as u32);
+                }
+            }
+            let (d, id) = index.nearest_skipping(p, skip).unwrap();
+            assert!((d - brute.0).abs() < 1e-12, "{p}: {d} vs {}", brute.0);
+            assert!(
+                id == brute.1
+                    || (point_segment_distance(
+                        p,
+                        segments[brute.1 as usize].0,
+                        segments[brute.1 as usize].1
+                    ) - d)
+                        .abs()
+                        < 1e-12
+            );
+        }
     }
 
     fn square(c: DVec2, h: f64) -> Vec<DVec2> {
