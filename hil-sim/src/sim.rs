@@ -765,13 +765,20 @@ impl SimHandle {
     }
 
     /// Wait until the machine is idle in two turns in a row (every byte the host sent
-    /// before has been read and run); false after `timeout`.
+    /// before has been read and run); false after `timeout`, or at once when the
+    /// simulator does not answer (stopped).
     pub fn wait_idle(&self, timeout: Duration) -> bool {
         let deadline = std::time::Instant::now() + timeout;
         let mut idle_turns = 0;
         while std::time::Instant::now() < deadline {
-            let idle = self.status().is_some_and(|s| s["idle"] == true);
-            idle_turns = if idle { idle_turns + 1 } else { 0 };
+            let Some(status) = self.status() else {
+                return false;
+            };
+            idle_turns = if status["idle"] == true {
+                idle_turns + 1
+            } else {
+                0
+            };
             if idle_turns == 2 {
                 return true;
             }

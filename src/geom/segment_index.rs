@@ -484,6 +484,29 @@ impl SegmentIndex {
         first
     }
 
+    /// How far `p` is from every cell outside the block of `ring` cells round cell
+    /// (`pc`, `pr`) (its columns `pc - ring ..= pc + ring`, its rows likewise): from the
+    /// block's edge on each side where the grid has cells beyond it; infinite when it
+    /// has none.
+    fn to_unvisited(&self, p: DVec2, pc: isize, pr: isize, ring: isize) -> f64 {
+        let (o, cell) = (self.origin, self.cell_mm);
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        let mut d = f64::INFINITY;
+        if pc - ring > 0 {
+            d = d.min(p.x - (o.x + (pc - ring) as f64 * cell));
+        }
+        if pc + ring + 1 < nx {
+            d = d.min(o.x + (pc + ring + 1) as f64 * cell - p.x);
+        }
+        if pr - ring > 0 {
+            d = d.min(p.y - (o.y + (pr - ring) as f64 * cell));
+        }
+        if pr + ring + 1 < ny {
+            d = d.min(o.y + (pr + ring + 1) as f64 * cell - p.y);
+        }
+        d.max(0.0)
+    }
+
     /// Distance from `p` to the nearest indexed segment (infinity when empty).
     pub fn distance(&self, p: DVec2) -> f64 {
         self.distance_skipping(p, |_| false)
@@ -554,31 +577,6 @@ impl SegmentIndex {
             }
         }
         best_k.map(|k| (best, k))
-    }
-}
-
-impl SegmentIndex {
-    /// How far `p` is from every cell outside the block of `ring` cells round cell
-    /// (`pc`, `pr`) (its columns `pc - ring ..= pc + ring`, its rows likewise): from the
-    /// block's edge on each side where the grid has cells beyond it; infinite when it
-    /// has none.
-    fn to_unvisited(&self, p: DVec2, pc: isize, pr: isize, ring: isize) -> f64 {
-        let (o, cell) = (self.origin, self.cell_mm);
-        let (nx, ny) = (self.nx as isize, self.ny as isize);
-        let mut d = f64::INFINITY;
-        if pc - ring > 0 {
-            d = d.min(p.x - (o.x + (pc - ring) as f64 * cell));
-        }
-        if pc + ring + 1 < nx {
-            d = d.min(o.x + (pc + ring + 1) as f64 * cell - p.x);
-        }
-        if pr - ring > 0 {
-            d = d.min(p.y - (o.y + (pr - ring) as f64 * cell));
-        }
-        if pr + ring + 1 < ny {
-            d = d.min(o.y + (pr + ring + 1) as f64 * cell - p.y);
-        }
-        d.max(0.0)
     }
 }
 
@@ -702,6 +700,22 @@ mod tests {
                 None,
             ),
         ];
+        // A limit that is no number or below zero, and a ray with no direction (a
+        // point: a hit where it is within reach, else none).
+        assert_eq!(
+            index.ray_hit(DVec2::new(1.0, 1.0), DVec2::X, f64::NAN),
+            None
+        );
+        assert_eq!(index.ray_hit(DVec2::new(1.0, 1.0), DVec2::X, -1.0), None);
+        assert_eq!(index.ray_hit(DVec2::new(1.0, 1.0), DVec2::ZERO, 5.0), None);
+        assert_eq!(
+            index.ray_hit(DVec2::new(2.0, 0.0), DVec2::ZERO, 5.0),
+            Some(0.0)
+        );
+        assert_eq!(
+            SegmentIndex::new(&[], &[]).ray_hit(DVec2::ZERO, DVec2::X, 5.0),
+            None
+        );
         for (origin, dir, limit, want) in cases {
             let got = index.ray_hit(origin, dir, limit);
             match (got, want) {
