@@ -80,11 +80,12 @@ use serde::{Deserialize, Serialize};
 
 /// Default of [`ProcessSettings::move_deviation_mm`]: the largest that keeps a part's
 /// coverage within 0.05 percentage points of one move per edge on the example jobs and
-/// 3DBenchy. PrusaSlicer's `gcode_resolution` (0.0125 mm) moved the paper annulus' void
-/// and overlap by 0.23 points each and Benchy's by 0.12 (neighbouring roads' chords cut
-/// their curves out of phase); 0.0025 mm moves them by 0.017 and 0.003, for 6 % more
-/// moves on Benchy (`docs/job-format.md`).
-pub const DEFAULT_MOVE_DEVIATION_MM: f64 = 0.0025;
+/// 3DBenchy, with merged edges in phase with their neighbours' and long edges leaning
+/// less (`toolpath::merge`). Merged one by one and leaning freely, 0.0025 mm was the
+/// largest (PrusaSlicer's `gcode_resolution`, 0.0125 mm, moved the paper annulus' void
+/// and overlap by 0.23 points each); in phase, 0.01 mm keeps every example within 0.045
+/// points and plans Benchy in 10 % fewer moves than 0.0025 did (`docs/job-format.md`).
+pub const DEFAULT_MOVE_DEVIATION_MM: f64 = 0.01;
 
 /// Default of [`ProcessSettings::move_width_tolerance`] (`docs/job-format.md`).
 pub const DEFAULT_MOVE_WIDTH_TOLERANCE: f64 = 0.1;
@@ -200,7 +201,7 @@ pub struct ProcessSettings {
     /// Consecutive edges of a road merge into one move where the merged edge stays
     /// within this of every vertex it drops and the width does not change
     /// (`toolpath::merge`), mm; 0 merges nothing. Set by the job's
-    /// `process.move_deviation`. Default 0.0025.
+    /// `process.move_deviation`. Default [`DEFAULT_MOVE_DEVIATION_MM`] (0.01).
     #[serde(skip)]
     pub move_deviation_mm: f64,
     /// How much the width may change within one merged move: the largest relative
@@ -961,17 +962,32 @@ impl<'a> Builder<'a> {
     }
 }
 
-/// The edges the layer's paths are built with: merged within `move_deviation_mm` and
+/// How far from a road, in road widths, the vertices of the roads merged before it are
+/// its stations (`toolpath::merge::Stations`): its neighbours', not the roads' beyond.
+const STATION_REACH_ROADS: f64 = 1.25;
+
+/// The edges the layer's paths are built with: merged within `move_deviation_mm` (edges
+/// longer than a road width leaning less; in phase with the roads merged before) and
 /// `move_width_tolerance` (`toolpath::merge`), then split where the mixing lead's commanded composition changes
 /// so that no move straddles such a change (a merged edge would blend the two
 /// compositions over its whole length).
 fn roads_as_moves(paths: &[ToolPath], s: &ProcessSettings, h_mm: f64) -> Vec<ToolPath> {
     let merge = toolpath::merge::MergeOptions::within(s.move_deviation_mm)
-        .with_width_tolerance(s.move_width_tolerance);
-    let mut merged: Vec<ToolPath> = paths
-        .iter()
-        .map(|p| toolpath::merge::merge_edges(p, &merge))
-        .collect();
+        .with_width_tolerance(s.move_width_tolerance)
+        .with_full_deviation_length(s.road_width());
+    // Each road ends its merged edges where it can at the feet of the vertices its
+    // neighbours kept, so neighbouring roads' chords cut their curves in phase.
+    let mut stations = toolpath::merge::Stations::new(STATION_REACH_ROADS * s.road_width());
+    let mut merged: Vec<ToolPath> = Vec::with_capacity(paths.len());
+    for p in paths {
+        if p.role.is_support() {
+            merged.push(toolpath::merge::merge_edges(p, &merge));
+            continue;
+        }
+        let m = toolpath::merge::merge_edges_in_phase(p, &merge, &stations);
+        stations.add(&m);
+        merged.push(m);
+    }
     let lead = s.v_dead_ul * 1000.0;
     if s.mixing_lead && lead > 0.0 {
         let mut at = lead_changes_nl(&merged, s, h_mm, lead);

@@ -22,6 +22,24 @@
 //! Either way a path's first vertex (its seam, or where it starts) and its last stay;
 //! the composition is one per path.
 //!
+//! A merged edge longer than [`MergeOptions::full_deviation_length_mm`] may leave its
+//! dropped vertices only `deviation × full length / its length` away: the sliver
+//! between a merged edge and the edges it replaces grows with its length, and a long
+//! straight run tilted by the full deviation (where it drops a corner vertex next to
+//! its end) would leave a sliver that long between its bead and its neighbour's. With
+//! the road width as that length, a long edge may lean only as far as a road-width
+//! edge could in area, while curves (whose chords are short) merge as far as the
+//! deviation allows.
+//!
+//! Roads merged one by one each keep vertices where their own chords run out of
+//! deviation, out of phase with their neighbours': where one road's chord cuts inside
+//! its curve its neighbour's vertex lies on its curve, and the gap between the beads
+//! opens by the deviation. [`merge_edges_in_phase`] draws a merged edge back to end at
+//! a station, the foot of a vertex a neighbour kept ([`Stations`]), where the edge sags
+//! (at least [`MergeOptions::station_min_sag`] of the deviation) and keeps at least
+//! [`MergeOptions::station_reach`] of its length, so neighbouring roads' chords span the
+//! same stretch of their curves and stay the same distance apart.
+//!
 //! Slicers do the same (PrusaSlicer's `resolution`, Cura's maximum deviation; Arachne
 //! walls carry width steps within a path): a firmware that plans every line it is sent
 //! moves as smoothly as its look-ahead over fewer lines allows.
@@ -45,6 +63,16 @@ pub struct MergeOptions {
     pub width_tolerance: f64,
     /// Most vertices one merged edge may drop (bounds the work on long straight runs).
     pub max_dropped: usize,
+    /// Merged edges up to this long may leave a dropped vertex `deviation_mm` away; a
+    /// longer one only `deviation_mm × full_deviation_length_mm / its length`, mm (0:
+    /// every edge the full deviation). See the module docs.
+    pub full_deviation_length_mm: f64,
+    /// A merged edge is drawn back to end at a station ([`Stations`]: the foot of a
+    /// vertex its neighbour kept) when that keeps at least this fraction of its length...
+    pub station_reach: f64,
+    /// ...and the edge sags at least this fraction of the deviation from the vertices
+    /// it drops (a straight run's phase does not matter).
+    pub station_min_sag: f64,
 }
 
 impl MergeOptions {
@@ -55,6 +83,28 @@ impl MergeOptions {
             width_factor_tolerance: 0.0005,
             width_tolerance: 0.0,
             max_dropped: 256,
+            full_deviation_length_mm: 0.0,
+            station_reach: 0.5,
+            station_min_sag: 0.5,
+        }
+    }
+
+    /// These options, merged edges longer than `length_mm` leaning less (see
+    /// [`MergeOptions::full_deviation_length_mm`]).
+    pub fn with_full_deviation_length(self, length_mm: f64) -> Self {
+        Self {
+            full_deviation_length_mm: length_mm,
+            ..self
+        }
+    }
+
+    /// How far a merged edge `length_mm` long may leave the vertices it drops, mm.
+    fn deviation_for(&self, length_mm: f64) -> f64 {
+        let full = self.full_deviation_length_mm;
+        if full > 0.0 && length_mm > full {
+            self.deviation_mm * full / length_mm
+        } else {
+            self.deviation_mm
         }
     }
 
@@ -69,6 +119,13 @@ impl MergeOptions {
 
 /// `p` with its edges merged as [`MergeOptions`] allow (see the module docs).
 pub fn merge_edges(p: &ToolPath, o: &MergeOptions) -> ToolPath {
+    merge_edges_in_phase(p, o, &Stations::new(0.0))
+}
+
+/// [`merge_edges`], the merged edges ending where possible at `stations`: the feet on
+/// `p` of the vertices its neighbouring roads kept, so neighbouring roads' chords cut
+/// their curves in phase (see [`Stations`]).
+pub fn merge_edges_in_phase(p: &ToolPath, o: &MergeOptions, stations: &Stations) -> ToolPath {
     let n = p.points.len();
     if o.deviation_mm <= 0.0 || n < 3 || p.width_factors.len() != n {
         return p.clone();
@@ -80,10 +137,15 @@ pub fn merge_edges(p: &ToolPath, o: &MergeOptions) -> ToolPath {
         points.push(p.points[0]);
         widths.push(p.width_factors[0]);
     }
+    let at_station = stations.insert_feet(&mut points, &mut widths);
+    let ends = ChordEnds {
+        o,
+        at_station: &at_station,
+    };
     if o.width_tolerance > 0.0 {
-        return merged_across_widths(p, &points, &widths, o);
+        return merged_across_widths(p, &points, &widths, &ends);
     }
-    let mut keep = kept_vertices(&points, |a, b| same_width(&widths, a, b, o), o);
+    let mut keep = ends.kept_vertices(&points, |a, b| same_width(&widths, a, b, o));
     let mut out = p.clone();
     if p.closed {
         keep.pop(); // the closing vertex is the first again
@@ -103,12 +165,12 @@ fn merged_across_widths(
     p: &ToolPath,
     points: &[DVec2],
     widths: &[f64],
-    o: &MergeOptions,
+    ends: &ChordEnds,
 ) -> ToolPath {
     let factors: Vec<f64> = widths.windows(2).map(|w| 0.5 * (w[0] + w[1])).collect();
     let lengths: Vec<f64> = points.windows(2).map(|e| e[0].distance(e[1])).collect();
-    let within = |a: usize, b: usize| width_spread_within(&factors, &lengths, a, b, o);
-    let keep = kept_vertices(points, within, o);
+    let within = |a: usize, b: usize| width_spread_within(&factors, &lengths, a, b, ends.o);
+    let keep = ends.kept_vertices(points, within);
     if p.closed && keep.len() < 4 {
         return p.clone(); // fewer than three corners left
     }
@@ -168,41 +230,259 @@ fn same_width(widths: &[f64], a: usize, b: usize, o: &MergeOptions) -> bool {
         .all(|&x| (x - w).abs() <= o.width_factor_tolerance)
 }
 
-/// Indices of the vertices of an open polyline that stay: the first, the last, and
-/// the end of each merged edge, greedily as far as each may reach (`widths_fit(a, b)`:
-/// whether the widths from vertex a to b may be one move's).
-fn kept_vertices(
-    points: &[DVec2],
-    widths_fit: impl Fn(usize, usize) -> bool,
-    o: &MergeOptions,
-) -> Vec<usize> {
-    let n = points.len();
-    let mut kept = vec![0];
-    let mut anchor = 0;
-    while anchor < n - 1 {
-        let mut end = anchor + 1;
-        while end + 1 < n
-            && end - anchor <= o.max_dropped
-            && widths_fit(anchor, end + 1)
-            && within_deviation(points, anchor, end + 1, o)
-        {
-            end += 1;
-        }
-        kept.push(end);
-        anchor = end;
-    }
-    kept
+/// Where merged edges may end: the options, and which vertices of the open polyline
+/// are stations (the feet of neighbouring roads' kept vertices).
+struct ChordEnds<'a> {
+    o: &'a MergeOptions,
+    at_station: &'a [bool],
 }
 
-/// Whether one edge from `a` to `b` stays within the deviation of the vertices between.
+impl ChordEnds<'_> {
+    /// Indices of the vertices of an open polyline that stay: the first, the last, and
+    /// the end of each merged edge, greedily as far as each may reach (`widths_fit(a,
+    /// b)`: whether the widths from vertex a to b may be one move's), then drawn back to
+    /// the last station on the way where that keeps at least
+    /// [`MergeOptions::station_reach`] of the edge.
+    fn kept_vertices(
+        &self,
+        points: &[DVec2],
+        widths_fit: impl Fn(usize, usize) -> bool,
+    ) -> Vec<usize> {
+        let o = self.o;
+        let n = points.len();
+        let mut kept = vec![0];
+        let mut anchor = 0;
+        while anchor < n - 1 {
+            let mut end = anchor + 1;
+            while end + 1 < n
+                && end - anchor <= o.max_dropped
+                && widths_fit(anchor, end + 1)
+                && within_deviation(points, anchor, end + 1, o)
+            {
+                end += 1;
+            }
+            end = self.drawn_back_to_station(points, anchor, end);
+            kept.push(end);
+            anchor = end;
+        }
+        kept
+    }
+
+    /// `end`, or the last station after `anchor` before it that keeps at least
+    /// `station_reach` of the edge's length (the road then turns where its neighbour
+    /// does; a station much shorter would only add moves).
+    fn drawn_back_to_station(&self, points: &[DVec2], anchor: usize, end: usize) -> usize {
+        if self.at_station.is_empty() || self.at_station[end] || end + 1 == points.len() {
+            return end;
+        }
+        // Where the edge is as good as straight its neighbour's phase does not matter
+        // (nothing sags between them): keep the longer edge.
+        let (pa, pb) = (points[anchor], points[end]);
+        let sag = points[anchor + 1..end]
+            .iter()
+            .map(|&q| point_segment_distance(q, pa, pb))
+            .fold(0.0, f64::max);
+        if sag < self.o.station_min_sag * self.o.deviation_mm {
+            return end;
+        }
+        let reach = points[anchor].distance(points[end]) * self.o.station_reach;
+        (anchor + 1..end)
+            .rev()
+            .find(|&k| self.at_station[k])
+            .filter(|&k| points[anchor].distance(points[k]) >= reach)
+            .unwrap_or(end)
+    }
+}
+
+/// The vertices neighbouring roads kept once merged, found by grid cell, so the next
+/// road merges in phase with them ([`merge_edges_in_phase`]): each vertex within
+/// `reach_mm` of a road's centreline has its foot (the nearest point of the road) made
+/// a station of that road, where the road's merged edges end when they can.
+///
+/// Roads merged one by one out of phase (each keeping vertices where its own chord
+/// runs out of deviation) leave slivers between them: where one road's chord cuts
+/// inside its curve by the deviation its neighbour's vertex lies on its curve, and the
+/// gap between the beads widens by the deviation. Ending both roads' edges at the same
+/// stations along the offset direction keeps the beads the same distance apart at
+/// every station, as parallel curves' chords between the same normals are parallel.
+#[derive(Clone, Debug, Default)]
+pub struct Stations {
+    reach_mm: f64,
+    cells: std::collections::HashMap<Cell, Vec<DVec2>>,
+}
+
+/// A grid cell of [`Stations`].
+type Cell = (i64, i64);
+
+/// Where a station's foot is on a polyline: its distance from the station, the edge and
+/// the fraction along it.
+#[derive(Clone, Copy)]
+struct Foot {
+    distance: f64,
+    edge: usize,
+    along: f64,
+}
+
+impl Stations {
+    /// No stations yet; vertices within `reach_mm` of a road become its stations (0:
+    /// none ever do).
+    pub fn new(reach_mm: f64) -> Self {
+        Self {
+            reach_mm: reach_mm.max(0.0),
+            cells: Default::default(),
+        }
+    }
+
+    fn cell_of(&self, p: DVec2) -> Cell {
+        (
+            (p.x / self.reach_mm).floor() as i64,
+            (p.y / self.reach_mm).floor() as i64,
+        )
+    }
+
+    /// The vertices of `p` (a road once merged) are stations of the roads after it.
+    pub fn add(&mut self, p: &ToolPath) {
+        if self.reach_mm <= 0.0 {
+            return;
+        }
+        for &q in &p.points {
+            if q.is_finite() {
+                let c = self.cell_of(q);
+                self.cells.entry(c).or_default().push(q);
+            }
+        }
+    }
+
+    /// Insert into the open polyline `points` (with its `widths`, interpolated) the
+    /// feet of the stations within reach, and say which vertices are stations. Empty
+    /// when there are none.
+    fn insert_feet(&self, points: &mut Vec<DVec2>, widths: &mut Vec<f64>) -> Vec<bool> {
+        let (at_vertex, mut on_edges) = self.feet_on(points);
+        if on_edges.is_empty() && !at_vertex.contains(&true) {
+            return Vec::new();
+        }
+        on_edges.sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        let (old_points, old_widths) = (std::mem::take(points), std::mem::take(widths));
+        let mut at_station = Vec::with_capacity(old_points.len() + on_edges.len());
+        let mut feet = on_edges.into_iter().peekable();
+        for (k, (&p, &w)) in old_points.iter().zip(&old_widths).enumerate() {
+            points.push(p);
+            widths.push(w);
+            at_station.push(at_vertex[k]);
+            while let Some((_, t)) = feet.next_if(|f| f.0 == k) {
+                let (q, wq) = (old_points[k + 1], old_widths[k + 1]);
+                let foot = p.lerp(q, t);
+                if points
+                    .last()
+                    .is_some_and(|l| l.distance(foot) > FOOT_AT_VERTEX_MM)
+                {
+                    points.push(foot);
+                    widths.push(w + (wq - w) * t);
+                    at_station.push(true);
+                }
+            }
+        }
+        at_station
+    }
+
+    /// The feet on the open polyline `points` of the stations within reach: at a
+    /// vertex (by index) or inside an edge (its index and the fraction along it), each
+    /// station's on the edge nearest it.
+    fn feet_on(&self, points: &[DVec2]) -> (Vec<bool>, Vec<(usize, f64)>) {
+        let mut at_vertex = vec![false; points.len()];
+        let mut on_edges = Vec::new();
+        if self.reach_mm <= 0.0 || self.cells.is_empty() {
+            return (at_vertex, on_edges);
+        }
+        // Each station's foot on its nearest edge, by the station's cell and index
+        // within it.
+        let mut nearest: std::collections::HashMap<(Cell, usize), Foot> = Default::default();
+        for (k, e) in points.windows(2).enumerate() {
+            self.feet_on_edge(k, e[0], e[1], &mut nearest);
+        }
+        for Foot { edge, along, .. } in nearest.into_values() {
+            let len = points[edge].distance(points[edge + 1]);
+            if along * len <= FOOT_AT_VERTEX_MM {
+                at_vertex[edge] = true;
+            } else if (1.0 - along) * len <= FOOT_AT_VERTEX_MM {
+                at_vertex[edge + 1] = true;
+            } else {
+                on_edges.push((edge, along));
+            }
+        }
+        (at_vertex, on_edges)
+    }
+
+    /// The feet on edge `k` (from `a` to `b`) of the stations within reach of it,
+    /// where nearer than their feet found so far. The edge is looked round a piece at
+    /// a time (pieces of four reaches), so a long one looks at the cells along it only.
+    fn feet_on_edge(
+        &self,
+        k: usize,
+        a: DVec2,
+        b: DVec2,
+        nearest: &mut std::collections::HashMap<(Cell, usize), Foot>,
+    ) {
+        let (ab, len) = (b - a, a.distance(b));
+        if !len.is_finite() {
+            return;
+        }
+        let len2 = len * len;
+        let pieces = (len / (4.0 * self.reach_mm)).ceil().max(1.0) as usize;
+        let reach = DVec2::splat(self.reach_mm);
+        for j in 0..pieces {
+            let (p0, p1) = (
+                a + ab * (j as f64 / pieces as f64),
+                a + ab * ((j + 1) as f64 / pieces as f64),
+            );
+            let (lo, hi) = (
+                self.cell_of(p0.min(p1) - reach),
+                self.cell_of(p0.max(p1) + reach),
+            );
+            for cell in (lo.0..=hi.0).flat_map(|cx| (lo.1..=hi.1).map(move |cy| (cx, cy))) {
+                let Some(qs) = self.cells.get(&cell) else {
+                    continue;
+                };
+                for (i, &q) in qs.iter().enumerate() {
+                    let along = if len2 > 0.0 {
+                        ((q - a).dot(ab) / len2).clamp(0.0, 1.0)
+                    } else {
+                        0.0
+                    };
+                    let distance = q.distance(a + ab * along);
+                    if distance > self.reach_mm {
+                        continue;
+                    }
+                    let foot = Foot {
+                        distance,
+                        edge: k,
+                        along,
+                    };
+                    let best = nearest.entry((cell, i)).or_insert(foot);
+                    if distance < best.distance {
+                        *best = foot;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A station's foot this close to a vertex is at the vertex, mm.
+const FOOT_AT_VERTEX_MM: f64 = 1e-4;
+
+/// Whether one edge from `a` to `b` stays within the deviation its length allows
+/// ([`MergeOptions::deviation_for`]) of the vertices between.
 fn within_deviation(points: &[DVec2], a: usize, b: usize, o: &MergeOptions) -> bool {
     let (pa, pb) = (points[a], points[b]);
-    if pa.distance(pb) <= 0.0 {
+    let length = pa.distance(pb);
+    if length <= 0.0 {
         return false;
     }
+    let deviation = o.deviation_for(length);
     points[a + 1..b]
         .iter()
-        .all(|&q| point_segment_distance(q, pa, pb) <= o.deviation_mm)
+        .all(|&q| point_segment_distance(q, pa, pb) <= deviation)
 }
 
 #[cfg(test)]
@@ -268,6 +548,105 @@ mod tests {
         let m = merge_edges(&p, &MergeOptions::within(0.0125));
         assert_eq!(m.points, vec![p.points[0], p.points[100]]);
         assert_eq!(m.width_factors, vec![1.0, 1.0]);
+    }
+
+    #[test]
+    fn a_long_run_keeps_the_corner_a_short_edge_may_drop() {
+        // A 10 mm run that turns 0.009 mm aside over its last 0.1 mm: dropping that
+        // corner tilts the whole run by the deviation (a sliver 10 mm long).
+        let run = vec![
+            DVec2::new(0.0, 0.0),
+            DVec2::new(10.0, 0.0),
+            DVec2::new(10.1, 0.009),
+        ];
+        let p = path(run, false);
+        let o = MergeOptions::within(0.01);
+        assert_eq!(
+            merge_edges(&p, &o).points.len(),
+            2,
+            "tilted by the deviation"
+        );
+        let lean = o.with_full_deviation_length(0.4);
+        assert_eq!(merge_edges(&p, &lean), p, "the run keeps its corner");
+        // A curve's short chords merge as far as without the bound: a circle of
+        // 5 mm radius has chords of 2·√(2·5·0.01) ≈ 0.63 mm, longer than 0.4 mm, so
+        // they lean less and there are more of them, but not many more.
+        let c = path(circle(5.0, 2000), true);
+        let (free, bound) = (merge_edges(&c, &o), merge_edges(&c, &lean));
+        assert!(within(&c, &bound, 0.01));
+        let (n_free, n_bound) = (free.points.len(), bound.points.len());
+        assert!(
+            n_bound > n_free && n_bound < 2 * n_free,
+            "{n_free} -> {n_bound}"
+        );
+        // A circle of 0.5 mm radius (chords ≈ 0.2 mm) merges the same.
+        let small = path(circle(0.5, 400), true);
+        assert_eq!(merge_edges(&small, &o), merge_edges(&small, &lean));
+    }
+
+    /// An open arc about the origin from angle 0 to `end_rad`, `n` edges, its vertices
+    /// turned by `phase` of one edge (so two arcs' vertices need not line up).
+    fn arc(r: f64, n: usize, end_rad: f64, phase: f64) -> Vec<DVec2> {
+        let step = end_rad / n as f64;
+        let mut pts = vec![DVec2::new(r, 0.0)];
+        pts.extend((0..n - 1).map(|k| DVec2::from_angle((k as f64 + 0.5 + phase) * step) * r));
+        pts.push(DVec2::from_angle(end_rad) * r);
+        pts
+    }
+
+    /// Where the ray from the origin at angle `t` crosses the polyline, its distance.
+    fn radius_at(pts: &[DVec2], t: f64) -> f64 {
+        let d = DVec2::from_angle(t);
+        pts.windows(2)
+            .find_map(|e| {
+                let (a, b) = (e[0], e[1]);
+                let den = d.perp_dot(b - a);
+                let s = d.perp_dot(a) / -den;
+                (den != 0.0 && (0.0..=1.0).contains(&s)).then(|| (a + (b - a) * s).length())
+            })
+            .unwrap_or(f64::NAN)
+    }
+
+    #[test]
+    fn neighbouring_roads_merge_in_phase() {
+        let o = MergeOptions::within(0.01);
+        let outer = merge_edges(&path(arc(5.0, 1000, 1.5, 0.0), false), &o);
+        let inner = path(arc(4.6, 777, 1.5, 0.37), false);
+        let mut stations = Stations::new(0.5);
+        stations.add(&outer);
+        let alone = merge_edges(&inner, &o);
+        let in_phase = merge_edges_in_phase(&inner, &o, &stations);
+        assert!(within(&inner, &in_phase, 0.01));
+        // The gap between the two roads' centrelines along every ray.
+        let spread = |m: &ToolPath| {
+            (1..300)
+                .map(|k| {
+                    let t = 1.5 * k as f64 / 300.0;
+                    (radius_at(&outer.points, t) - radius_at(&m.points, t) - 0.4).abs()
+                })
+                .fold(0.0f64, f64::max)
+        };
+        let (apart, together) = (spread(&alone), spread(&in_phase));
+        assert!(apart > 0.005, "out of phase: the gap varies by {apart}");
+        assert!(together < 0.002, "in phase: the gap varies by {together}");
+        // No more moves than merged alone, give or take one.
+        let (n_alone, n_phase) = (alone.points.len(), in_phase.points.len());
+        assert!(n_phase <= n_alone + 1, "{n_alone} -> {n_phase}");
+        // No stations: the same as merged alone.
+        assert_eq!(merge_edges_in_phase(&inner, &o, &Stations::new(0.5)), alone);
+    }
+
+    #[test]
+    fn a_straight_road_beside_a_curve_stays_one_move() {
+        let o = MergeOptions::within(0.01);
+        let curve = merge_edges(&path(arc(5.0, 1000, 1.5, 0.0), false), &o);
+        let mut stations = Stations::new(0.5);
+        stations.add(&curve);
+        // A chord of the curve 0.3 mm inside it, sampled finely.
+        let (a, b) = (DVec2::new(4.7, 0.0), DVec2::from_angle(1.5) * 4.7);
+        let pts: Vec<DVec2> = (0..=100).map(|k| a.lerp(b, k as f64 / 100.0)).collect();
+        let m = merge_edges_in_phase(&path(pts, false), &o, &stations);
+        assert_eq!(m.points, vec![a, b]);
     }
 
     #[test]
