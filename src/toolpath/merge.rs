@@ -275,22 +275,26 @@ impl ChordEnds<'_> {
         if self.at_station.is_empty() || self.at_station[end] || end + 1 == points.len() {
             return end;
         }
+        let (pa, pb) = (points[anchor], points[end]);
+        let reach = pa.distance(pb) * self.o.station_reach;
+        let Some(station) = (anchor + 1..end)
+            .rev()
+            .find(|&k| self.at_station[k])
+            .filter(|&k| pa.distance(points[k]) >= reach)
+        else {
+            return end;
+        };
         // Where the edge is as good as straight its neighbour's phase does not matter
         // (nothing sags between them): keep the longer edge.
-        let (pa, pb) = (points[anchor], points[end]);
         let sag = points[anchor + 1..end]
             .iter()
             .map(|&q| point_segment_distance(q, pa, pb))
             .fold(0.0, f64::max);
         if sag < self.o.station_min_sag * self.o.deviation_mm {
-            return end;
+            end
+        } else {
+            station
         }
-        let reach = points[anchor].distance(points[end]) * self.o.station_reach;
-        (anchor + 1..end)
-            .rev()
-            .find(|&k| self.at_station[k])
-            .filter(|&k| points[anchor].distance(points[k]) >= reach)
-            .unwrap_or(end)
     }
 }
 
@@ -345,11 +349,14 @@ impl Stations {
         if self.reach_mm <= 0.0 {
             return;
         }
+        // A width step repeats its vertex (`merged_across_widths`): one station.
+        let mut last = None;
         for &q in &p.points {
-            if q.is_finite() {
+            if q.is_finite() && last != Some(q) {
                 let c = self.cell_of(q);
                 self.cells.entry(c).or_default().push(q);
             }
+            last = Some(q);
         }
     }
 
@@ -634,6 +641,38 @@ mod tests {
         assert!(n_phase <= n_alone + 1, "{n_alone} -> {n_phase}");
         // No stations: the same as merged alone.
         assert_eq!(merge_edges_in_phase(&inner, &o, &Stations::new(0.5)), alone);
+    }
+
+    #[test]
+    fn stations_take_bad_reaches_and_points_without_harm() {
+        let o = MergeOptions::within(0.01);
+        let outer = merge_edges(&path(arc(5.0, 1000, 1.5, 0.0), false), &o);
+        let inner = path(arc(4.6, 777, 1.5, 0.37), false);
+        let alone = merge_edges(&inner, &o);
+        // A reach that is no number, negative or nothing: no stations at all.
+        for reach in [f64::NAN, -1.0, 0.0] {
+            let mut s = Stations::new(reach);
+            s.add(&outer);
+            assert_eq!(merge_edges_in_phase(&inner, &o, &s), alone, "{reach}");
+        }
+        // An endless reach: every vertex is in reach of every edge; still a merge
+        // within the deviation.
+        let mut s = Stations::new(f64::INFINITY);
+        s.add(&outer);
+        assert!(within(&inner, &merge_edges_in_phase(&inner, &o, &s), 0.01));
+        // A neighbour with vertices that are no numbers: those are no stations.
+        let mut bad = outer.clone();
+        bad.points[3] = DVec2::new(f64::NAN, 1.0);
+        bad.points[4] = DVec2::new(f64::INFINITY, 1.0);
+        let mut s = Stations::new(0.5);
+        s.add(&bad);
+        assert!(within(&inner, &merge_edges_in_phase(&inner, &o, &s), 0.01));
+        // A road with a vertex that is no number merges without a panic.
+        let mut broken = inner.clone();
+        broken.points[10] = DVec2::new(f64::NAN, f64::NAN);
+        let mut s = Stations::new(0.5);
+        s.add(&outer);
+        let _ = merge_edges_in_phase(&broken, &o, &s);
     }
 
     #[test]
